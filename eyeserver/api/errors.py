@@ -1,0 +1,91 @@
+"""The one place where eyeserver's exception tree becomes HTTP status codes.
+
+==========================  ======
+error                       status
+==========================  ======
+``StateConflictError``      409
+``DeviceTimeoutError``      504
+``DeviceValueError``        422
+other ``DeviceError``       503
+``NotBuiltError``           501
+``FormatError``             422
+``ConfigError``             422
+other ``EyeserverError``    500
+==========================  ======
+
+The body is always :class:`~eyeserver.api.schemas.ErrorResponse`, ``{"detail": "<reason>"}``.
+"""
+
+from __future__ import annotations
+
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse
+
+from eyeserver.api.schemas import ErrorResponse
+from eyeserver.errors import (
+    ConfigError,
+    DeviceError,
+    DeviceTimeoutError,
+    DeviceValueError,
+    EyeserverError,
+    FormatError,
+    NotBuiltError,
+    StateConflictError,
+)
+
+__all__ = ["install_error_handlers", "status_code_for"]
+
+_log = logging.getLogger(__name__)
+
+# First match wins, so subclasses come before their bases.
+_STATUS_BY_ERROR: tuple[tuple[type[EyeserverError], int], ...] = (
+    (StateConflictError, 409),
+    (DeviceTimeoutError, 504),
+    (DeviceValueError, 422),
+    (DeviceError, 503),
+    (NotBuiltError, 501),
+    (FormatError, 422),
+    (ConfigError, 422),
+)
+
+
+def status_code_for(error: EyeserverError) -> int:
+    """The HTTP status code that reports ``error`` (see the table in the module docstring)."""
+    for error_type, status_code in _STATUS_BY_ERROR:
+        if isinstance(error, error_type):
+            return status_code
+    return 500
+
+
+async def _eyeserver_error(request: Request, exc: Exception) -> JSONResponse:
+    # Starlette's handler signature takes any Exception; only EyeserverError is registered here.
+    assert isinstance(exc, EyeserverError)
+    status_code = status_code_for(exc)
+    _log.log(
+        logging.ERROR if status_code >= 500 else logging.INFO,
+        "request failed",
+        extra={
+            "method": request.method,
+            "path": request.url.path,
+            "status_code": status_code,
+            "error": type(exc).__name__,
+            "reason": str(exc),
+        },
+    )
+    body = ErrorResponse(detail=str(exc))
+    return JSONResponse(status_code=status_code, content=body.model_dump())
+
+
+async def _unexpected_error(request: Request, exc: Exception) -> JSONResponse:
+    # A bug, not a reported failure: the details go to the log (the server logs the traceback),
+    # the client only learns that it was not its fault.
+    body = ErrorResponse(detail="internal server error")
+    return JSONResponse(status_code=500, content=body.model_dump())
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Register the handlers that turn exceptions into JSON error responses on ``app``."""
+    app.add_exception_handler(EyeserverError, _eyeserver_error)
+    app.add_exception_handler(Exception, _unexpected_error)

@@ -1,0 +1,1 @@
+"""Stereo and phase-to-height calibration procedures over capture bundles."""

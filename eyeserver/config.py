@@ -1,0 +1,291 @@
+"""The daemon's settings: one TOML file plus ``EYESERVER_`` environment overrides.
+
+Sources, from lowest to highest priority:
+
+1. the defaults below, which need no file at all: the simulated room, the user's data directory
+   and ``127.0.0.1:8000``;
+2. the TOML configuration file given to :meth:`Settings.load` (``eyeserver serve --config FILE``),
+   with the keys of :class:`Settings` at its top level;
+3. environment variables named ``EYESERVER_`` + the key in upper case (``EYESERVER_DATA_DIR``,
+   ``EYESERVER_PORT``); nested keys, once there are any, join their parts with ``__``.
+   Variables with the prefix that name no key, and empty ones, are ignored;
+4. explicit overrides passed to :meth:`Settings.load`, i.e. the command-line flags
+   (``--host``, ``--port``).
+
+Relative paths in the TOML file are taken relative to the file's own directory, so a file can
+name a room file next to it; relative paths elsewhere are relative to the working directory.
+A leading ``~`` is expanded everywhere.
+
+Every problem (a missing or malformed file, an unknown key, a value of the wrong type) raises
+:class:`~eyeserver.errors.ConfigError` with a message that names where the value came from (the
+file, the environment variable or the override) and the key.
+"""
+
+from __future__ import annotations
+
+import os
+import tomllib
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from contextvars import ContextVar
+from pathlib import Path
+from typing import Any, Literal, Self
+
+import platformdirs
+from pydantic import Field, ValidationError, field_validator
+from pydantic_core import ErrorDetails
+from pydantic_settings import (
+    BaseSettings,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    SettingsError,
+    TomlConfigSettingsSource,
+)
+
+from eyeserver.errors import ConfigError
+
+__all__ = ["ENV_PREFIX", "LogLevel", "Settings"]
+
+#: Prefix of the environment variables that override settings.
+ENV_PREFIX = "EYESERVER_"
+
+LogLevel = Literal["critical", "error", "warning", "info", "debug"]
+
+# The configuration file of the ``load`` call in progress. ``settings_customise_sources`` is a
+# classmethod pydantic-settings calls without our arguments, so the file travels this way; a
+# context variable keeps concurrent loads (threads, tasks) apart.
+_config_file: ContextVar[Path | None] = ContextVar("eyeserver_config_file", default=None)
+
+# Keys holding paths; relative values in the TOML file are resolved against the file's directory.
+_PATH_KEYS = ("data_dir", "room_file")
+
+
+def _default_data_dir() -> Path:
+    # platformdirs only computes the path here (XDG_DATA_HOME on Linux); nothing is created.
+    return platformdirs.user_data_path("eyeserver", appauthor=False)
+
+
+class _ConfigFileSource(TomlConfigSettingsSource):
+    """The TOML file, with relative paths taken relative to the file's directory."""
+
+    # ``_read_file`` is pydantic-settings' per-file hook (not public API; the relative-path test
+    # in tests/test_config.py catches a change on upgrade).
+    def _read_file(self, file_path: Any) -> dict[str, Any]:
+        data = super()._read_file(file_path)
+        base = Path(file_path).parent
+        for key in _PATH_KEYS:
+            value = data.get(key)
+            if isinstance(value, str):
+                path = Path(value).expanduser()
+                if not path.is_absolute():
+                    data[key] = str(base / path)
+        return data
+
+
+class Settings(BaseSettings):
+    """Everything the daemon can be told before it starts.
+
+    Keys (TOML key = field name; environment variable = ``EYESERVER_`` + key in upper case):
+
+    ``data_dir``
+        Directory for the database, images, point clouds and calibrations. Default: the user's
+        data directory (``~/.local/share/eyeserver`` on Linux). Created on demand by
+        :meth:`ensure_data_dir`, never at import.
+    ``host``
+        Address the HTTP API listens on. Default ``127.0.0.1`` (this machine only).
+    ``port``
+        TCP port of the HTTP API. Default ``8000``.
+    ``room_file``
+        TOML file describing the simulated room to run on; unset means the built-in default room.
+    ``log_level``
+        One of ``critical``, ``error``, ``warning``, ``info``, ``debug``. Default ``info``.
+    ``log_json``
+        ``true`` for one JSON object per log line on stderr (default), ``false`` for plain text.
+
+    Build it with :meth:`load`; constructing ``Settings()`` directly reads only the defaults and
+    the environment.
+    """
+
+    model_config = SettingsConfigDict(
+        env_prefix=ENV_PREFIX,
+        env_nested_delimiter="__",
+        # ``EYESERVER_ROOM_FILE=`` (e.g. in a systemd unit) means "not set", not the path "".
+        env_ignore_empty=True,
+        # Unknown EYESERVER_* variables are ignored (other tools may define their own); unknown keys
+        # in the file or the overrides are rejected by ``load`` instead, since there a misspelt key
+        # must not pass silently.
+        extra="ignore",
+        validate_default=True,
+    )
+
+    data_dir: Path = Field(
+        default_factory=_default_data_dir,
+        description="Directory for the database, images, point clouds and calibrations "
+        "(default: the user's data directory). Created on demand.",
+    )
+    host: str = Field(
+        default="127.0.0.1",
+        min_length=1,
+        description="Address the HTTP API listens on.",
+    )
+    port: int = Field(
+        default=8000,
+        ge=1,
+        le=65535,
+        description="TCP port of the HTTP API.",
+    )
+    room_file: Path | None = Field(
+        default=None,
+        description="TOML file describing the simulated room; unset for the built-in default room.",
+    )
+    log_level: LogLevel = Field(
+        default="info",
+        description="Lowest level that is logged: critical, error, warning, info or debug.",
+    )
+    log_json: bool = Field(
+        default=True,
+        description="Log one JSON object per line on stderr (true) or plain text (false).",
+    )
+
+    @field_validator("data_dir", "room_file", mode="after")
+    @classmethod
+    def _expand_user(cls, value: Path | None) -> Path | None:
+        return None if value is None else value.expanduser()
+
+    @field_validator("log_level", mode="before")
+    @classmethod
+    def _lower_case_level(cls, value: object) -> object:
+        return value.lower() if isinstance(value, str) else value
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        """Order the sources: overrides > environment > TOML file > defaults.
+
+        Dotenv files and secret directories are not used.
+        """
+        return (
+            init_settings,
+            env_settings,
+            _ConfigFileSource(settings_cls, toml_file=_config_file.get()),
+        )
+
+    @classmethod
+    def load(cls, config_file: Path | None = None, **overrides: Any) -> Self:
+        """Read the settings from their sources.
+
+        Parameters
+        ----------
+        config_file
+            The TOML configuration file, or ``None`` for none. It must exist when given.
+        **overrides
+            Values that beat every other source (command-line flags). Overrides that are
+            ``None`` are ignored, so unset optional flags can be passed through as they are.
+
+        Raises
+        ------
+        ConfigError
+            The file is missing, unreadable or not TOML, or a key is unknown or has a bad value;
+            the message names the file or environment variable and the key.
+        """
+        given = {key: value for key, value in overrides.items() if value is not None}
+        known = ", ".join(cls.model_fields)
+        for key in given:
+            if key not in cls.model_fields:
+                raise ConfigError(f"override '{key}': unknown key (known keys: {known})")
+        file_data: dict[str, Any] = {}
+        if config_file is not None:
+            file_data = _read_toml(config_file)
+            for key in file_data:
+                if key not in cls.model_fields:
+                    raise ConfigError(
+                        f"{config_file}: key '{key}': unknown key (known keys: {known})"
+                    )
+        try:
+            with _loading(config_file):
+                return cls(**given)
+        except ValidationError as exc:
+            problems = "; ".join(
+                _describe_error(error, config_file, file_data, given) for error in exc.errors()
+            )
+            raise ConfigError(f"invalid configuration: {problems}") from exc
+        except SettingsError as exc:
+            # Raised for values pydantic-settings cannot even parse (e.g. JSON in an environment
+            # variable for a structured key); its message already names the field.
+            raise ConfigError(f"invalid configuration: {exc}") from exc
+
+    def ensure_data_dir(self) -> Path:
+        """Create :attr:`data_dir` (and its parents) if missing and return it.
+
+        Raises
+        ------
+        ConfigError
+            The directory cannot be created or the path exists but is not a directory.
+        """
+        try:
+            self.data_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(
+                f"data_dir {self.data_dir}: cannot create directory: {exc.strerror or exc}"
+            ) from exc
+        return self.data_dir
+
+
+@contextmanager
+def _loading(config_file: Path | None) -> Iterator[None]:
+    token = _config_file.set(config_file)
+    try:
+        yield
+    finally:
+        _config_file.reset(token)
+
+
+def _read_toml(config_file: Path) -> dict[str, Any]:
+    """Parse the file once up front, for error messages that name it and its keys."""
+    try:
+        with config_file.expanduser().open("rb") as stream:
+            return tomllib.load(stream)
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{config_file}: configuration file not found") from exc
+    except IsADirectoryError as exc:
+        raise ConfigError(f"{config_file}: is a directory, not a configuration file") from exc
+    except OSError as exc:
+        raise ConfigError(f"{config_file}: cannot read: {exc.strerror or exc}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{config_file}: not valid TOML: {exc}") from exc
+
+
+def _env_variable(key: str) -> str | None:
+    """The environment variable that sets top-level ``key``, if one is set."""
+    wanted = (ENV_PREFIX + key).lower()
+    for name in os.environ:
+        # Settings are matched case-insensitively, as pydantic-settings does by default.
+        if name.lower() == wanted or name.lower().startswith(wanted + "__"):
+            return name
+    return None
+
+
+def _describe_error(
+    error: ErrorDetails,
+    config_file: Path | None,
+    file_data: Mapping[str, Any],
+    overrides: Mapping[str, Any],
+) -> str:
+    location = [str(part) for part in error["loc"]]
+    key = ".".join(location) or "<settings>"
+    top = location[0] if location else ""
+    if top in overrides:
+        where = f"override '{key}'"
+    elif (variable := _env_variable(top)) is not None:
+        where = f"environment variable {variable}"
+    elif top in file_data:
+        where = f"{config_file}: key '{key}'"
+    else:
+        where = f"key '{key}'"
+    return f"{where}: {error['msg']} (got {error['input']!r})"

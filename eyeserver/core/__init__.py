@@ -1,0 +1,1 @@
+"""Small shared value types; imports nothing else of eyeserver."""

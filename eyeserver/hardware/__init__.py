@@ -1,0 +1,1 @@
+"""Device interfaces, the driver registry, rigs and drivers (real and simulated)."""

@@ -1,0 +1,304 @@
+"""Narrow device interfaces: cameras, projectors (light sources) and the trigger/strobe controller.
+
+Every driver, real or simulated, implements one of these ABCs. Ranges are checked here, once, in
+the concrete ``set_*`` methods, which then call the driver's ``_apply_*`` hook; drivers therefore
+never see an out-of-range value. Units are in the names (``exposure_us``, ``gain_db``) or stated.
+
+Acquisition is triggered and synchronous: the :class:`Trigger` fires a pulse (one step of its
+lighting sequence), which strobes the projectors of that step and exposes the cameras of that
+step; each exposed camera then returns the image from :meth:`Camera.read_frame`.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from eyeserver.core.frames import Frame, is_valid_id
+from eyeserver.errors import DeviceNotOpenError, DeviceValueError
+
+
+class Device(abc.ABC):
+    """Something with an id that is opened before use and closed after."""
+
+    kind: str = "device"
+
+    def __init__(self, device_id: str) -> None:
+        if not is_valid_id(device_id):
+            raise ValueError(f"device id {device_id!r} must be letters, digits, '-' or '_'")
+        self.id = device_id
+        self._open = False
+
+    @property
+    def is_open(self) -> bool:
+        """Whether :meth:`open` succeeded and :meth:`close` has not been called since."""
+        return self._open
+
+    def open(self) -> None:
+        """Connect to the device. Idempotent."""
+        if not self._open:
+            self._do_open()
+            self._open = True
+
+    def close(self) -> None:
+        """Release the device. Idempotent; never raises for an already closed device."""
+        if self._open:
+            try:
+                self._do_close()
+            finally:
+                self._open = False
+
+    def _require_open(self) -> None:
+        if not self._open:
+            raise DeviceNotOpenError(self.id, f"{self.kind} is not open")
+
+    @abc.abstractmethod
+    def _do_open(self) -> None: ...
+
+    @abc.abstractmethod
+    def _do_close(self) -> None: ...
+
+    def describe(self) -> dict[str, object]:
+        """Driver name, kind and current settings, for status pages."""
+        return {"id": self.id, "kind": self.kind, "driver": type(self).__name__,
+                "open": self.is_open}
+
+
+def _check_range(device_id: str, name: str, value: float, low: float, high: float) -> float:
+    if not (low <= value <= high):
+        raise DeviceValueError(device_id, f"{name}={value} outside [{low}, {high}]")
+    return float(value)
+
+
+class Camera(Device):
+    """A triggered area camera.
+
+    Subclasses set ``width``, ``height``, ``bit_depth`` and the ranges, and implement the hooks.
+    """
+
+    kind = "camera"
+    exposure_range_us: tuple[float, float] = (10.0, 40_000.0)
+    gain_range_db: tuple[float, float] = (0.0, 24.0)
+
+    def __init__(self, device_id: str, width: int, height: int, bit_depth: int = 8) -> None:
+        super().__init__(device_id)
+        if bit_depth not in (8, 10, 12):
+            raise ValueError(f"bit_depth must be 8, 10 or 12, not {bit_depth}")
+        if width <= 0 or height <= 0:
+            raise ValueError(f"image size must be positive, not {width}x{height}")
+        self.width = int(width)
+        self.height = int(height)
+        self.bit_depth = int(bit_depth)
+        self._exposure_us = 10_000.0
+        self._gain_db = 0.0
+
+    @property
+    def exposure_us(self) -> float:
+        """Exposure time in microseconds."""
+        return self._exposure_us
+
+    def set_exposure_us(self, value: float) -> None:
+        """Set the exposure time; raises :class:`DeviceValueError` outside the camera's range."""
+        self._require_open()
+        value = _check_range(self.id, "exposure_us", value, *self.exposure_range_us)
+        self._apply_exposure_us(value)
+        self._exposure_us = value
+
+    @property
+    def gain_db(self) -> float:
+        """Analogue gain in decibels (0 dB = unity)."""
+        return self._gain_db
+
+    def set_gain_db(self, value: float) -> None:
+        """Set the analogue gain; raises :class:`DeviceValueError` outside the camera's range."""
+        self._require_open()
+        value = _check_range(self.id, "gain_db", value, *self.gain_range_db)
+        self._apply_gain_db(value)
+        self._gain_db = value
+
+    def read_frame(self, timeout_s: float = 1.0) -> Frame:
+        """Wait for the next triggered exposure and return it.
+
+        Raises :class:`~eyeserver.errors.DeviceTimeoutError` when no trigger arrives or the
+        camera does not deliver within ``timeout_s``, and
+        :class:`~eyeserver.errors.DeviceDisconnectedError` when the camera went away.
+        """
+        self._require_open()
+        if timeout_s <= 0:
+            raise ValueError(f"timeout_s must be positive, not {timeout_s}")
+        return self._read_frame(timeout_s)
+
+    @abc.abstractmethod
+    def _apply_exposure_us(self, value: float) -> None: ...
+
+    @abc.abstractmethod
+    def _apply_gain_db(self, value: float) -> None: ...
+
+    @abc.abstractmethod
+    def _read_frame(self, timeout_s: float) -> Frame: ...
+
+    def describe(self) -> dict[str, object]:
+        return {**super().describe(), "width": self.width, "height": self.height,
+                "bit_depth": self.bit_depth, "exposure_us": self.exposure_us,
+                "gain_db": self.gain_db}
+
+
+class Projector(Device):
+    """A light source that projects the fringe pattern (an LED behind a Ronchi grating).
+
+    ``enabled`` says whether it may light at all; ``strobe`` decides whether it lights only during
+    exposures the trigger assigns to it (the normal, interleaved mode) or continuously.
+    """
+
+    kind = "projector"
+
+    def __init__(self, device_id: str) -> None:
+        super().__init__(device_id)
+        self._enabled = True
+        self._intensity = 1.0
+        self._strobe = True
+
+    @property
+    def enabled(self) -> bool:
+        """Whether the source may light."""
+        return self._enabled
+
+    def set_enabled(self, value: bool) -> None:
+        """Switch the source on (``True``) or off."""
+        self._require_open()
+        self._apply_enabled(bool(value))
+        self._enabled = bool(value)
+
+    @property
+    def intensity(self) -> float:
+        """Relative drive level, 0 (dark) to 1 (full current)."""
+        return self._intensity
+
+    def set_intensity(self, value: float) -> None:
+        """Set the relative drive level in [0, 1]."""
+        self._require_open()
+        value = _check_range(self.id, "intensity", value, 0.0, 1.0)
+        self._apply_intensity(value)
+        self._intensity = value
+
+    @property
+    def strobe(self) -> bool:
+        """True: lit only on the trigger's pulses that name it; False: lit continuously."""
+        return self._strobe
+
+    def set_strobe(self, value: bool) -> None:
+        """Choose strobed (``True``) or continuous (``False``) lighting."""
+        self._require_open()
+        self._apply_strobe(bool(value))
+        self._strobe = bool(value)
+
+    @abc.abstractmethod
+    def _apply_enabled(self, value: bool) -> None: ...
+
+    @abc.abstractmethod
+    def _apply_intensity(self, value: float) -> None: ...
+
+    @abc.abstractmethod
+    def _apply_strobe(self, value: bool) -> None: ...
+
+    def describe(self) -> dict[str, object]:
+        return {**super().describe(), "enabled": self.enabled, "intensity": self.intensity,
+                "strobe": self.strobe}
+
+
+@dataclass(frozen=True)
+class TriggerStep:
+    """One pulse of the trigger's sequence: which projectors light, which cameras expose."""
+
+    projectors: tuple[str, ...]
+    cameras: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class TriggerPulse:
+    """A pulse that was fired.
+
+    ``index`` counts the trigger's pulses since ``open()``; ``t_ns`` is when it fired, i.e. the
+    start of the exposures it triggers (each camera adds half its own exposure for the frame's
+    mid-exposure time); ``step`` says what it lit and exposed.
+    """
+
+    index: int
+    t_ns: int
+    step: TriggerStep
+
+
+class Trigger(Device):
+    """The trigger/strobe controller that times exposures and lights projectors.
+
+    The sequence is a list of :class:`TriggerStep`; the ``n``-th pulse after
+    :meth:`set_sequence` uses step ``n % len(sequence)`` (setting a sequence restarts it), so
+    ``[left, right]`` interleaves the two units frame by frame.
+    """
+
+    kind = "trigger"
+    rate_range_hz: tuple[float, float] = (0.1, 100.0)
+
+    def __init__(self, device_id: str) -> None:
+        super().__init__(device_id)
+        self._rate_hz = 25.0
+        self._sequence: tuple[TriggerStep, ...] = ()
+
+    @property
+    def rate_hz(self) -> float:
+        """Pulse rate in free-running mode, hertz."""
+        return self._rate_hz
+
+    def set_rate_hz(self, value: float) -> None:
+        """Set the free-running pulse rate in hertz."""
+        self._require_open()
+        value = _check_range(self.id, "rate_hz", value, *self.rate_range_hz)
+        self._apply_rate_hz(value)
+        self._rate_hz = value
+
+    @property
+    def sequence(self) -> tuple[TriggerStep, ...]:
+        """The lighting/exposure sequence the pulses cycle through."""
+        return self._sequence
+
+    def set_sequence(self, steps: Sequence[TriggerStep]) -> None:
+        """Set the sequence and restart it at its first step; every step must expose a camera."""
+        self._require_open()
+        steps = tuple(steps)
+        if not steps:
+            raise DeviceValueError(self.id, "the trigger sequence needs at least one step")
+        for n, step in enumerate(steps):
+            if not step.cameras:
+                raise DeviceValueError(self.id, f"sequence step {n} exposes no camera")
+        self._apply_sequence(steps)
+        self._sequence = steps
+
+    def fire(self) -> TriggerPulse:
+        """Fire one software trigger pulse (the next step of the sequence) and return it."""
+        self._require_open()
+        if not self._sequence:
+            raise DeviceValueError(self.id, "no sequence set; call set_sequence() first")
+        return self._fire()
+
+    @abc.abstractmethod
+    def _apply_rate_hz(self, value: float) -> None: ...
+
+    @abc.abstractmethod
+    def _apply_sequence(self, steps: tuple[TriggerStep, ...]) -> None: ...
+
+    @abc.abstractmethod
+    def _fire(self) -> TriggerPulse: ...
+
+    @abc.abstractmethod
+    def start(self) -> None:
+        """Fire pulses continuously at :attr:`rate_hz` until :meth:`stop`."""
+
+    @abc.abstractmethod
+    def stop(self) -> None:
+        """Stop free-running pulses. Idempotent."""
+
+    def describe(self) -> dict[str, object]:
+        return {**super().describe(), "rate_hz": self.rate_hz,
+                "sequence": [{"projectors": list(s.projectors), "cameras": list(s.cameras)}
+                             for s in self.sequence]}

@@ -1,0 +1,1 @@
+"""The simulated treatment room: the project's default hardware and its test bed."""

@@ -1,0 +1,374 @@
+"""The simulated room's scenes, described by a JSON-able :class:`SceneSpec`.
+
+A spec says what stands in front of the cameras and where; :func:`build_scene` turns it into ray
+casting geometry at a given time (only the patient eye moves), and :func:`scene_truth` gives the
+ground truth a test or bench compares against. Every scene is built in a local frame (its base on
+z = 0, facing +z, i.e. towards the cameras) and placed by ``position_mm`` and ``rotation_deg``
+(``Rz·Ry·Rx``, local → world).
+
+Reflectances are relative to the white calibration plate (albedo 1), whose fringe contrast the
+room file sets; sclera-like surfaces are 0.42 of it (≈ 25 DN of fringe, DESIGN §3).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from eyeserver.hardware.sim.geometry import (
+    AlbedoFn,
+    Body,
+    Cone,
+    ConvexPolyhedron,
+    Plane,
+    Scene,
+    Sphere,
+    constant_albedo,
+    pose_matrix,
+)
+from eyeserver.hardware.sim.motion import EyeMotion, MotionSpec
+
+F64 = npt.NDArray[np.float64]
+Vec3 = tuple[float, float, float]
+
+SceneKind = Literal["empty", "chessboard", "plate", "reference", "pyramid", "wedge",
+                    "eye_phantom_1", "eye_phantom_2", "eye"]
+SCENE_KINDS: tuple[str, ...] = ("empty", "chessboard", "plate", "reference", "pyramid", "wedge",
+                                "eye_phantom_1", "eye_phantom_2", "eye")
+
+WHITE = 1.0
+PHANTOM_WHITE = 0.8
+SCLERA = 0.42
+SKIN = 0.55
+CORNEA = 0.06  # transparent: what comes back is the dark iris behind it, a weak fringe
+IRIS_PAINT = 0.12
+PUPIL_PAINT = 0.03
+FIDUCIAL_PAINT = 0.06
+BOARD_WHITE = 0.9
+BOARD_BLACK = 0.04
+
+_DEFAULT_POSITION: dict[str, Vec3] = {
+    "reference": (0.0, 0.0, 10.0),
+    "pyramid": (0.0, 0.0, -6.0),
+    "wedge": (0.0, 0.0, -5.0),
+    "eye_phantom_1": (0.0, 0.0, -10.0),
+    "eye_phantom_2": (0.0, 0.0, -10.0),
+    "eye": (0.0, 0.0, -10.0),
+}
+
+
+class EyeSpec(BaseModel):
+    """The patient eye's anatomy and where it looks."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    globe_radius_mm: Annotated[float, Field(gt=5, lt=20)] = 12.0
+    cornea_radius_mm: Annotated[float, Field(gt=4, lt=15)] = 7.8
+    limbus_diameter_mm: Annotated[float, Field(gt=6, lt=16)] = 11.7
+    gaze_deg: tuple[float, float] = Field(
+        (0.0, 0.0), description="(yaw towards +X, pitch towards +Y) of the gaze, degrees")
+    aperture_mm: tuple[float, float] = Field(
+        (11.0, 7.5), description="half-width and half-height of the lid opening (retractors)")
+    lid_gap_mm: Annotated[float, Field(gt=0)] = 1.2
+    motion: MotionSpec | None = None
+
+    @model_validator(mode="after")
+    def _limbus_fits(self) -> EyeSpec:
+        half = self.limbus_diameter_mm / 2
+        if half >= min(self.globe_radius_mm, self.cornea_radius_mm):
+            raise ValueError("the limbus must be narrower than both the globe and the cornea")
+        return self
+
+
+class SceneSpec(BaseModel):
+    """What stands in the room: a scene kind, its pose and its parameters."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kind: SceneKind = "empty"
+    position_mm: Vec3 | None = Field(None, description="None: the kind's default position")
+    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+    cols: Annotated[int, Field(ge=2)] = 9
+    rows: Annotated[int, Field(ge=2)] = 6
+    square_mm: Annotated[float, Field(gt=0)] = 4.5
+    eye: EyeSpec = EyeSpec()
+
+    @model_validator(mode="after")
+    def _board_orientable(self) -> SceneSpec:
+        if self.kind == "chessboard" and (self.cols + self.rows) % 2 == 0:
+            raise ValueError("one of cols and rows must be odd and the other even (FORMATS.md)")
+        return self
+
+    @property
+    def position(self) -> Vec3:
+        """The position in use (explicit, or the kind's default)."""
+        if self.position_mm is not None:
+            return self.position_mm
+        return _DEFAULT_POSITION.get(self.kind, (0.0, 0.0, 0.0))
+
+    @property
+    def moving(self) -> bool:
+        """Whether the scene changes with time."""
+        return self.kind == "eye" and self.eye.motion is not None
+
+
+# --- textures -----------------------------------------------------------------------------------
+
+
+def chessboard_albedo(cols: int, rows: int, square: float) -> AlbedoFn:
+    """FORMATS.md's board: the outer square at local (−x, +y) is black; one square of white margin.
+
+    Square (a, b) counted from that corner along +x and −y is black when ``a + b`` is even.
+    """
+    x0 = -(cols + 1) / 2 * square
+    y0 = (rows + 1) / 2 * square
+
+    def albedo(points: F64) -> F64:
+        a = np.floor((points[:, 0] - x0) / square)
+        b = np.floor((y0 - points[:, 1]) / square)
+        on_grid = (a >= 0) & (a <= cols) & (b >= 0) & (b <= rows)
+        black = on_grid & ((a + b) % 2 == 0)
+        return np.where(black, BOARD_BLACK, BOARD_WHITE)
+    return albedo
+
+
+def dotted_albedo(base: AlbedoFn, dots_local: F64, radius: float) -> AlbedoFn:
+    """``base`` with dark round fiducial dots of ``radius`` mm centred at ``dots_local``."""
+    def albedo(points: F64) -> F64:
+        out = base(points)
+        if len(dots_local):
+            d2 = ((points[:, None, :] - dots_local[None, :, :]) ** 2).sum(axis=2)
+            out = np.where((d2 <= radius**2).any(axis=1), FIDUCIAL_PAINT, out)
+        return out
+    return albedo
+
+
+def painted_eye_albedo(centre: F64, axis: F64, radius: float, iris_half_angle: float,
+                       pupil_half_angle: float) -> AlbedoFn:
+    """A white phantom sphere with an iris and pupil painted about ``axis``."""
+    def albedo(points: F64) -> F64:
+        cos_angle = ((points - centre) @ axis) / radius
+        out = np.full(points.shape[0], PHANTOM_WHITE)
+        out = np.where(cos_angle >= math.cos(iris_half_angle), IRIS_PAINT, out)
+        return np.where(cos_angle >= math.cos(pupil_half_angle), PUPIL_PAINT, out)
+    return albedo
+
+
+# --- builders -----------------------------------------------------------------------------------
+
+FIDUCIAL_RADIUS_MM = 0.5
+
+
+@dataclass
+class BuiltScene:
+    """Geometry at one instant plus the truth that goes with it."""
+
+    scene: Scene
+    fiducials_mm: F64
+    eye: dict[str, Any] | None
+
+
+def _sphere_points(centre: F64, radius: float, polar_deg: list[float], count: int,
+                   phase_deg: float = 0.0) -> F64:
+    pts = []
+    for polar in polar_deg:
+        for k in range(count):
+            az = math.radians(phase_deg + 360.0 * k / count)
+            p = math.radians(polar)
+            pts.append(centre + radius * np.array([math.sin(p) * math.cos(az),
+                                                   math.sin(p) * math.sin(az), math.cos(p)]))
+    return np.array(pts)
+
+
+def _base_plate_dots() -> F64:
+    return np.array([[x, y, 0.0] for x in (-22.0, 22.0) for y in (-18.0, 18.0)])
+
+
+def _gaze_vector(yaw_deg: float, pitch_deg: float) -> F64:
+    yaw, pitch = math.radians(yaw_deg), math.radians(pitch_deg)
+    return np.array([math.sin(yaw) * math.cos(pitch), math.sin(pitch),
+                     math.cos(yaw) * math.cos(pitch)])
+
+
+def _eye_geometry(eye: EyeSpec) -> tuple[float, float]:
+    """Distances from the globe centre to the limbus plane and to the cornea's centre."""
+    half = eye.limbus_diameter_mm / 2
+    limbus_depth = math.sqrt(eye.globe_radius_mm**2 - half**2)
+    cornea_offset = limbus_depth - math.sqrt(eye.cornea_radius_mm**2 - half**2)
+    return limbus_depth, cornea_offset
+
+
+def _build_local(spec: SceneSpec, t_s: float) -> tuple[list[Body], F64, dict[str, Any] | None]:
+    """Bodies in the scene's local frame, local fiducials, and the eye's local truth."""
+    kind = spec.kind
+    plate_white = constant_albedo(WHITE)
+    if kind == "empty":
+        return [], np.zeros((0, 3)), None
+    if kind == "chessboard":
+        margin = 1.0 + 1.0  # half a grid's outer squares plus one square of white margin
+        half = ((spec.cols - 1) / 2 + margin) * spec.square_mm, \
+            ((spec.rows - 1) / 2 + margin) * spec.square_mm
+        board = Plane(chessboard_albedo(spec.cols, spec.rows, spec.square_mm), "chessboard",
+                      half_size=half)
+        return [Body([board])], np.zeros((0, 3)), None
+    if kind == "plate":
+        return [Body([Plane(plate_white, "plate", radius=45.0)])], np.zeros((0, 3)), None
+    if kind == "reference":
+        return [Body([Plane(plate_white, "reference", half_size=(100.0, 100.0))])], \
+            np.zeros((0, 3)), None
+
+    base_dots = _base_plate_dots()
+    if kind == "pyramid":
+        radius, height = 15.0, 12.0
+        cone_dots = []
+        for frac, count, phase in ((0.35, 6, 0.0), (0.7, 4, 45.0)):
+            z = frac * height
+            rho = radius * (1 - frac)
+            for k in range(count):
+                az = math.radians(phase + 360.0 * k / count)
+                cone_dots.append([rho * math.cos(az), rho * math.sin(az), z])
+        dots = np.array(cone_dots)
+        cone = Cone(radius, height, dotted_albedo(constant_albedo(PHANTOM_WHITE), dots,
+                                                  FIDUCIAL_RADIUS_MM), "pyramid")
+        base = Plane(dotted_albedo(constant_albedo(PHANTOM_WHITE), base_dots, FIDUCIAL_RADIUS_MM),
+                     "base", half_size=(30.0, 25.0))
+        return [Body([cone, base])], np.vstack([dots, base_dots]), None
+    if kind == "wedge":
+        half_w, height, half_l = 10.0, 10.0, 15.0
+        normals = np.array([[0, 0, -1], [0, 1, 0], [0, -1, 0], [-height, 0, half_w],
+                            [height, 0, half_w]], dtype=np.float64)
+        offsets = np.array([0, half_l, half_l, height * half_w, height * half_w],
+                           dtype=np.float64)
+        wedge_dots = np.array([[side * half_w * (1 - frac), y, height * frac]
+                               for side in (-1.0, 1.0) for frac in (0.3, 0.65)
+                               for y in (-9.0, 0.0, 9.0)])
+        wedge = ConvexPolyhedron(normals, offsets, dotted_albedo(
+            constant_albedo(PHANTOM_WHITE), wedge_dots, FIDUCIAL_RADIUS_MM), "wedge")
+        base = Plane(dotted_albedo(constant_albedo(PHANTOM_WHITE), base_dots, FIDUCIAL_RADIUS_MM),
+                     "base", half_size=(30.0, 25.0))
+        return [Body([wedge, base])], np.vstack([wedge_dots, base_dots]), None
+    if kind in ("eye_phantom_1", "eye_phantom_2"):
+        # Phantom 1: a 12 mm ball with a painted iris. Phantom 2: population-mean sclera
+        # (13.35 mm) with a corneal cap (8.54 mm), the shape an eye profiler reports.
+        centre = np.zeros(3)
+        axis = np.array([0.0, 0.0, 1.0])
+        radius = 12.0 if kind == "eye_phantom_1" else 13.35
+        dots = _sphere_points(centre, radius, [42.0, 60.0], 8, 22.5)
+        iris_half = math.asin(5.85 / radius)
+        pupil_half = math.asin(2.0 / radius)
+        ball_albedo = dotted_albedo(painted_eye_albedo(centre, axis, radius, iris_half,
+                                                       pupil_half), dots, FIDUCIAL_RADIUS_MM)
+        surfaces: list[Any] = [Sphere(centre, radius, ball_albedo, "phantom")]
+        truth: dict[str, Any] = {"centre_local": centre, "gaze_local": axis,
+                                 "globe_radius_mm": radius}
+        if kind == "eye_phantom_2":
+            limbus_half = 5.85
+            cornea_r = 8.54
+            offset = (math.sqrt(radius**2 - limbus_half**2)
+                      - math.sqrt(cornea_r**2 - limbus_half**2))
+            cornea_centre = centre + offset * axis
+            surfaces.append(Sphere(cornea_centre, cornea_r, painted_eye_albedo(
+                cornea_centre, axis, cornea_r, math.pi, math.asin(2.0 / cornea_r)), "phantom"))
+            truth["cornea_radius_mm"] = cornea_r
+        base = Plane(dotted_albedo(constant_albedo(PHANTOM_WHITE), base_dots, FIDUCIAL_RADIUS_MM),
+                     "base", half_size=(30.0, 25.0))
+        return [Body(surfaces), Body([base])], np.vstack([dots, base_dots]), truth
+    # The patient eye: globe and corneal cap rotating about the globe centre, lids and face fixed
+    # to the head. The local origin is the globe centre at rest.
+    eye = spec.eye
+    motion = EyeMotion(eye.motion).state(t_s) if eye.motion is not None else None
+    yaw, pitch = eye.gaze_deg
+    head = np.zeros(3)
+    openness = 1.0
+    if motion is not None:
+        yaw += motion.gaze_offset_deg[0]
+        pitch += motion.gaze_offset_deg[1]
+        head = np.asarray(motion.head_offset_mm, dtype=np.float64)
+        openness = motion.openness
+    gaze = _gaze_vector(yaw, pitch)
+    limbus_depth, cornea_offset = _eye_geometry(eye)
+    centre = head.copy()
+    globe = Sphere(centre, eye.globe_radius_mm, constant_albedo(SCLERA), "sclera")
+    cornea = Sphere(centre + cornea_offset * gaze, eye.cornea_radius_mm,
+                    constant_albedo(CORNEA), "cornea")
+    # Lids: a shell lid_gap outside the globe with the palpebral opening cut out; the opening's
+    # height follows the blink. Face: a plane in front of the orbit's rim with a round hole.
+    lid_radius = eye.globe_radius_mm + eye.lid_gap_mm
+    half_w, half_h = eye.aperture_mm
+    half_h_now = max(half_h * openness, 1e-3)
+    face_z = 0.5 * eye.globe_radius_mm
+    lids = _LidShell(head, lid_radius, half_w, half_h_now, constant_albedo(SKIN), "lids")
+    face_hole = math.sqrt(max(lid_radius**2 - face_z**2, 1.0)) - 0.2
+    face_plane = Plane(constant_albedo(SKIN), "skin", half_size=(60.0, 60.0),
+                       hole=(0.0, 0.0, face_hole))
+    face = Body([face_plane], t=head + np.array([0.0, 0.0, face_z]))
+    eye_truth = {"centre_local": centre, "gaze_local": gaze,
+                 "limbus_centre_local": centre + limbus_depth * gaze,
+                 "globe_radius_mm": eye.globe_radius_mm,
+                 "cornea_radius_mm": eye.cornea_radius_mm, "openness": openness,
+                 "gaze_deg_local": (yaw, pitch)}
+    return [Body([globe, cornea]), Body([lids]), face], np.zeros((0, 3)), eye_truth
+
+
+class _LidShell(Sphere):
+    """The front of a sphere around the globe, present only outside the elliptical opening."""
+
+    def __init__(self, centre: F64, radius: float, half_w: float, half_h: float,
+                 albedo: AlbedoFn, label: str) -> None:
+        super().__init__(centre, radius, albedo, label)
+        self.half_w = half_w
+        self.half_h = half_h
+
+    def intersect(self, o: F64, d: F64) -> tuple[F64, F64]:
+        t, normals = super().intersect(o, d)
+        points = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+        rel = points - self.centre
+        in_opening = (rel[:, 0] / self.half_w) ** 2 + (rel[:, 1] / self.half_h) ** 2 < 1.0
+        behind = rel[:, 2] < 0  # only the front half forms lids; the back is inside the head
+        miss = in_opening | behind
+        t = np.where(miss, np.inf, t)
+        normals[miss] = 0.0
+        return t, normals
+
+
+def build_scene(spec: SceneSpec, t_s: float = 0.0) -> BuiltScene:
+    """Ray-casting geometry and ground truth of ``spec`` at time ``t_s`` (seconds)."""
+    bodies, fiducials_local, eye_local = _build_local(spec, t_s)
+    R = pose_matrix(spec.rotation_deg)
+    t = np.asarray(spec.position, dtype=np.float64)
+    for body in bodies:
+        body.R = R @ body.R
+        body.t = R @ body.t + t
+    fiducials = fiducials_local @ R.T + t if len(fiducials_local) else np.zeros((0, 3))
+    eye: dict[str, Any] | None = None
+    if eye_local is not None:
+        eye = {
+            "centre_mm": (R @ eye_local["centre_local"] + t).tolist(),
+            "gaze": (R @ eye_local["gaze_local"]).tolist(),
+            "globe_radius_mm": eye_local["globe_radius_mm"],
+        }
+        if "limbus_centre_local" in eye_local:
+            eye["limbus_centre_mm"] = (R @ eye_local["limbus_centre_local"] + t).tolist()
+            eye["openness"] = eye_local["openness"]
+        if "cornea_radius_mm" in eye_local:
+            eye["cornea_radius_mm"] = eye_local["cornea_radius_mm"]
+    return BuiltScene(scene=Scene(bodies), fiducials_mm=fiducials, eye=eye)
+
+
+def scene_truth(spec: SceneSpec, t_s: float = 0.0) -> dict[str, Any]:
+    """Ground truth of ``spec`` at ``t_s`` as plain JSON-able data (for tests and benches)."""
+    built = build_scene(spec, t_s)
+    return {
+        "format": "eyeserver.truth/1",
+        "t_s": t_s,
+        "scene": spec.model_dump(mode="json"),
+        "fiducials_mm": built.fiducials_mm.tolist(),
+        "fiducial_radius_mm": FIDUCIAL_RADIUS_MM,
+        "eye": built.eye,
+        "surfaces": built.scene.labels,
+    }

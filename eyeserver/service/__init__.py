@@ -1,0 +1,1 @@
+"""The running daemon: rig lifecycle, acquisition, jobs, tracking, state machine, storage."""
