@@ -25,6 +25,8 @@ from pathlib import Path
 from typing import TypeAlias
 
 import eyeserver
+from eyeserver.commands import bench as bench_commands
+from eyeserver.commands import sim as sim_commands
 from eyeserver.errors import EyeserverError
 
 __all__ = ["REGISTRARS", "Registrar", "Subparsers", "build_parser", "main"]
@@ -90,7 +92,8 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 #: Every subcommand group of the command line, in the order ``--help`` lists them.
-REGISTRARS: list[Registrar] = [add_serve_parser]
+REGISTRARS: list[Registrar] = [add_serve_parser, sim_commands.add_parser,
+                               bench_commands.add_parser]
 
 
 def build_parser(registrars: Iterable[Registrar] | None = None) -> argparse.ArgumentParser:

@@ -178,12 +178,15 @@ class Renderer:
             # in albedo, object, shadow or surface orientation). Those pixels get s² rays; the
             # smooth rest keeps one (a 19-px fringe loses 0.05 % of its contrast to that).
             rows, cols = np.nonzero(_edge_pixels(shading, height, width))
-            if rows.size:
-                offsets = pixel_samples(s * s)
-                u = (cols[:, None] + offsets[None, :, 0]).reshape(-1)
-                v = (rows[:, None] + offsets[None, :, 1]).reshape(-1)
+            offsets = pixel_samples(s * s)
+            # In chunks of ~64 k rays: arrays that stay in cache run several times faster.
+            chunk = max(1, 65536 // (s * s))
+            for start in range(0, rows.size, chunk):
+                r, c = rows[start:start + chunk], cols[start:start + chunk]
+                u = (c[:, None] + offsets[None, :, 0]).reshape(-1)
+                v = (r[:, None] + offsets[None, :, 1]).reshape(-1)
                 sub = self._shade(cam, scene, cam.rays_at_subpixels(u, v), source)
-                values[rows * width + cols] = sub.values.reshape(-1, s * s).mean(axis=1)
+                values[r * width + c] = sub.values.reshape(-1, s * s).mean(axis=1)
         image = values.reshape(height, width).astype(np.float32) * self._vignetting[camera_id]
         if cam.config.blur_px > 0:
             return np.asarray(cv2.GaussianBlur(image, (0, 0), cam.config.blur_px,

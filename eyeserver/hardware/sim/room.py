@@ -96,7 +96,9 @@ class SimRoom:
             return self.renderer.components(camera_id, built.scene, render.supersample_moving,
                                             projectors)
         built = build_scene(spec, 0.0)
-        return self.renderer.components(camera_id, built.scene, render.supersample, projectors,
+        supersample = (render.supersample_chessboard if spec.kind == "chessboard"
+                       else render.supersample)
+        return self.renderer.components(camera_id, built.scene, supersample, projectors,
                                         cache_key=spec.model_dump_json())
 
     def render(self, camera_id: str, *, t_s: float, projectors: Mapping[str, float],

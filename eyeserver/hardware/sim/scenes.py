@@ -19,6 +19,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 import numpy.typing as npt
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+from scipy.spatial import cKDTree
 
 from eyeserver.hardware.sim.geometry import (
     AlbedoFn,
@@ -139,11 +140,13 @@ def chessboard_albedo(cols: int, rows: int, square: float) -> AlbedoFn:
 
 def dotted_albedo(base: AlbedoFn, dots_local: F64, radius: float) -> AlbedoFn:
     """``base`` with dark round fiducial dots of ``radius`` mm centred at ``dots_local``."""
+    tree = cKDTree(dots_local) if len(dots_local) else None
+
     def albedo(points: F64) -> F64:
         out = base(points)
-        if len(dots_local):
-            d2 = ((points[:, None, :] - dots_local[None, :, :]) ** 2).sum(axis=2)
-            out = np.where((d2 <= radius**2).any(axis=1), FIDUCIAL_PAINT, out)
+        if tree is not None:
+            distance, _ = tree.query(points, distance_upper_bound=radius)
+            out = np.where(np.isfinite(distance), FIDUCIAL_PAINT, out)
         return out
     return albedo
 

@@ -1,0 +1,1 @@
+"""Benchmarks: figures measured the same way every time (``eyeserver bench …``)."""

@@ -1,0 +1,1 @@
+"""Subcommand groups of the command line (``eyeserver sim``, ``eyeserver bench``)."""
