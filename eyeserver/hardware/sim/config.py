@@ -26,11 +26,17 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic_core import PydanticCustomError
 
 from eyeserver.core.frames import is_valid_id
 from eyeserver.errors import FormatError
 
 Vec3 = tuple[float, float, float]
+
+
+def _room_error(field: str, message: str) -> PydanticCustomError:
+    """A validation error about ``field`` (a dotted path) raised by a whole-room check."""
+    return PydanticCustomError("room", "{message}", {"field": field, "message": message})
 
 
 class _Strict(BaseModel):
@@ -123,18 +129,22 @@ class RoomConfig(_Strict):
 
     @model_validator(mode="after")
     def _ids_unique_and_legal(self) -> RoomConfig:
-        seen: set[str] = set()
-        for unit in self.units:
-            for name in [unit.id, unit.projector.id, *(c.id for c in unit.cameras)]:
-                if not is_valid_id(name):
-                    raise ValueError(f"id {name!r} must be letters, digits, '-' or '_'")
-                if name in seen:
-                    raise ValueError(f"id {name!r} is used twice")
-                seen.add(name)
-            if not unit.cameras:
-                raise ValueError(f"unit {unit.id!r} has no camera")
+        # Whole-room checks have no field of their own; the error's context names the one at
+        # fault (``room_from_dict`` reports it), since a model validator's location is the root.
+        seen: dict[str, str] = {}
         if not self.units:
-            raise ValueError("the room needs at least one unit")
+            raise _room_error("units", "the room needs at least one unit")
+        for i, unit in enumerate(self.units):
+            named = [(f"units.{i}.id", unit.id), (f"units.{i}.projector.id", unit.projector.id),
+                     *((f"units.{i}.cameras.{j}.id", c.id) for j, c in enumerate(unit.cameras))]
+            for where, name in named:
+                if not is_valid_id(name):
+                    raise _room_error(where, f"id {name!r} must be letters, digits, '-' or '_'")
+                if name in seen:
+                    raise _room_error(where, f"id {name!r} is used twice (also at {seen[name]})")
+                seen[name] = where
+            if not unit.cameras:
+                raise _room_error(f"units.{i}.cameras", f"unit {unit.id!r} has no camera")
         return self
 
     def cameras(self) -> list[CameraConfig]:
@@ -171,7 +181,7 @@ def _merge(base: Any, override: Any) -> Any:
             merged[key] = _merge(base[key], value) if key in base else value
         return merged
     if (isinstance(base, list) and isinstance(override, list)
-            and all(isinstance(x, dict) and "id" in x for x in base + override)):
+            and all(isinstance(x, dict) and isinstance(x.get("id"), str) for x in base + override)):
         by_id = {x["id"]: x for x in base}
         return [_merge(by_id[x["id"]], x) if x["id"] in by_id else x for x in override]
     return override
@@ -194,8 +204,11 @@ def room_from_dict(data: dict[str, Any], source: str = "<room>") -> RoomConfig:
         return RoomConfig.model_validate(merged)
     except ValidationError as exc:
         first = exc.errors()[0]
-        field = ".".join(str(p) for p in first["loc"]) or None
-        raise FormatError(source, field, first["msg"]) from exc
+        field = ".".join(str(p) for p in first["loc"]) or first.get("ctx", {}).get("field")
+        message = first["msg"]
+        if first["type"] == "extra_forbidden":
+            message = "unknown key (docs/room-file.md lists the keys)"
+        raise FormatError(source, field or None, message) from exc
 
 
 def load_room(path: str | Path | None) -> RoomConfig:

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -24,6 +24,7 @@ import numpy.typing as npt
 from eyeserver.hardware.sim.config import RoomConfig
 from eyeserver.hardware.sim.geometry import Scene
 from eyeserver.hardware.sim.optics import CameraModel, ProjectorModel, blurred_square_wave
+from eyeserver.hardware.sim.scenes import BuiltScene
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -53,6 +54,26 @@ class _Shading:
     label: npt.NDArray[np.int16]
     lit: npt.NDArray[np.bool_]
     normals: F64
+
+
+@dataclass
+class _StaticPart:
+    """The static part of a moving scene seen by one camera.
+
+    Raw (pre-blur) values per source; the pixels whose rays meet the moving parts' envelope
+    (flat indices and rays); and, per projector, the pixels whose static point's ray to the
+    projector passes through the envelope (with those segments), i.e. that could fall in a
+    moving part's shadow.
+    """
+
+    values: dict[str, F64]
+    view_idx: npt.NDArray[np.intp]
+    view_rays: F64
+    hit_idx: npt.NDArray[np.intp]
+    hit_points: F64
+    shadow_idx: dict[str, npt.NDArray[np.intp]] = field(default_factory=dict)
+    shadow_seg: dict[str, F64] = field(default_factory=dict)
+    shadow_len2: dict[str, F64] = field(default_factory=dict)
 
 
 def _edge_pixels(shading: _Shading, height: int, width: int) -> npt.NDArray[np.bool_]:
@@ -104,6 +125,7 @@ class Renderer:
         self._vignetting = {cid: cam.vignetting() for cid, cam in self.cameras.items()}
         self._cache: OrderedDict[tuple[str, str, str], F32] = OrderedDict()
         self._cache_size = cache_size
+        self._static: OrderedDict[tuple[str, str], _StaticPart] = OrderedDict()
         self._lock = threading.Lock()
 
     def components(self, camera_id: str, scene: Scene, supersample: int,
@@ -137,6 +159,11 @@ class Renderer:
 
     def _shade(self, cam: CameraModel, scene: Scene, rays: F64, source: str) -> _Shading:
         """Light reaching the camera along ``rays`` from one source, per unit source strength."""
+        return self._shade_sources(cam, scene, rays, [source])[source]
+
+    def _shade_sources(self, cam: CameraModel, scene: Scene, rays: F64,
+                       sources: Sequence[str]) -> dict[str, _Shading]:
+        """:meth:`_shade` for several sources from one ray cast."""
         hits = scene.cast(cam.centre, rays)
         hit = np.isfinite(hits.t)
         # Lambertian surfaces look equally bright from every side: only the side facing the
@@ -144,28 +171,126 @@ class Renderer:
         facing = np.einsum("ij,ij->i", hits.normals, rays) > 0
         normals = np.where(facing[:, None], -hits.normals, hits.normals)
         albedo = np.where(hit, hits.albedo, scene.background_albedo)
-        lit = np.zeros(rays.shape[0], dtype=bool)
-        if source == AMBIENT:
-            return _Shading(values=albedo, albedo=albedo, label=hits.label, lit=lit,
-                            normals=normals)
-        proj = self.projectors[source]
-        values = np.zeros(rays.shape[0])
         idx = np.flatnonzero(hit)
-        if idx.size:
-            points = hits.points[idx]
-            phase, distance, inside = proj.phase_at(points)
-            to_proj = (proj.centre - points) / distance[:, None]
-            cos_inc = np.einsum("ij,ij->i", normals[idx], to_proj)
-            # Shadows: the projector's ray to the point must not meet the scene first.
-            blocker = scene.first_hit_distance(proj.centre, -to_proj)
-            visible = blocker >= distance - (1e-3 + 1e-6 * distance)
-            lit_here = inside & visible & (cos_inc > 0)
-            transmission = blurred_square_wave(phase, proj.config.blur_periods)
-            values[idx] = np.where(
-                lit_here, albedo[idx] * proj.power_dn * cos_inc
-                * (proj.working_distance / distance) ** 2 * transmission, 0.0)
-            lit[idx] = lit_here
-        return _Shading(values=values, albedo=albedo, label=hits.label, lit=lit, normals=normals)
+        points = hits.points[idx]
+        out: dict[str, _Shading] = {}
+        for source in sources:
+            lit = np.zeros(rays.shape[0], dtype=bool)
+            if source == AMBIENT:
+                out[source] = _Shading(values=albedo, albedo=albedo, label=hits.label, lit=lit,
+                                       normals=normals)
+                continue
+            proj = self.projectors[source]
+            values = np.zeros(rays.shape[0])
+            if idx.size:
+                phase, distance, inside = proj.phase_at(points)
+                to_proj = (proj.centre - points) / distance[:, None]
+                cos_inc = np.einsum("ij,ij->i", normals[idx], to_proj)
+                # Shadows: the projector's ray to the point must not meet the scene first.
+                blocker = scene.first_hit_distance(proj.centre, -to_proj)
+                visible = blocker >= distance - (1e-3 + 1e-6 * distance)
+                lit_here = inside & visible & (cos_inc > 0)
+                transmission = blurred_square_wave(phase, proj.config.blur_periods)
+                values[idx] = np.where(
+                    lit_here, albedo[idx] * proj.power_dn * cos_inc
+                    * (proj.working_distance / distance) ** 2 * transmission, 0.0)
+                lit[idx] = lit_here
+            out[source] = _Shading(values=values, albedo=albedo, label=hits.label, lit=lit,
+                                   normals=normals)
+        return out
+
+    def components_moving(self, camera_id: str, built: BuiltScene,
+                          projectors: Iterable[str] = ()) -> Components:
+        """Components of a moving scene at one instant, re-casting only what moved.
+
+        The static part (``built.static``) is rendered once and cached. Each frame re-casts,
+        through the whole scene, only the pixels whose camera ray meets a moving part's bounding
+        sphere, or whose static point could be shadowed by it (its ray to a projector passes
+        through the sphere); everywhere else the moving parts cannot change the light. Both
+        tests run only over the pixels that meet ``built.envelope``, found once per static part.
+        """
+        if built.static is None or built.static_key is None or built.envelope is None:
+            raise ValueError("the scene has no static part to cache")
+        cam = self.cameras[camera_id]
+        sources = [AMBIENT, *projectors]
+        static = self._static_part(camera_id, built, sources)
+        rays = cam.rays().reshape(-1, 3)
+        dynamic: list[npt.NDArray[np.intp]] = []
+        for centre, radius in built.moving_bounds:
+            along = static.view_rays @ (centre - cam.centre)
+            rel = centre - cam.centre
+            near = (along > 0) & (float(rel @ rel) - along**2 < radius**2)
+            dynamic.append(static.view_idx[near])
+            for source in sources[1:]:
+                # Closest approach of the bound's centre to each segment projector → point.
+                seg = static.shadow_seg[source]
+                rel = centre - self.projectors[source].centre
+                frac = np.clip((seg @ rel) / static.shadow_len2[source], 0.0, 1.0)
+                gap = rel - frac[:, None] * seg
+                near = np.einsum("ij,ij->i", gap, gap) < radius**2
+                dynamic.append(static.shadow_idx[source][near])
+        idx = np.unique(np.concatenate(dynamic)) if dynamic else np.zeros(0, dtype=np.intp)
+        fresh = self._shade_sources(cam, built.scene, rays[idx], sources) if idx.size else {}
+        images: dict[str, F32] = {}
+        for source in sources:
+            values = static.values[source].copy()
+            if idx.size:
+                values[idx] = fresh[source].values
+            images[source] = self._finish(camera_id, values)
+        return Components(ambient=images[AMBIENT],
+                          fringe={pid: images[pid] for pid in sources[1:]})
+
+    def _static_part(self, camera_id: str, built: BuiltScene, sources: Sequence[str],
+                     ) -> _StaticPart:
+        assert built.static is not None and built.static_key is not None
+        assert built.envelope is not None
+        key = (camera_id, built.static_key)
+        cam = self.cameras[camera_id]
+        rays = cam.rays().reshape(-1, 3)
+        with self._lock:
+            part = self._static.get(key)
+        if part is None:
+            centre, radius = built.envelope
+            rel = centre - cam.centre
+            along = rays @ rel
+            view = np.flatnonzero((along > 0) & (float(rel @ rel) - along**2 < radius**2))
+            hits = built.static.cast(cam.centre, rays)
+            part = _StaticPart(values={}, view_idx=view, view_rays=rays[view],
+                               hit_idx=np.flatnonzero(np.isfinite(hits.t)),
+                               hit_points=hits.points[np.isfinite(hits.t)])
+        missing = [src for src in sources if src not in part.values]
+        if missing:
+            shaded = self._shade_sources(cam, built.static, rays, missing)
+            centre, radius = built.envelope
+            for src in missing:
+                part.values[src] = shaded[src].values
+                if src == AMBIENT:
+                    continue
+                seg = part.hit_points - self.projectors[src].centre
+                rel = centre - self.projectors[src].centre
+                len2 = np.maximum(np.einsum("ij,ij->i", seg, seg), 1e-12)
+                frac = np.clip((seg @ rel) / len2, 0.0, 1.0)
+                gap = rel - frac[:, None] * seg
+                near = np.einsum("ij,ij->i", gap, gap) < radius**2
+                part.shadow_idx[src] = part.hit_idx[near]
+                part.shadow_seg[src] = seg[near]
+                part.shadow_len2[src] = len2[near]
+        with self._lock:
+            self._static[key] = part
+            self._static.move_to_end(key)
+            while len(self._static) > 2 * len(self.cameras):
+                self._static.popitem(last=False)
+        return part
+
+    def _finish(self, camera_id: str, values: F64) -> F32:
+        """Vignetting and the optics' blur on per-pixel values (a flat array)."""
+        cam = self.cameras[camera_id]
+        height, width = cam.shape
+        image = values.reshape(height, width).astype(np.float32) * self._vignetting[camera_id]
+        if cam.config.blur_px > 0:
+            return np.asarray(cv2.GaussianBlur(image, (0, 0), cam.config.blur_px,
+                                               borderType=cv2.BORDER_REFLECT), dtype=np.float32)
+        return image
 
     def _compute(self, camera_id: str, scene: Scene, s: int, source: str) -> F32:
         cam = self.cameras[camera_id]
@@ -187,11 +312,7 @@ class Renderer:
                 v = (r[:, None] + offsets[None, :, 1]).reshape(-1)
                 sub = self._shade(cam, scene, cam.rays_at_subpixels(u, v), source)
                 values[r * width + c] = sub.values.reshape(-1, s * s).mean(axis=1)
-        image = values.reshape(height, width).astype(np.float32) * self._vignetting[camera_id]
-        if cam.config.blur_px > 0:
-            return np.asarray(cv2.GaussianBlur(image, (0, 0), cam.config.blur_px,
-                                               borderType=cv2.BORDER_REFLECT), dtype=np.float32)
-        return image
+        return self._finish(camera_id, values)
 
     def expose(self, camera_id: str, components: Components, *, ambient_dn: float,
                projectors: Mapping[str, float], exposure_us: float, gain_db: float,

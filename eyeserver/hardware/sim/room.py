@@ -93,6 +93,8 @@ class SimRoom:
         render = self.config.render
         if spec.moving:
             built = build_scene(spec, scene_t)
+            if render.supersample_moving == 1 and built.static is not None:
+                return self.renderer.components_moving(camera_id, built, projectors)
             return self.renderer.components(camera_id, built.scene, render.supersample_moving,
                                             projectors)
         built = build_scene(spec, 0.0)

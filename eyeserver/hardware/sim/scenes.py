@@ -13,7 +13,7 @@ room file sets; sclera-like surfaces are 0.42 of it (≈ 25 DN of fringe, DESIGN
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -169,11 +169,21 @@ FIDUCIAL_RADIUS_MM = 0.5
 
 @dataclass
 class BuiltScene:
-    """Geometry at one instant plus the truth that goes with it."""
+    """Geometry at one instant plus the truth that goes with it.
+
+    For a moving scene, ``static`` is the scene without its moving parts, ``moving_bounds`` the
+    world bounding spheres ``(centre, radius)`` of those parts, and ``static_key`` identifies
+    the static part, so a renderer can cache it and re-cast only rays that meet the bounds.
+    """
 
     scene: Scene
     fiducials_mm: F64
     eye: dict[str, Any] | None
+    static: Scene | None = None
+    moving_bounds: list[tuple[F64, float]] = field(default_factory=list)
+    static_key: str | None = None
+    envelope: tuple[F64, float] | None = None
+    """A sphere that holds every moving part whatever its motion (the eye: the lids' shell)."""
 
 
 def _sphere_points(centre: F64, radius: float, polar_deg: list[float], count: int,
@@ -206,24 +216,34 @@ def _eye_geometry(eye: EyeSpec) -> tuple[float, float]:
     return limbus_depth, cornea_offset
 
 
-def _build_local(spec: SceneSpec, t_s: float) -> tuple[list[Body], F64, dict[str, Any] | None]:
-    """Bodies in the scene's local frame, local fiducials, and the eye's local truth."""
+@dataclass
+class _Local:
+    bodies: list[Body]
+    fiducials: F64
+    eye: dict[str, Any] | None = None
+    moving: list[tuple[int, F64, float]] = field(default_factory=list)
+    """(body index, local centre, radius) of each moving body's bounding sphere."""
+    envelope: tuple[F64, float] | None = None
+
+
+def _build_local(spec: SceneSpec, t_s: float) -> _Local:
+    """Bodies in the scene's local frame, local fiducials, the eye's local truth, moving parts."""
     kind = spec.kind
     plate_white = constant_albedo(WHITE)
     if kind == "empty":
-        return [], np.zeros((0, 3)), None
+        return _Local([], np.zeros((0, 3)))
     if kind == "chessboard":
         margin = 1.0 + 1.0  # half a grid's outer squares plus one square of white margin
         half = ((spec.cols - 1) / 2 + margin) * spec.square_mm, \
             ((spec.rows - 1) / 2 + margin) * spec.square_mm
         board = Plane(chessboard_albedo(spec.cols, spec.rows, spec.square_mm), "chessboard",
                       half_size=half)
-        return [Body([board])], np.zeros((0, 3)), None
+        return _Local([Body([board])], np.zeros((0, 3)))
     if kind == "plate":
-        return [Body([Plane(plate_white, "plate", radius=45.0)])], np.zeros((0, 3)), None
+        return _Local([Body([Plane(plate_white, "plate", radius=45.0)])], np.zeros((0, 3)))
     if kind == "reference":
-        return [Body([Plane(plate_white, "reference", half_size=(100.0, 100.0))])], \
-            np.zeros((0, 3)), None
+        return _Local([Body([Plane(plate_white, "reference", half_size=(100.0, 100.0))])],
+                      np.zeros((0, 3)))
 
     base_dots = _base_plate_dots()
     if kind == "pyramid":
@@ -240,7 +260,7 @@ def _build_local(spec: SceneSpec, t_s: float) -> tuple[list[Body], F64, dict[str
                                                   FIDUCIAL_RADIUS_MM), "pyramid")
         base = Plane(dotted_albedo(constant_albedo(PHANTOM_WHITE), base_dots, FIDUCIAL_RADIUS_MM),
                      "base", half_size=(30.0, 25.0))
-        return [Body([cone, base])], np.vstack([dots, base_dots]), None
+        return _Local([Body([cone, base])], np.vstack([dots, base_dots]))
     if kind == "wedge":
         half_w, height, half_l = 10.0, 10.0, 15.0
         normals = np.array([[0, 0, -1], [0, 1, 0], [0, -1, 0], [-height, 0, half_w],
@@ -254,7 +274,7 @@ def _build_local(spec: SceneSpec, t_s: float) -> tuple[list[Body], F64, dict[str
             constant_albedo(PHANTOM_WHITE), wedge_dots, FIDUCIAL_RADIUS_MM), "wedge")
         base = Plane(dotted_albedo(constant_albedo(PHANTOM_WHITE), base_dots, FIDUCIAL_RADIUS_MM),
                      "base", half_size=(30.0, 25.0))
-        return [Body([wedge, base])], np.vstack([wedge_dots, base_dots]), None
+        return _Local([Body([wedge, base])], np.vstack([wedge_dots, base_dots]))
     if kind in ("eye_phantom_1", "eye_phantom_2"):
         # Phantom 1: a 12 mm ball with a painted iris. Phantom 2: population-mean sclera
         # (13.35 mm) with a corneal cap (8.54 mm), the shape an eye profiler reports.
@@ -280,7 +300,7 @@ def _build_local(spec: SceneSpec, t_s: float) -> tuple[list[Body], F64, dict[str
             truth["cornea_radius_mm"] = cornea_r
         base = Plane(dotted_albedo(constant_albedo(PHANTOM_WHITE), base_dots, FIDUCIAL_RADIUS_MM),
                      "base", half_size=(30.0, 25.0))
-        return [Body(surfaces), Body([base])], np.vstack([dots, base_dots]), truth
+        return _Local([Body(surfaces), Body([base])], np.vstack([dots, base_dots]), truth)
     # The patient eye: globe and corneal cap rotating about the globe centre, lids and face fixed
     # to the head. The local origin is the globe centre at rest.
     eye = spec.eye
@@ -303,7 +323,7 @@ def _build_local(spec: SceneSpec, t_s: float) -> tuple[list[Body], F64, dict[str
     # height follows the blink. Face: a plane in front of the orbit's rim with a round hole.
     lid_radius = eye.globe_radius_mm + eye.lid_gap_mm
     half_w, half_h = eye.aperture_mm
-    half_h_now = max(half_h * openness, 1e-3)
+    half_h_now = half_h * openness  # 0 when shut: no slit is left for a ray to pass
     face_z = 0.5 * eye.globe_radius_mm
     lids = _LidShell(head, lid_radius, half_w, half_h_now, constant_albedo(SKIN), "lids")
     face_hole = math.sqrt(max(lid_radius**2 - face_z**2, 1.0)) - 0.2
@@ -315,7 +335,17 @@ def _build_local(spec: SceneSpec, t_s: float) -> tuple[list[Body], F64, dict[str
                  "globe_radius_mm": eye.globe_radius_mm,
                  "cornea_radius_mm": eye.cornea_radius_mm, "openness": openness,
                  "gaze_deg_local": (yaw, pitch)}
-    return [Body([globe, cornea]), Body([lids]), face], np.zeros((0, 3)), eye_truth
+    # What moves with the gaze: only the corneal cap (the globe is a sphere turning about its
+    # own centre, so its surface does not change), and the lids while they blink. Their bounding
+    # spheres let the renderer re-cast only the pixels they can affect.
+    sagitta = cornea_offset + eye.cornea_radius_mm - limbus_depth
+    half_limbus = eye.limbus_diameter_mm / 2
+    cap_centre = centre + (limbus_depth + sagitta / 2) * gaze
+    moving = [(1, cap_centre, math.hypot(half_limbus, sagitta / 2) + 0.05)]
+    if openness < 1.0:
+        moving.append((2, head.copy(), lid_radius + 0.05))
+    return _Local([Body([globe]), Body([cornea]), Body([lids]), face], np.zeros((0, 3)),
+                  eye_truth, moving, (head.copy(), lid_radius + 0.1))
 
 
 class _LidShell(Sphere):
@@ -331,7 +361,10 @@ class _LidShell(Sphere):
         t, normals = super().intersect(o, d)
         points = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
         rel = points - self.centre
-        in_opening = (rel[:, 0] / self.half_w) ** 2 + (rel[:, 1] / self.half_h) ** 2 < 1.0
+        # The ellipse test multiplied out, so that shut lids (half_h = 0) have no opening at
+        # all; a minimum slit let rays through to the globe on a few pixels mid-blink.
+        in_opening = ((rel[:, 0] * self.half_h) ** 2 + (rel[:, 1] * self.half_w) ** 2
+                      < (self.half_w * self.half_h) ** 2)
         behind = rel[:, 2] < 0  # only the front half forms lids; the back is inside the head
         miss = in_opening | behind
         t = np.where(miss, np.inf, t)
@@ -341,7 +374,8 @@ class _LidShell(Sphere):
 
 def build_scene(spec: SceneSpec, t_s: float = 0.0) -> BuiltScene:
     """Ray-casting geometry and ground truth of ``spec`` at time ``t_s`` (seconds)."""
-    bodies, fiducials_local, eye_local = _build_local(spec, t_s)
+    local = _build_local(spec, t_s)
+    bodies, fiducials_local, eye_local = local.bodies, local.fiducials, local.eye
     R = pose_matrix(spec.rotation_deg)
     t = np.asarray(spec.position, dtype=np.float64)
     for body in bodies:
@@ -360,7 +394,22 @@ def build_scene(spec: SceneSpec, t_s: float = 0.0) -> BuiltScene:
             eye["openness"] = eye_local["openness"]
         if "cornea_radius_mm" in eye_local:
             eye["cornea_radius_mm"] = eye_local["cornea_radius_mm"]
-    return BuiltScene(scene=Scene(bodies), fiducials_mm=fiducials, eye=eye)
+    moving_index = {index for index, _, _ in local.moving}
+    static = Scene([b for i, b in enumerate(bodies) if i not in moving_index])
+    bounds = [(R @ centre + t, radius) for _, centre, radius in local.moving]
+    static_key = None
+    if spec.moving:
+        # The static part depends on everything but the gaze and time, and on where the head is
+        # and whether the lids count as static (not blinking).
+        rest = spec.model_copy(update={"eye": spec.eye.model_copy(
+            update={"motion": None, "gaze_deg": (0.0, 0.0)})})
+        head = eye_local["centre_local"].round(6).tolist() if eye_local else None
+        static_key = f"{rest.model_dump_json()}|head={head}|blink={2 in moving_index}"
+    envelope = None
+    if local.envelope is not None:
+        envelope = (R @ local.envelope[0] + t, local.envelope[1])
+    return BuiltScene(scene=Scene(bodies), fiducials_mm=fiducials, eye=eye, static=static,
+                      moving_bounds=bounds, static_key=static_key, envelope=envelope)
 
 
 def scene_truth(spec: SceneSpec, t_s: float = 0.0) -> dict[str, Any]:
