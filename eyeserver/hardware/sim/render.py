@@ -229,7 +229,11 @@ class Renderer:
                 gap = rel - frac[:, None] * seg
                 near = np.einsum("ij,ij->i", gap, gap) < radius**2
                 dynamic.append(static.shadow_idx[source][near])
-        idx = np.unique(np.concatenate(dynamic)) if dynamic else np.zeros(0, dtype=np.intp)
+        # A boolean union is several times faster than np.unique on these index lists.
+        changed = np.zeros(rays.shape[0], dtype=bool)
+        for part_idx in dynamic:
+            changed[part_idx] = True
+        idx = np.flatnonzero(changed)
         fresh = self._shade_sources(cam, built.scene, rays[idx], sources) if idx.size else {}
         images: dict[str, F32] = {}
         for source in sources:
