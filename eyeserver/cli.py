@@ -22,9 +22,9 @@ import argparse
 import sys
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
-from typing import TypeAlias
 
 import eyeserver
+from eyeserver.commands import Subparsers
 from eyeserver.commands import bench as bench_commands
 from eyeserver.commands import sim as sim_commands
 from eyeserver.errors import EyeserverError
@@ -33,8 +33,6 @@ __all__ = ["REGISTRARS", "Registrar", "Subparsers", "build_parser", "main"]
 
 PROG = "eyeserver"
 
-#: The object ``ArgumentParser.add_subparsers()`` returns.
-Subparsers: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
 
 #: Adds one subcommand (or group of them) to the command line.
 Registrar = Callable[[Subparsers], None]

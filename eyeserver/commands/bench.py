@@ -7,12 +7,9 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
+from eyeserver.commands import Subparsers
 from eyeserver.errors import NotBuiltError
-
-if TYPE_CHECKING:
-    from eyeserver.cli import Subparsers
 
 
 def _progress(message: str) -> None:

@@ -7,12 +7,9 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING
 
+from eyeserver.commands import Subparsers
 from eyeserver.errors import EyeserverError, FormatError
-
-if TYPE_CHECKING:
-    from eyeserver.cli import Subparsers
 
 SCENES = ("chessboard", "plate", "reference", "pyramid", "wedge", "eye_phantom_1",
           "eye_phantom_2", "eye")
