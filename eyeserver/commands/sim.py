@@ -40,6 +40,11 @@ def add_parser(subparsers: Subparsers) -> None:
                         help="eye only: gaze yaw (towards +X) and pitch (up) in degrees")
     render.add_argument("--globe-radius", type=float, metavar="MM", help="eye only")
     render.add_argument("--cornea-radius", type=float, metavar="MM", help="eye only")
+    render.add_argument("--motion-seed", type=int, metavar="N",
+                        help="eye only: let the eye move (drift, micro-saccades, blinks) with "
+                        "this seed")
+    render.add_argument("--time", type=float, default=0.0, metavar="S",
+                        help="seconds the scene runs before the capture (a moving eye)")
     render.add_argument("--scene-file", type=Path, metavar="FILE",
                         help="a JSON scene spec (SceneSpec) instead of the options above")
     render.add_argument("--units", metavar="IDS", help="comma-separated units to light "
@@ -69,6 +74,7 @@ def add_parser(subparsers: Subparsers) -> None:
 def _scene_spec(args: argparse.Namespace) -> object:
     from pydantic import ValidationError
 
+    from eyeserver.hardware.sim.motion import MotionSpec
     from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 
     if args.scene_file is not None:
@@ -86,8 +92,11 @@ def _scene_spec(args: argparse.Namespace) -> object:
         eye["globe_radius_mm"] = args.globe_radius
     if args.cornea_radius is not None:
         eye["cornea_radius_mm"] = args.cornea_radius
+    if args.motion_seed is not None:
+        eye["motion"] = MotionSpec(seed=args.motion_seed, blink_rate_hz=0.2)
     if eye and args.scene != "eye":
-        raise EyeserverError("--gaze, --globe-radius and --cornea-radius apply to --scene eye")
+        raise EyeserverError("--gaze, --globe-radius, --cornea-radius and --motion-seed apply "
+                             "to --scene eye")
     try:
         return SceneSpec(kind=args.scene,
                          position_mm=tuple(args.position) if args.position else None,
@@ -106,6 +115,8 @@ def _render(args: argparse.Namespace) -> int:
     spec = _scene_spec(args)
     assert isinstance(spec, SceneSpec)
     room = load_room(args.room)
+    if args.time < 0:
+        raise EyeserverError(f"--time must not be negative ({args.time})")
     units = args.units.split(",") if args.units else None
     known = [u.id for u in room.units]
     if units is not None and (unknown := [u for u in units if u not in known]):
@@ -116,7 +127,7 @@ def _render(args: argparse.Namespace) -> int:
     with SimSession.open(room, args.seed) as session:
         try:
             session.record(spec, args.out, units=units, origin=spec.kind == "chessboard",
-                           overwrite=args.overwrite)
+                           overwrite=args.overwrite, scene_time_s=args.time)
         except FileExistsError as exc:
             raise EyeserverError(f"{args.out} exists and is not empty (use --overwrite)") \
                 from exc

@@ -86,13 +86,15 @@ class SimSession:
                 for step in steps]
 
     def acquire(self, spec: SceneSpec, units: Sequence[str] | None = None,
-                ) -> list[BundleFrameData]:
+                scene_time_s: float = 0.0) -> list[BundleFrameData]:
         """Place ``spec`` and capture it as a bundle would hold it.
 
         Chessboards are filmed under the room lights with every projector dark, in one frame;
         anything else in ambient light, one frame per unit with that unit's projector lit.
+        ``scene_time_s`` lets a moving scene run that long before the capture.
         """
         self.room.set_scene(spec)
+        self.clock.advance(scene_time_s)
         if spec.kind == "chessboard":
             self.room.set_room_lights(True)
             try:
@@ -104,11 +106,14 @@ class SimSession:
         return self._frames(self.rig.acquire(unit_ids), z_mm)
 
     def record(self, spec: SceneSpec, out: Path, *, units: Sequence[str] | None = None,
-               origin: bool = False, overwrite: bool = False) -> Path:
-        """Capture ``spec`` into a bundle directory ``out`` with its ``truth.json``."""
-        t_s = self.clock.now_ns() / 1e9
-        frames = self.acquire(spec, units)
-        truth = room_truth(self.room, t_s)
+               origin: bool = False, overwrite: bool = False, scene_time_s: float = 0.0,
+               ) -> Path:
+        """Capture ``spec`` into a bundle directory ``out`` with its ``truth.json``.
+
+        The truth is the scene's at the first frame's mid-exposure time.
+        """
+        frames = self.acquire(spec, units, scene_time_s)
+        truth = room_truth(self.room, _mid_exposure_s(frames))
         kind = bundle_kind(spec)
         chessboard = (ChessboardSpec(spec.cols, spec.rows, spec.square_mm, origin)
                       if kind == "chessboard" else None)
@@ -125,6 +130,11 @@ class SimSession:
                      bit_depth=depth if depth > 8 else None, extra={"simulated": True},
                      overwrite=overwrite)
         atomic_write_text(out / TRUTH_FILE, json.dumps(truth, indent=1) + "\n")
+
+
+def _mid_exposure_s(frames: Sequence[BundleFrameData]) -> float:
+    t_ns = frames[0].t_ns
+    return 0.0 if t_ns is None else t_ns / 1e9
 
 
 def calibration_poses() -> list[tuple[tuple[float, float, float], tuple[float, float, float]]]:
@@ -175,10 +185,9 @@ def write_calibration_set(session: SimSession, out: Path, *, z_values: Sequence[
     truths: list[Any] = []
     for k, z in enumerate(z_list):
         progress(f"plate Z = {z:+.1f} mm ({k + 1}/{len(z_list)})")
-        spec = SceneSpec(kind="plate", position_mm=(0.0, 0.0, z))
-        t_s = session.clock.now_ns() / 1e9
-        frames.extend(session.acquire(spec))
-        truths.append(room_truth(session.room, t_s))
+        captured = session.acquire(SceneSpec(kind="plate", position_mm=(0.0, 0.0, z)))
+        frames.extend(captured)
+        truths.append(room_truth(session.room, _mid_exposure_s(captured)))
     session.write(out / "plate", "plate", frames, truths, overwrite=overwrite)
     progress(f"reference plane Z = {reference_z:+.1f} mm")
     session.record(SceneSpec(kind="reference", position_mm=(0.0, 0.0, reference_z)),
