@@ -85,9 +85,11 @@ def _edge_pixels(shading: _Shading, height: int, width: int) -> npt.NDArray[np.b
     edge = np.zeros((height, width), dtype=bool)
     for ta, tb in (((slice(1, None), slice(None)), (slice(None, -1), slice(None))),
                    ((slice(None), slice(1, None)), (slice(None), slice(None, -1)))):
+        # Normals only compare where both rays hit something (a miss has a zero normal).
+        bent = ((np.einsum("ijk,ijk->ij", normals[ta], normals[tb]) < 0.9995)
+                & (label[ta] >= 0) & (label[tb] >= 0))
         diff = ((np.abs(albedo[ta] - albedo[tb]) > 1e-6) | (label[ta] != label[tb])
-                | (lit[ta] != lit[tb])
-                | (np.einsum("ijk,ijk->ij", normals[ta], normals[tb]) < 0.9995))
+                | (lit[ta] != lit[tb]) | bent)
         edge[ta] |= diff
         edge[tb] |= diff
     return edge
