@@ -26,6 +26,7 @@ from pathlib import Path
 import eyeserver
 from eyeserver.commands import Subparsers
 from eyeserver.commands import bench as bench_commands
+from eyeserver.commands import calibrate as calibrate_commands
 from eyeserver.commands import sim as sim_commands
 from eyeserver.errors import EyeserverError
 
@@ -91,7 +92,7 @@ def _serve(args: argparse.Namespace) -> int:
 
 #: Every subcommand group of the command line, in the order ``--help`` lists them.
 REGISTRARS: list[Registrar] = [add_serve_parser, sim_commands.add_parser,
-                               bench_commands.add_parser]
+                               calibrate_commands.add_parser, bench_commands.add_parser]
 
 
 def build_parser(registrars: Iterable[Registrar] | None = None) -> argparse.ArgumentParser:

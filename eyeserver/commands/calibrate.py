@@ -1,0 +1,72 @@
+"""``eyeserver calibrate …``: calibrations made offline from capture bundles."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from eyeserver.commands import Subparsers
+from eyeserver.errors import EyeserverError, NotBuiltError
+
+REPROJECTION_GOAL_PX = 0.15
+REPROJECTION_PAPER_PX = 0.88
+
+
+def _progress(message: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {message}", file=sys.stderr, flush=True)
+
+
+def add_parser(subparsers: Subparsers) -> None:
+    """Register ``eyeserver calibrate stereo`` and ``eyeserver calibrate p2h``."""
+    calibrate = subparsers.add_parser("calibrate", help="calibrate from capture bundles",
+                                      description="Calibrate the rig offline from bundles.")
+    commands = calibrate.add_subparsers(title="calibrations", dest="calibrate_command",
+                                        metavar="COMMAND")
+    commands.required = True
+    stereo = commands.add_parser(
+        "stereo", help="intrinsics, distortion and WCS poses from chessboard bundles",
+        description="Detect the chessboard in every camera of every bundle, solve each camera's "
+        "intrinsics and distortion from all its boards and its pose from the origin board, "
+        "write CALDIR and print the reprojection errors.")
+    stereo.add_argument("--out", type=Path, required=True, metavar="CALDIR")
+    stereo.add_argument("--overwrite", action="store_true")
+    stereo.add_argument("bundles", nargs="+", type=Path, metavar="BUNDLE")
+    stereo.set_defaults(handler=_stereo)
+    p2h = commands.add_parser("p2h", help="phase-to-height coefficients (not built yet)")
+    p2h.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
+    p2h.add_argument("plate", type=Path, metavar="PLATE_BUNDLE")
+    p2h.add_argument("reference", type=Path, metavar="REFERENCE_BUNDLE")
+    p2h.set_defaults(handler=_p2h)
+
+
+def _stereo(args: argparse.Namespace) -> int:
+    from eyeserver.calibration.artefact import stereo_document, write_calibration
+    from eyeserver.calibration.stereo import calibrate_stereo
+
+    result = calibrate_stereo(args.bundles, progress=_progress)
+    document = stereo_document(result)
+    try:
+        write_calibration(args.out, document, overwrite=args.overwrite)
+    except FileExistsError as exc:
+        raise EyeserverError(f"{args.out} exists and is not empty (use --overwrite)") from exc
+    print(f"stereo calibration of {len(result.cameras)} cameras from "
+          f"{len(result.inputs)} chessboard bundles → {args.out}")
+    print(f"reprojection error (px): goal ≤ {REPROJECTION_GOAL_PX}, paper "
+          f"{REPROJECTION_PAPER_PX} median")
+    print(f"  {'camera':<8}{'median':>8}{'IQR':>8}{'max':>8}{'boards':>8}")
+    for cid, cam in result.cameras.items():
+        q = cam.quality()
+        print(f"  {cid:<8}{q['reprojection_median_px']:>8.3f}{q['reprojection_iqr_px']:>8.3f}"
+              f"{q['reprojection_max_px']:>8.3f}{q['boards']:>8}")
+    overall = document["quality"]
+    print(f"  {'all':<8}{overall['reprojection_median_px']:>8.3f}"
+          f"{overall['reprojection_iqr_px']:>8.3f}")
+    for board, cameras in result.missed.items():
+        print(f"  note: {board} was not found by {', '.join(cameras)}")
+    return 0
+
+
+def _p2h(args: argparse.Namespace) -> int:
+    raise NotBuiltError("the phase-to-height calibration is not built yet (issue 3)")
