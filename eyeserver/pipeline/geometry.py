@@ -39,7 +39,9 @@ def undistorted_normalised(u: F64, v: F64, K: F64, dist: F64) -> tuple[F64, F64]
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
     xy = cv2.undistortPoints(points, K, np.asarray(dist, dtype=np.float64), None, None,
                              criteria=criteria).reshape(-1, 2)
-    return xy[:, 0].reshape(u.shape), xy[:, 1].reshape(u.shape)
+    x = np.asarray(xy[:, 0], dtype=np.float64).reshape(u.shape)
+    y = np.asarray(xy[:, 1], dtype=np.float64).reshape(u.shape)
+    return x, y
 
 
 def pixel_grid_normalised(width: int, height: int, K: F64, dist: F64) -> tuple[F64, F64]:
