@@ -4,7 +4,10 @@
 
     CALDIR/
       calibration.json    format, version, creation time, the rig, input bundles and their
-                          hashes, each camera's K, distortion, R, T and quality figures
+                          hashes, each camera's K, distortion, R, T and quality figures, and
+                          (after ``calibrate p2h``) each camera's carrier and phase-to-height
+                          model with its residuals, and each unit's fringe-order margin
+      arrays.npz          per-pixel maps (each camera's reference phase)
 
 Loading validates the file and refuses a calibration made for another rig. Later stages (the
 phase-to-height fit) add their own keys; the format string carries a version.
@@ -12,6 +15,7 @@ phase-to-height fit) add their own keys; the format string carries a version.
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -22,14 +26,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 from eyeserver.calibration.stereo import CameraCalibration, StereoResult
 from eyeserver.errors import FormatError
 from eyeserver.io import RigSpec, bundle_hash, fsync_dir, rig_from_dict
-from eyeserver.io.atomic import atomic_write_text
+from eyeserver.io.atomic import atomic_write_bytes, atomic_write_text
 
 CALIBRATION_FORMAT = "eyeserver.calibration/1"
 CALIBRATION_FILE = "calibration.json"
+ARRAYS_FILE = "arrays.npz"
 
 
 def _camera_document(cam: CameraCalibration) -> dict[str, Any]:
@@ -57,7 +63,18 @@ def stereo_document(result: StereoResult) -> dict[str, Any]:
     }
 
 
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    return value
+
+
 def write_calibration(directory: str | Path, document: dict[str, Any],
+                      arrays: dict[str, npt.NDArray[np.float32]] | None = None,
                       overwrite: bool = False) -> Path:
     """Write a calibration directory atomically (staged beside it, then renamed into place)."""
     target = Path(directory)
@@ -66,10 +83,20 @@ def write_calibration(directory: str | Path, document: dict[str, Any],
     target.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
-        atomic_write_text(staging / CALIBRATION_FILE, json.dumps(document, indent=1) + "\n")
+        atomic_write_text(staging / CALIBRATION_FILE,
+                          json.dumps(_jsonable(document), indent=1) + "\n")
+        if arrays:
+            buffer = io.BytesIO()
+            np.savez_compressed(buffer, **arrays)  # type: ignore[arg-type]
+            atomic_write_bytes(staging / ARRAYS_FILE, buffer.getvalue())
         if target.exists():
-            shutil.rmtree(target)
-        os.replace(staging, target)
+            # Replace the old directory with two renames, never leaving half of either.
+            retired = Path(tempfile.mkdtemp(prefix=f".{target.name}.old.", dir=target.parent))
+            os.replace(target, retired / target.name)
+            os.replace(staging, target)
+            shutil.rmtree(retired, ignore_errors=True)
+        else:
+            os.replace(staging, target)
         fsync_dir(target.parent)
     finally:
         if staging.exists():
@@ -122,4 +149,12 @@ def load_calibration(directory: str | Path, rig: RigSpec | None = None) -> dict[
         cam["dist"] = dist
         if not math.isclose(abs(float(np.linalg.det(cam["R"]))), 1.0, abs_tol=1e-6):
             raise FormatError(source, f"{where}.R", "is not a rotation")
+    arrays_path = Path(directory) / ARRAYS_FILE
+    document["arrays"] = {}
+    if arrays_path.exists():
+        try:
+            with np.load(arrays_path) as stored:
+                document["arrays"] = {name: stored[name] for name in stored.files}
+        except (OSError, ValueError) as exc:
+            raise FormatError(arrays_path, None, f"unreadable arrays ({exc})") from exc
     return document

@@ -8,10 +8,12 @@ import time
 from pathlib import Path
 
 from eyeserver.commands import Subparsers
-from eyeserver.errors import EyeserverError, NotBuiltError
+from eyeserver.errors import EyeserverError
 
 REPROJECTION_GOAL_PX = 0.15
 REPROJECTION_PAPER_PX = 0.88
+P2H_GOAL_MM = 0.03
+P2H_PAPER_MM = 0.12
 
 
 def _progress(message: str) -> None:
@@ -34,7 +36,11 @@ def add_parser(subparsers: Subparsers) -> None:
     stereo.add_argument("--overwrite", action="store_true")
     stereo.add_argument("bundles", nargs="+", type=Path, metavar="BUNDLE")
     stereo.set_defaults(handler=_stereo)
-    p2h = commands.add_parser("p2h", help="phase-to-height coefficients (not built yet)")
+    p2h = commands.add_parser(
+        "p2h", help="phase-to-height models from the plate stack and the reference plane",
+        description="Demodulate the plate stack against the reference plane, unwrap each pixel "
+        "along Z over the whole range, fit each camera's Du & Wang model, add it to CALDIR and "
+        "print the residuals and each unit's fringe-order margin.")
     p2h.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
     p2h.add_argument("plate", type=Path, metavar="PLATE_BUNDLE")
     p2h.add_argument("reference", type=Path, metavar="REFERENCE_BUNDLE")
@@ -69,4 +75,32 @@ def _stereo(args: argparse.Namespace) -> int:
 
 
 def _p2h(args: argparse.Namespace) -> int:
-    raise NotBuiltError("the phase-to-height calibration is not built yet (issue 3)")
+    from eyeserver.calibration.artefact import load_calibration, write_calibration
+    from eyeserver.calibration.phase_height import MARGIN_WARNING_RAD, calibrate_phase_height
+    from eyeserver.io import bundle_hash
+
+    document = load_calibration(args.calibration)
+    arrays = document.pop("arrays")
+    section, new_arrays = calibrate_phase_height(document, args.plate, args.reference,
+                                                 progress=_progress)
+    document["phase_to_height"] = section
+    document["inputs"]["phase_to_height"] = [
+        {"bundle": Path(p).name, "sha256": bundle_hash(p)} for p in (args.plate, args.reference)]
+    write_calibration(args.calibration, document, {**arrays, **new_arrays}, overwrite=True)
+    print(f"phase-to-height calibration → {args.calibration}")
+    print(f"residual |Z_model − Z_nominal| (mm): goal ≤ {P2H_GOAL_MM} median, paper "
+          f"{P2H_PAPER_MM} (IQR 0.15)")
+    print(f"  {'camera':<8}{'median':>8}{'IQR':>8}{'RMSE':>8}  range")
+    for cid, cam in section["cameras"].items():
+        q = cam["quality"]
+        low, high = cam["z_range_mm"]
+        print(f"  {cid:<8}{q['median_abs_mm']:>8.4f}{q['iqr_mm']:>8.4f}{q['rmse_mm']:>8.4f}"
+              f"  {low:+.0f}…{high:+.0f} mm (all of it usable)")
+    print(f"fringe-order margin per unit (rad; the multi-view order needs ≥ {MARGIN_WARNING_RAD}):")
+    for unit_id, unit in section["units"].items():
+        if unit.get("margin_rad") is None:
+            print(f"  {unit_id}: {unit['note']}")
+            continue
+        print(f"  {unit_id}: {unit['margin_rad']:.2f} over orders up to ±{unit['orders_checked']}"
+              + (f" — {unit['note']}" if "note" in unit else ""))
+    return 0
