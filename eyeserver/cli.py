@@ -92,7 +92,9 @@ def _serve(args: argparse.Namespace) -> int:
 
 #: Every subcommand group of the command line, in the order ``--help`` lists them.
 REGISTRARS: list[Registrar] = [add_serve_parser, sim_commands.add_parser,
-                               calibrate_commands.add_parser, bench_commands.add_parser]
+                               calibrate_commands.add_parser,
+                               calibrate_commands.add_reconstruct_parser,
+                               bench_commands.add_parser]
 
 
 def build_parser(registrars: Iterable[Registrar] | None = None) -> argparse.ArgumentParser:

@@ -17,23 +17,12 @@ from eyeserver.hardware.sim.config import room_from_dict
 from eyeserver.hardware.sim.room import SimRoom
 from eyeserver.pipeline.phase_height import fit_phase_height
 
-ROOT = Path(__file__).resolve().parents[1]
-ROOMS = {"default": None, "wide": ROOT / "examples" / "rooms" / "wide.toml"}
 
-
-@pytest.fixture(scope="module", params=sorted(ROOMS))
-def calibrated(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory,
-               ) -> tuple[Path, Path]:
+@pytest.fixture(scope="module", params=["default", "wide"])
+def calibrated(request: pytest.FixtureRequest, calibrated_rooms) -> tuple[Path, Path]:  # type: ignore[no-untyped-def]
     """A simulated calibration set and the calibration made from it with the command line."""
-    base = tmp_path_factory.mktemp(request.param)
-    room = ["--room", str(ROOMS[request.param])] if ROOMS[request.param] else []
-    calset, caldir = base / "calset", base / "cal"
-    assert main(["sim", "calibration-set", *room, "--out", str(calset)]) == 0
-    boards = sorted(str(p) for p in calset.glob("chessboard_*"))
-    assert main(["calibrate", "stereo", "--out", str(caldir), *boards]) == 0
-    assert main(["calibrate", "p2h", "--calibration", str(caldir), str(calset / "plate"),
-                 str(calset / "reference")]) == 0
-    return calset, caldir
+    result: tuple[Path, Path] = calibrated_rooms(request.param)
+    return result
 
 
 def test_models_fit_the_whole_range(calibrated: tuple[Path, Path]) -> None:

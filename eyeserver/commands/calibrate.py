@@ -104,3 +104,40 @@ def _p2h(args: argparse.Namespace) -> int:
         print(f"  {unit_id}: {unit['margin_rad']:.2f} over orders up to ±{unit['orders_checked']}"
               + (f" — {unit['note']}" if "note" in unit else ""))
     return 0
+
+
+def add_reconstruct_parser(subparsers: Subparsers) -> None:
+    """Register ``eyeserver reconstruct``."""
+    parser = subparsers.add_parser(
+        "reconstruct", help="the fused point cloud of a measurement bundle",
+        description="Reconstruct the measurement in BUNDLE with the calibration in CALDIR and "
+        "write the fused point cloud as binary PLY (x y z in WCS mm, quality, camera).")
+    parser.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
+    parser.add_argument("--out", type=Path, required=True, metavar="CLOUD.ply")
+    parser.add_argument("--frames", metavar="I,J", help="frame indices to use (default: all)")
+    parser.add_argument("--cameras", metavar="S1,S2", help="cameras to use (default: all)")
+    parser.add_argument("bundle", type=Path, metavar="BUNDLE")
+    parser.set_defaults(handler=_reconstruct)
+
+
+def _reconstruct(args: argparse.Namespace) -> int:
+    from eyeserver.io import write_ply
+    from eyeserver.service.reconstruction import reconstruct_bundle
+
+    frames = None
+    if args.frames:
+        try:
+            frames = [int(f) for f in args.frames.split(",")]
+        except ValueError:
+            raise EyeserverError(f"--frames: not a list of frame numbers: {args.frames!r}") \
+                from None
+    cameras = args.cameras.split(",") if args.cameras else None
+    started = time.perf_counter()
+    cloud, summary = reconstruct_bundle(args.calibration, args.bundle, frames=frames,
+                                        cameras=cameras, progress=_progress)
+    write_ply(args.out, cloud)
+    print(f"{summary['points']} points → {args.out} ({time.perf_counter() - started:.1f} s)")
+    for cid, cam in summary["cameras"].items():
+        print(f"  {cid}: {cam['points']} points (frame {cam['frame']}, fringe order "
+              f"{cam['fringe_order']} with {cam['partner']})")
+    return 0

@@ -70,6 +70,18 @@ def add_parser(subparsers: Subparsers) -> None:
     calib.add_argument("--overwrite", action="store_true")
     calib.set_defaults(handler=_calibration_set)
 
+    score = commands.add_parser(
+        "score", help="compare a point cloud with a scene's exact surface",
+        description="Distance of every point of CLOUD.ply to the exact surface of the scene in "
+        "a bundle's truth.json: median and RMSE, share beyond 1 mm, and coverage (points per "
+        "camera over the pixels of that camera that see the scene).")
+    score.add_argument("--truth", type=Path, required=True, metavar="FILE")
+    score.add_argument("--room", type=Path, metavar="FILE",
+                       help="room file the bundle was rendered in (for coverage)")
+    score.add_argument("--json", action="store_true", help="one JSON document on stdout")
+    score.add_argument("cloud", type=Path, metavar="CLOUD.ply")
+    score.set_defaults(handler=_score)
+
 
 def _scene_spec(args: argparse.Namespace) -> object:
     from pydantic import ValidationError
@@ -156,4 +168,29 @@ def _calibration_set(args: argparse.Namespace) -> int:
     _progress(f"wrote {args.out} ({summary['chessboards']} chessboards, "
               f"{summary['plate_heights']} plate heights) in "
               f"{time.perf_counter() - started:.0f} s")
+    return 0
+
+
+def _score(args: argparse.Namespace) -> int:
+    from eyeserver.hardware.sim.config import load_room
+    from eyeserver.hardware.sim.scoring import score_cloud
+    from eyeserver.io import read_ply
+
+    try:
+        truth = json.loads(args.truth.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise FormatError(args.truth, None, f"cannot read ({exc.strerror})") from exc
+    except ValueError as exc:
+        raise FormatError(args.truth, None, f"not valid JSON: {exc}") from exc
+    if isinstance(truth, list):  # a plate stack's truth: one entry per height
+        raise EyeserverError(f"{args.truth}: holds several scenes; score one scene's bundle")
+    result = score_cloud(truth, read_ply(args.cloud), load_room(args.room))
+    if args.json:
+        print(json.dumps(result, indent=1))
+        return 0
+    print(f"{args.cloud} against the exact {result['scene']} ({result['points']} points)")
+    print(f"  median |distance| {result['median_mm']:.4f} mm, RMSE {result['rmse_mm']:.4f} mm "
+          f"(goal ≤ 0.15 mm), beyond 1 mm {100 * result['beyond_1mm']:.3f} %")
+    for cid, cov in result["coverage"].items():
+        print(f"  {cid}: {cov['points']} points, coverage {100 * cov['share']:.1f} %")
     return 0

@@ -21,23 +21,28 @@ Conventions
 How the borders are handled
 ---------------------------
 A discrete Fourier transform treats the image as periodic, so each border meets the opposite one
-and the jump rings over about a fringe period. Mirror padding does not cure it for fringes: a
-mirror across fringes turns them around (the phase jumps by twice its border value), and even a
-mirror of the baseband signal puts kinks into the background and conjugate terms whose leakage
-reaches the pass band (measured 0.15–0.4 rad at the border). The image is therefore continued
-beyond each border by the carrier itself (cf. the extrapolation of Roddier & Roddier):
+and the jump rings over about a fringe period (measured 0.6–3 rad at the border of a tilted
+surface). Mirror padding does not cure it for fringes: a mirror across fringes turns them around
+(the phase jumps by twice its border value), and even a mirror of the baseband signal puts kinks
+into the background and conjugate terms whose leakage reaches the pass band (measured
+0.15–0.4 rad at the border). The image is therefore continued beyond each border along the
+carrier itself (cf. the fringe extrapolation of Roddier & Roddier), one axis after the other:
 
-* across a border that the carrier crosses steeply (``|f_axis| ≥ |f|/2``) by whole carrier
-  periods along that axis — the pad repeats the last period before the border, translated by
-  ``1/|f_axis|``, which leaves the carrier exactly continuous;
-* across a border the fringes run into (``|f_axis| < |f|/2``) along the fringes, from the
-  border line — the value of the border pixel on the same fringe, again exactly on the carrier.
+* along the axis the carrier runs along most, by whole carrier periods ``1/|f_axis|`` (at most
+  √2 fringe periods): the pad is ``2·T1 − T2``, with ``T1`` and ``T2`` the image one and two
+  periods further in. Each copy alone continues the carrier exactly but carries the surface's
+  phase from a period further in, a step of (phase slope × period) at the border; their
+  difference extrapolates phase and background linearly and cancels that step to first order;
+* along the other axis, along the fringes from the border line: the pad pixel takes the value
+  of the border pixel on the same fringe (through the first axis' pad, which is periodic).
 
-Both continuations are exact for straight fringes; on a curved surface the pad misses the
-surface's own phase slope at the border, which costs about ``0.1 rad`` at the border pixel for a
-slope of 0.01 rad/px (a quarter radian per period) and nothing a few pixels inside. The
-continuations of opposite borders meet half-way in the pad and are cross-faded there with a
-raised cosine, so the periodic transform sees no jump anywhere.
+Both continuations are exact for straight fringes (copies are interpolated with Keys' cubic);
+on a surface whose phase slopes at the border by 0.006–0.02 rad/px the outermost period stays
+within 0.02–0.05 rad of the truth, a phase curved strongly right at the border (the flank of
+a bump of several radians) still costs up to ≈ 0.2 rad there. The continuations of opposite
+borders meet half-way in the pad and are cross-faded with a raised cosine, and the padded
+length is chosen to hold a whole number of carrier periods where a fast FFT length allows,
+so the periodic transform sees no jump anywhere.
 
 How the band is cut
 -------------------
@@ -54,7 +59,9 @@ the columns and back.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -67,6 +74,7 @@ __all__ = ["Carrier", "Demodulated", "demodulate", "measure_carrier", "phase_dif
 _TWO_PI = 2.0 * math.pi
 _PI32 = np.float32(math.pi)
 _TWO_PI32 = np.float32(_TWO_PI)
+_INVERSE_TWO_PI32 = np.float32(1.0 / _TWO_PI)
 _MIN_SIZE = 8
 
 
@@ -112,7 +120,10 @@ class Carrier:
         down): 0 for vertical fringes whose phase grows to the right, ``π/2`` for horizontal
         fringes whose phase grows downwards.
         """
-        return cls((cycles_per_px * math.sin(angle_rad), cycles_per_px * math.cos(angle_rad)))
+        fy, fx = cycles_per_px * math.sin(angle_rad), cycles_per_px * math.cos(angle_rad)
+        # cos(π/2) is 6e-17, not 0: keep axis-aligned carriers exactly on their axis.
+        tiny = 1e-12 * abs(cycles_per_px)
+        return cls((0.0 if abs(fy) < tiny else fy, 0.0 if abs(fx) < tiny else fx))
 
     @property
     def cycles_per_px(self) -> float:
@@ -153,8 +164,8 @@ class Demodulated:
     modulation: F32
 
 
-def _as_image(image: npt.ArrayLike, name: str = "image") -> F32:
-    """``image`` as a finite 2-D float32 array, or a ValueError naming ``name``."""
+def _checked_image(image: npt.ArrayLike, name: str = "image") -> npt.NDArray[Any]:
+    """``image`` as a 2-D real array (its own dtype), or a ValueError naming ``name``."""
     array = np.asarray(image)
     if array.ndim != 2:
         raise ValueError(f"{name} must be a 2-D array, not {array.ndim}-D")
@@ -166,7 +177,7 @@ def _as_image(image: npt.ArrayLike, name: str = "image") -> F32:
                          f"{array.shape[0]}×{array.shape[1]}")
     if np.issubdtype(array.dtype, np.floating) and not np.isfinite(array).all():
         raise ValueError(f"{name} must be finite (no NaN or inf)")
-    return np.asarray(array, dtype=np.float32)
+    return array
 
 
 def _signed_frequencies(n: int) -> npt.NDArray[np.float64]:
@@ -174,44 +185,71 @@ def _signed_frequencies(n: int) -> npt.NDArray[np.float64]:
     return np.asarray(np.fft.fftfreq(n), dtype=np.float64)
 
 
-def _lerp_lines(block: F32, positions: npt.NDArray[np.float64], axis: int) -> F32:
-    """Lines of ``block`` along ``axis`` linearly interpolated at fractional ``positions``."""
-    base = np.floor(positions)
-    lower = base.astype(np.intp)
-    upper = np.minimum(lower + 1, block.shape[axis] - 1)
-    weight = (positions - base).astype(np.float32).reshape((1, -1) if axis == 1 else (-1, 1))
-    first = block.take(lower, axis=axis)
-    second = block.take(upper, axis=axis)
-    return np.asarray(first + (second - first) * weight, dtype=np.float32)
+def _cubic_weights(fraction: npt.NDArray[np.float64]) -> list[F32]:
+    """Keys' cubic convolution weights (a = −0.5) of the samples at −1, 0, +1, +2.
+
+    Half-way between samples, linear interpolation attenuates a fringe of 20 px by 1.2 %, this
+    cubic by 0.03 %: the copies in the pad then match the image's fringe amplitude.
+    """
+    t = fraction
+    return [np.asarray(w, dtype=np.float32) for w in (
+        ((-0.5 * t + 1.0) * t - 0.5) * t,
+        (1.5 * t - 2.5) * t * t + 1.0,
+        ((-1.5 * t + 2.0) * t + 0.5) * t,
+        (0.5 * t - 0.5) * t * t,
+    )]
+
+
+def _interpolation_operator(n: int, terms: list[tuple[npt.NDArray[np.float64], F32]],
+                            ) -> tuple[npt.NDArray[np.intp], F32]:
+    """Sources and weights of pad lines that are sums of interpolated lines of the image.
+
+    ``terms`` holds ``(positions, coefficients)``: pad line ``k`` receives
+    ``coefficients[k]`` times the image interpolated (cubic) at ``positions[k]`` along the
+    axis of length ``n``; positions within one sample of an end use the end sample for the
+    missing neighbour. Returns the image lines used and the ``(len(used), pad lines)`` matrix
+    that maps them to the pad: one small matrix product instead of many strided gathers.
+    """
+    lines = terms[0][0].size
+    operator = np.zeros((n, lines), dtype=np.float64)
+    pad_line = np.arange(lines)
+    for positions, coefficients in terms:
+        base = np.floor(positions)
+        lower = base.astype(np.intp)
+        for offset, weight in zip((-1, 0, 1, 2), _cubic_weights(positions - base), strict=True):
+            np.add.at(operator, (np.clip(lower + offset, 0, n - 1), pad_line),
+                      weight * coefficients)
+    used = np.flatnonzero(np.any(operator != 0.0, axis=1))
+    return used, operator[used].astype(np.float32)
 
 
 def _shifted_line(line: F32, shifts: npt.NDArray[np.float64]) -> F32:
-    """Rows ``line(k + shift)`` (``k`` over the line, periodic, linear interpolation), one a shift.
+    """Rows ``line(k + shift)`` (``k`` over the line, periodic, cubic), one row per shift.
 
-    Each row is a contiguous window of the line repeated three times, so the gather is a copy
-    of whole rows rather than a 2-D fancy index.
+    Each row is a contiguous window of the line repeated, so the gather copies whole rows
+    rather than indexing in 2-D.
     """
     n = line.shape[0]
     base = np.floor(shifts)
     start = np.mod(base.astype(np.intp), n)
-    weight = (shifts - base).astype(np.float32)[:, None]
-    windows = np.lib.stride_tricks.sliding_window_view(np.concatenate([line, line, line[:1]]),
-                                                       n)
-    first = windows[start]
-    second = windows[start + 1]
-    return np.asarray(first + (second - first) * weight, dtype=np.float32)
+    windows = np.lib.stride_tricks.sliding_window_view(
+        np.concatenate([line[-1:], line, line, line[:2]]), n)
+    result = np.zeros((shifts.size, n), dtype=np.float32)
+    for offset, weight in zip((-1, 0, 1, 2), _cubic_weights(shifts - base), strict=True):
+        result += windows[start + offset + 1] * weight[:, None]
+    return result
 
 
 def _continuation(block: F32, axis: int, total: int, f_along: float, f_across: float,
-                  cycles_per_px: float) -> F32:
+                  along_fringes: bool) -> F32:
     """The ``total − n`` lines that continue ``block`` beyond its end along ``axis``.
 
     The pad is a periodic bridge from the last line back to the first: near the end it
     continues the end border, near the far end (the wrap-around) the start border, cross-faded
     with a raised cosine. Each border is continued along the carrier (module docstring): by
-    whole periods along ``axis`` where the carrier crosses it steeply, along the fringes from the
-    border line where it does not, and by a plain mirror when the image is shorter than one
-    period along ``axis`` (degenerate images only).
+    whole periods along ``axis``, or (``along_fringes``) along the fringes from the border line;
+    by a plain mirror when the image is shorter than one period along ``axis`` (degenerate
+    images only).
     """
     n = block.shape[axis]
     extra = total - n
@@ -219,15 +257,32 @@ def _continuation(block: F32, axis: int, total: int, f_along: float, f_across: f
     before = beyond - total                          # the same positions before the start
     towards_start = 0.5 * (1.0 - np.cos(np.pi * (beyond - n + 1.0) / (extra + 1.0)))
     period = 1.0 / abs(f_along) if f_along != 0.0 else math.inf
-    if abs(f_along) >= 0.5 * cycles_per_px or f_across == 0.0:
-        if period <= n - 1:
-            from_end = beyond - np.ceil((beyond - (n - 1)) / period) * period
-            from_start = before + np.ceil(-before / period) * period
+    towards_end = (1.0 - towards_start).astype(np.float32)
+    towards_start32 = towards_start.astype(np.float32)
+    if not along_fringes:
+        # Sources end one sample short of the border so the cubic has all its neighbours.
+        last = n - 2
+        terms: list[tuple[npt.NDArray[np.float64], F32]]
+        if period <= last - 1:
+            from_end = beyond - np.ceil((beyond - last) / period) * period
+            from_start = before + np.ceil((1.0 - before) / period) * period
+        if 2.0 * period <= last - 1:
+            # Two periods back, extrapolated linearly (2·one period − two periods): the pad's
+            # own copy would carry the phase of one period further in, a step of (phase slope
+            # × period) at the border; the difference of the two copies cancels it to first
+            # order, and the background is extrapolated linearly as well.
+            terms = [(from_end, 2.0 * towards_end), (from_end - period, -towards_end),
+                     (from_start, 2.0 * towards_start32),
+                     (from_start + period, -towards_start32)]
+        elif period <= last - 1:
+            terms = [(from_end, towards_end), (from_start, towards_start32)]
         else:
-            from_end = np.clip(2.0 * (n - 1) - beyond, 0.0, n - 1.0)
-            from_start = np.clip(-before, 0.0, n - 1.0)
-        end_part = _lerp_lines(block, from_end, axis)
-        start_part = _lerp_lines(block, from_start, axis)
+            terms = [(np.clip(2.0 * (n - 1) - beyond, 0.0, n - 1.0), towards_end),
+                     (np.clip(-before, 0.0, n - 1.0), towards_start32)]
+        used, operator = _interpolation_operator(n, terms)
+        if axis == 1:
+            return np.asarray(block[:, used] @ operator, dtype=np.float32)
+        return np.asarray(operator.T @ block[used, :], dtype=np.float32)
     else:
         # Along the fringe through the pad pixel back to the border line: the other
         # coordinate moves by (distance along axis)·f_along/f_across. That axis is already
@@ -239,29 +294,57 @@ def _continuation(block: F32, axis: int, total: int, f_along: float, f_across: f
         start_part = _shifted_line(start_line, before * slope)
         if axis == 1:
             end_part, start_part = end_part.T, start_part.T
-    weight = towards_start.astype(np.float32).reshape((1, -1) if axis == 1 else (-1, 1))
+    weight = towards_start32.reshape((1, -1) if axis == 1 else (-1, 1))
     return np.asarray(end_part + (start_part - end_part) * weight, dtype=np.float32)
 
 
-def _extend(values: F32, padded_h: int, padded_w: int, fy: float, fx: float) -> F32:
-    """``values`` in the corner of a ``(padded_h, padded_w)`` array, continued periodically."""
-    height, width = values.shape
-    cycles = math.hypot(fy, fx)
-    out = np.empty((padded_h, padded_w), dtype=np.float32)
-    out[:height, :width] = values
-    # The axis the carrier runs along most is continued first, by whole periods; the other
-    # may then follow the fringes through the already periodic first axis.
+def _padded_length(length: int, pad_px: int, frequency: float) -> int:
+    """A fast FFT length of at least ``length + 2·pad_px`` that holds whole carrier periods.
+
+    Where the periodic transform wraps around, the two borders' continuations meet; if the
+    padded length holds a whole number of periods along this axis, their carriers agree there
+    and the cross-fade between them is seamless for straight fringes (otherwise the mismatch
+    costs a few milliradians at the border). Among the fast lengths up to one period (at
+    least 16, at most 64 samples) longer than needed: the shortest within 0.05 period of a
+    whole number, else the closest.
+    """
+    target = length + 2 * pad_px
+    shortest = int(scipy.fft.next_fast_len(target, real=True))
+    if abs(frequency) * length < 0.5:
+        # Less than half a period across the image: nothing to match.
+        return shortest
+    reach = target + min(max(16, math.ceil(1.0 / abs(frequency))), 64)
+    candidates = sorted({int(scipy.fft.next_fast_len(n, real=True))
+                         for n in range(target, reach + 1)})
+
+    def mismatch(n: int) -> float:
+        cycles = n * abs(frequency)
+        return abs(cycles - round(cycles))
+
+    close = [n for n in candidates if mismatch(n) <= 0.05]
+    return close[0] if close else min(candidates, key=mismatch)
+
+
+def _extend(out: F32, height: int, width: int, fy: float, fx: float) -> None:
+    """Continue the image in ``out[:height, :width]`` over the rest of ``out``, periodically."""
+    padded_h, padded_w = out.shape
+    values = out[:height, :width]
+    # The axis the carrier runs along most is continued first, by whole periods (at most √2
+    # fringe periods long); the other then follows the fringes through the already periodic
+    # first axis. Periods on the other axis too would be up to twice as long at oblique
+    # carriers and more than that near the axes (1/|f_axis|), copying the surface's phase
+    # from further away (measured at 34°: 0.24 against 0.13 rad at the border for a slope of
+    # 0.01 rad/px, before the linear extrapolation).
     if abs(fx) >= abs(fy):
         if padded_w > width:
-            out[:height, width:] = _continuation(values, 1, padded_w, fx, fy, cycles)
+            out[:height, width:] = _continuation(values, 1, padded_w, fx, fy, False)
         if padded_h > height:
-            out[height:, :] = _continuation(out[:height, :], 0, padded_h, fy, fx, cycles)
+            out[height:, :] = _continuation(out[:height, :], 0, padded_h, fy, fx, True)
     else:
         if padded_h > height:
-            out[height:, :width] = _continuation(values, 0, padded_h, fy, fx, cycles)
+            out[height:, :width] = _continuation(values, 0, padded_h, fy, fx, False)
         if padded_w > width:
-            out[:, width:] = _continuation(out[:, :width], 1, padded_w, fx, fy, cycles)
-    return out
+            out[:, width:] = _continuation(out[:, :width], 1, padded_w, fx, fy, True)
 
 
 def measure_carrier(image: npt.ArrayLike, mask: npt.ArrayLike | None = None, *,
@@ -273,7 +356,12 @@ def measure_carrier(image: npt.ArrayLike, mask: npt.ArrayLike | None = None, *,
     the coarse carrier. It is refined by evaluating the windowed image's discrete-time Fourier
     transform on a grid of 1/8 bin around that bin and fitting a parabola to the logarithm of
     its magnitude at the grid maximum (the Hann main lobe is close to a Gaussian there), which
-    leaves a small fraction of a bin of error on a clean fringe.
+    leaves a small fraction of a bin of error on a clean fringe (0.1 % of ``|f|`` measured on
+    noisy, vignetted 320×400 fringes).
+
+    Measure it on the reference plane: a surface phase of several radians over much of the
+    image moves the spectral peak itself (a 5 rad bump over a 320×400 image: by 14 %), and the
+    pipeline's phase differences need one fixed carrier anyway.
 
     Parameters
     ----------
@@ -317,7 +405,7 @@ def measure_carrier(image: npt.ArrayLike, mask: npt.ArrayLike | None = None, *,
     >>> [round(f, 4) for f in carrier.frequency]
     [0.01, 0.06]
     """
-    values = _as_image(image)
+    values = np.asarray(_checked_image(image), dtype=np.float32)
     height, width = values.shape
     if mask is None:
         weights = None
@@ -395,18 +483,23 @@ def _pass_band(fy: npt.NDArray[np.float64], fx: npt.NDArray[np.float64], outer: 
     return gain.astype(np.float32)
 
 
-def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = 0.7,
-               taper: float = 0.5, pad_px: int | None = None, workers: int = 1,
+def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = 0.8,
+               taper: float = 0.4, pad_px: int | None = None, workers: int = 1,
                ) -> Demodulated:
     """Wrapped phase and modulation of a fringe image by the Fourier-transform method.
 
     The image is continued beyond its borders along the carrier, transformed, multiplied by a
     fixed flat-topped disc pass band with raised-cosine edges around the carrier, transformed
-    back and cropped (module docstring). The phase includes the
-    carrier ramp, so for ``image = A + B·cos(2π(fy·i + fx·j) + φ(i, j))`` and
-    ``carrier = Carrier((fy, fx))`` the wrapped phase is ``2π(fy·i + fx·j) + φ`` modulo 2π and
-    the modulation is ``B``, wherever ``φ`` varies slowly enough for its local frequency
-    ``∇φ / 2π`` to stay within the flat top.
+    back and cropped (module docstring). The phase includes the carrier ramp, so for
+    ``image = A + B·cos(2π(fy·i + fx·j) + φ(i, j))`` and ``carrier = Carrier((fy, fx))`` the
+    wrapped phase is ``2π(fy·i + fx·j) + φ`` modulo 2π and the modulation is ``B``, wherever
+    ``φ`` varies slowly enough for its local frequency ``∇φ / 2π`` to stay within the flat
+    top.
+
+    With the defaults the band is flat out to 0.48·|f| and closes at 0.8·|f|: a surface
+    shifting the local frequency by 40 % of the carrier comes out within 0.015 rad RMS (a
+    Hann-shaped band of the same reach: 0.08 rad), and white noise of σ DN gives a phase
+    noise of ``σ·sqrt(2·∫|H|² df)/B`` (≈ 0.06·σ/B rad for a 25 px period).
 
     Parameters
     ----------
@@ -424,8 +517,8 @@ def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = 0.7
         window's alpha); the flat top has radius ``(1 − taper)·bandwidth·|f|``.
     pad_px : int, optional
         Continuation beyond each border, pixels (0: none, and the borders then ring over about
-        a fringe period). Default: two fringe periods; the padded size is rounded up to a fast
-        FFT length.
+        a fringe period). Default: one fringe period (longer pads gained nothing measurable on
+        curved surfaces); the padded size is rounded up to a fast FFT length.
     workers : int, optional
         Threads for ``scipy.fft`` (1 by default: the cameras of a frame set are processed in
         parallel instead).
@@ -454,9 +547,8 @@ def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = 0.7
     .. [3] C. Roddier and F. Roddier, "Interferogram analysis using Fourier transform
        techniques", Appl. Opt. 26(9), 1668–1673 (1987). doi:10.1364/AO.26.001668 (the border
        problem; fringes extrapolated beyond the aperture).
-    .. [4] P. Via et al., "Eye surface and pose measurement by fringe projection for ocular
-       proton therapy", Phys. Imaging Radiat. Oncol. (2023).
-       doi:10.1016/j.phro.2023.100517 (a fixed filter on a fixed carrier suffices).
+    .. [4] Via et al., Phys. Imaging Radiat. Oncol. (2023), doi:10.1016/j.phro.2023.100517
+       (the clinical method this follows: a fixed filter on a fixed carrier suffices).
 
     Examples
     --------
@@ -467,18 +559,18 @@ def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = 0.7
     >>> round(float(result.wrapped_phase[10, 0]), 3), round(float(result.modulation[10, 40]), 1)
     (1.0, 30.0)
     """
-    values = _as_image(image)
+    values = _checked_image(image)
     if not isinstance(carrier, Carrier):
         raise ValueError(f"carrier must be a Carrier, not {type(carrier).__name__}")
-    if isinstance(bandwidth, bool) or not (isinstance(bandwidth, (int, float))
+    if isinstance(bandwidth, bool) or not (isinstance(bandwidth, numbers.Real)
                                            and 0.0 < bandwidth < 1.0):
         raise ValueError(f"bandwidth must be in (0, 1) (a fraction of |f|), not {bandwidth!r}")
-    if isinstance(taper, bool) or not (isinstance(taper, (int, float)) and 0.0 <= taper <= 1.0):
+    if isinstance(taper, bool) or not (isinstance(taper, numbers.Real) and 0.0 <= taper <= 1.0):
         raise ValueError(f"taper must be in [0, 1], not {taper!r}")
-    if pad_px is not None and (not isinstance(pad_px, int) or isinstance(pad_px, bool)
-                               or pad_px < 0):
+    if pad_px is not None and (not isinstance(pad_px, numbers.Integral)
+                               or isinstance(pad_px, bool) or pad_px < 0):
         raise ValueError(f"pad_px must be a non-negative integer, not {pad_px!r}")
-    if not isinstance(workers, int) or isinstance(workers, bool) or workers < 1:
+    if not isinstance(workers, numbers.Integral) or isinstance(workers, bool) or workers < 1:
         raise ValueError(f"workers must be a positive integer, not {workers!r}")
     fy0, fx0 = carrier.frequency
     outer = bandwidth * carrier.cycles_per_px
@@ -487,13 +579,18 @@ def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = 0.7
         raise ValueError(f"carrier {carrier.frequency} is too close to Nyquist for bandwidth "
                          f"{bandwidth}: its pass band would cross 0.5 cycles/px")
     height, width = values.shape
-    if pad_px is None:
-        pad_px = math.ceil(2.0 * carrier.period_px)
+    pad_px = math.ceil(carrier.period_px) if pad_px is None else int(pad_px)
+    workers = int(workers)
+    bandwidth = float(bandwidth)
+    taper = float(taper)
 
-    padded_h = scipy.fft.next_fast_len(height + 2 * pad_px, real=True) if pad_px else height
-    padded_w = scipy.fft.next_fast_len(width + 2 * pad_px, real=True) if pad_px else width
+    padded_h = _padded_length(height, pad_px, fy0) if pad_px else height
+    padded_w = _padded_length(width, pad_px, fx0) if pad_px else width
+    padded = np.empty((padded_h, padded_w), dtype=np.float32)
     # The mean goes first: the continuation and the float32 transforms then work on the fringe.
-    padded = _extend(values - np.float32(values.mean()), padded_h, padded_w, fy0, fx0)
+    np.subtract(values, np.float32(values.mean(dtype=np.float64)), out=padded[:height, :width],
+                casting="unsafe")
+    _extend(padded, height, width, fy0, fx0)
 
     # Rows: real transform of everything; columns: only those the band touches. Bins left of
     # fx = 0 (a carrier close to horizontal) are the conjugates of their mirror images.
@@ -508,8 +605,11 @@ def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = 0.7
     if negative.any():
         mirrored_rows = np.mod(-np.arange(padded_h), padded_h)
         band[:, negative] = np.conj(band[mirrored_rows][:, negative])
-    fy_bins = _signed_frequencies(padded_h)[:, None]
-    band *= _pass_band(fy_bins - fy0, (band_kx / padded_w)[None, :] - fx0, outer, flat)
+    fy_offsets = _signed_frequencies(padded_h) - fy0
+    band_rows = np.abs(fy_offsets) < outer
+    band[~band_rows] = 0.0
+    band[band_rows] *= _pass_band(fy_offsets[band_rows, None],
+                                  (band_kx / padded_w)[None, :] - fx0, outer, flat)
     band = scipy.fft.ifft(band, axis=0, workers=workers, overwrite_x=True)
     columns = np.zeros((height, padded_w), dtype=np.complex64)
     columns[:, np.mod(band_kx, padded_w)] = band[:height]
@@ -563,8 +663,11 @@ def phase_difference(wrapped_object: npt.ArrayLike, wrapped_reference: npt.Array
     if obj.shape != ref.shape:
         raise ValueError(f"wrapped_object and wrapped_reference must have the same shape, "
                          f"not {obj.shape} and {ref.shape}")
-    difference = obj.astype(np.float32) - ref.astype(np.float32)
-    wrapped = _PI32 - np.mod(_PI32 - difference, _TWO_PI32)
-    # float32 rounding can return the modulus itself, i.e. −π: that is +π.
-    wrapped[wrapped <= -_PI32] = _PI32
-    return np.asarray(wrapped, dtype=np.float32)
+    difference = np.asarray(np.subtract(obj, ref, dtype=np.float32))
+    # Whole turns off by rounding (np.mod on float32 is ten times slower); −π, and whatever
+    # float32 rounding leaves beyond ±π, folds to +π.
+    turns = np.rint(difference * _INVERSE_TWO_PI32)
+    difference -= turns * _TWO_PI32
+    np.putmask(difference, difference <= -_PI32, _PI32)
+    np.minimum(difference, _PI32, out=difference)
+    return np.asarray(difference, dtype=np.float32)
