@@ -4,16 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-import time
 from pathlib import Path
 
 from eyeserver.commands import Subparsers
+from eyeserver.commands import progress as _progress
 from eyeserver.errors import NotBuiltError
-
-
-def _progress(message: str) -> None:
-    print(f"[{time.strftime('%H:%M:%S')}] {message}", file=sys.stderr, flush=True)
 
 
 def _positive_int(text: str) -> int:

@@ -3,21 +3,17 @@
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 from eyeserver.commands import Subparsers
+from eyeserver.commands import progress as _progress
 from eyeserver.errors import EyeserverError
 
 REPROJECTION_GOAL_PX = 0.15
 REPROJECTION_PAPER_PX = 0.88
 P2H_GOAL_MM = 0.03
 P2H_PAPER_MM = 0.12
-
-
-def _progress(message: str) -> None:
-    print(f"[{time.strftime('%H:%M:%S')}] {message}", file=sys.stderr, flush=True)
 
 
 def add_parser(subparsers: Subparsers) -> None:

@@ -4,19 +4,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 from eyeserver.commands import Subparsers
+from eyeserver.commands import progress as _progress
 from eyeserver.errors import EyeserverError, FormatError
 
 SCENES = ("chessboard", "plate", "reference", "pyramid", "wedge", "eye_phantom_1",
           "eye_phantom_2", "eye")
-
-
-def _progress(message: str) -> None:
-    print(f"[{time.strftime('%H:%M:%S')}] {message}", file=sys.stderr, flush=True)
 
 
 def add_parser(subparsers: Subparsers) -> None:
