@@ -27,7 +27,12 @@ import numpy.typing as npt
 
 from eyeserver.calibration.stereo import CalibrationError
 from eyeserver.io import Bundle, RigSpec, read_bundle, rig_from_dict
-from eyeserver.pipeline.demodulate import demodulate, measure_carrier, phase_difference
+from eyeserver.pipeline.demodulate import (
+    border_mask,
+    demodulate,
+    measure_carrier,
+    phase_difference,
+)
 from eyeserver.pipeline.geometry import (
     intersect_plane_z,
     pixel_grid_normalised,
@@ -49,13 +54,6 @@ MARGIN_WARNING_RAD = 0.5
 
 def _quiet(_: str) -> None:
     pass
-
-
-def border_mask(shape: tuple[int, ...], margin: int) -> npt.NDArray[np.bool_]:
-    """True except within ``margin`` pixels of the image border."""
-    mask = np.zeros(shape[:2], dtype=bool)
-    mask[margin:shape[0] - margin, margin:shape[1] - margin] = True
-    return mask
 
 
 def _fringe_frames(bundle: Bundle, camera_id: str) -> list[int]:

@@ -671,3 +671,13 @@ def phase_difference(wrapped_object: npt.ArrayLike, wrapped_reference: npt.Array
     np.putmask(difference, difference <= -_PI32, _PI32)
     np.minimum(difference, _PI32, out=difference)
     return np.asarray(difference, dtype=np.float32)
+
+
+def border_mask(shape: tuple[int, ...], margin: int) -> npt.NDArray[np.bool_]:
+    """True except within ``margin`` pixels of the image border, where the FTM's phase is least
+    trustworthy (about a fringe period, DESIGN §4)."""
+    if margin < 0:
+        raise ValueError(f"margin must not be negative, not {margin}")
+    mask = np.zeros(shape[:2], dtype=bool)
+    mask[margin:shape[0] - margin, margin:shape[1] - margin] = True
+    return mask

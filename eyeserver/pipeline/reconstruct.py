@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-from eyeserver.pipeline.demodulate import Carrier, demodulate, phase_difference
+from eyeserver.pipeline.demodulate import Carrier, border_mask, demodulate, phase_difference
 from eyeserver.pipeline.geometry import pixel_grid_normalised, project, rays_from_normalised
 from eyeserver.pipeline.phase_height import PhaseHeightModel
 
@@ -94,10 +94,9 @@ def camera_phase(camera: CalibratedCamera, image: npt.ArrayLike) -> Phase:
     result = demodulate(image, camera.carrier)
     dphi = phase_difference(result.wrapped_phase, camera.reference_phase)
     strong = float(np.percentile(result.modulation, 95))
-    valid = (result.modulation > MODULATION_FRACTION * strong).astype(np.uint8)
     b = camera.border_px
-    valid[:b] = valid[-b:] = 0
-    valid[:, :b] = valid[:, -b:] = 0
+    valid = ((result.modulation > MODULATION_FRACTION * strong)
+             & border_mask(result.modulation.shape, b)).astype(np.uint8)
     # The band-pass spreads every edge of the fringe field (an object's outline, a shadow, the
     # end of the plate) over about a period: erode the mask by half a period on each side.
     half = max(1, b // 2)
