@@ -10,6 +10,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from eyeserver.cli import main
@@ -30,29 +31,29 @@ SCENES: dict[str, SceneSpec] = {
     "wedge": SceneSpec(kind="wedge"),
     "pyramid": SceneSpec(kind="pyramid", position_mm=(1.0, -1.0, -5.0)),
     "eye_phantom_1": SceneSpec(kind="eye_phantom_1"),
-    "eye_phantom_2": SceneSpec(kind="eye_phantom_2", position_mm=(1.5, 0.5, -9.0),
+    # Turned and shifted, its base plate's corners reach Z = −10.4 mm, just below the calibrated
+    # range (at Z = −9 they reached −14 mm, beyond what any order can be checked for).
+    "eye_phantom_2": SceneSpec(kind="eye_phantom_2", position_mm=(1.5, 0.5, -5.0),
                                rotation_deg=(8.0, -6.0, 0.0)),
 }
-KNOWN_GAP = pytest.mark.xfail(strict=True, reason=(
-    "eye phantom 2 (corneal cap, turned and shifted): ~10 % of points beyond 1 mm, not yet "
-    "understood; median still 0.024 mm (issue 3 stays open)"))
-CASES = [pytest.param("default", name, marks=KNOWN_GAP if name == "eye_phantom_2" else ())
-         for name in SCENES] + [
+CASES = [pytest.param("default", name) for name in SCENES] + [
     pytest.param("wide", "plate_+3"), pytest.param("wide", "pyramid"),
-    pytest.param("wide", "eye_phantom_2", marks=KNOWN_GAP),
+    pytest.param("wide", "eye_phantom_2"),
     # Horizontal fringes, one unit, 12-bit cameras: the pipeline assumes no fringe direction.
     pytest.param("horizontal", "plate_+3"), pytest.param("horizontal", "pyramid")]
 
 
 def _measure(calibrated_rooms: Any, room: str, scene: str, tmp_path: Path,
-             cameras: str | None = None) -> dict[str, Any]:
+             cameras: str | None = None, options: tuple[str, ...] = ()) -> dict[str, Any]:
     _, caldir = calibrated_rooms(room)
     config = load_room(ROOMS[room])
     bundle = tmp_path / scene
-    with SimSession.open(config, seed=7) as session:
-        session.record(SCENES[scene], bundle)
+    if not bundle.exists():
+        with SimSession.open(config, seed=7) as session:
+            session.record(SCENES[scene], bundle)
     cloud_path = tmp_path / f"{scene}.ply"
-    args = ["reconstruct", "--calibration", str(caldir), "--out", str(cloud_path), str(bundle)]
+    args = ["reconstruct", "--calibration", str(caldir), "--out", str(cloud_path), *options,
+            str(bundle)]
     if cameras:
         args[1:1] = ["--cameras", cameras]
     assert main(args) == 0
@@ -66,7 +67,8 @@ def test_scene_matches_its_exact_surface(calibrated_rooms: Any, room: str, scene
                                          tmp_path: Path) -> None:
     score = _measure(calibrated_rooms, room, scene, tmp_path)
     assert score["median_mm"] < 0.05, score  # goal of DESIGN §6: 0.15 mm
-    assert score["beyond_1mm"] < 0.005, score
+    assert score["rmse_mm"] < 0.15, score  # the goal of DESIGN §6
+    assert score["beyond_1mm"] < 0.001, score
     for camera_id, coverage in score["coverage"].items():
         assert coverage["share"] > 0.4, (camera_id, score)
 
@@ -99,3 +101,54 @@ def test_bad_requests_are_explained(calibrated_rooms: Any, tmp_path: Path,
     assert main(["reconstruct", "--calibration", str(tmp_path), "--out", out,
                  str(calset / "reference")]) == 2
     assert "calibration.json" in capsys.readouterr().err
+    assert main(["reconstruct", "--calibration", str(caldir), "--roi", "0", "0", "0", "1", "1",
+                 "-1", "--out", out, str(calset / "reference")]) == 2
+    assert "--roi" in capsys.readouterr().err
+
+
+# The spatial path's known weakness: on eye phantom 1 an unwrapping slip next to the iris that
+# both cameras share (so each confirms the other) leaves ≈ 0.9 % of points a fringe off.
+SPATIAL_BEYOND_1MM = {"pyramid": 0.001, "eye_phantom_1": 0.012}
+
+
+@pytest.mark.parametrize("scene", list(SPATIAL_BEYOND_1MM))
+def test_spatial_path_matches_and_covers_more(calibrated_rooms: Any, scene: str,
+                                              tmp_path: Path) -> None:
+    fast = _measure(calibrated_rooms, "default", scene, tmp_path)
+    robust = _measure(calibrated_rooms, "default", scene, tmp_path,
+                      options=("--method", "spatial"))
+    assert robust["median_mm"] < 0.05, robust
+    assert robust["beyond_1mm"] < SPATIAL_BEYOND_1MM[scene], robust
+    for camera_id, coverage in robust["coverage"].items():
+        assert coverage["share"] > fast["coverage"][camera_id]["share"] + 0.03, (fast, robust)
+
+
+def test_one_camera_alone_needs_and_uses_a_depth_prior(calibrated_rooms: Any, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str],
+                                                       ) -> None:
+    calset, caldir = calibrated_rooms("default")
+    out = str(tmp_path / "x.ply")
+    assert main(["reconstruct", "--calibration", str(caldir), "--cameras", "S1", "--out", out,
+                 str(calset / "reference")]) == 2
+    assert "depth prior" in capsys.readouterr().err
+    score = _measure(calibrated_rooms, "default", "plate_+3", tmp_path, cameras="S1",
+                     options=("--depth-prior", "4.5"))
+    assert "depth prior" in capsys.readouterr().out
+    assert score["median_mm"] < 0.05, score
+    assert score["beyond_1mm"] < 0.001, score
+    # A prior more than half a fringe's depth off picks the neighbouring order: the prior is
+    # what decides, so a wrong one gives a plate a fringe (≈ 5 mm) away.
+    wrong = _measure(calibrated_rooms, "default", "plate_+3", tmp_path, cameras="S1",
+                     options=("--depth-prior", "9"))
+    assert wrong["median_mm"] > 3, wrong
+
+
+def test_region_of_interest_and_quality_crop(calibrated_rooms: Any, tmp_path: Path) -> None:
+    whole = _measure(calibrated_rooms, "default", "pyramid", tmp_path)
+    cropped = _measure(calibrated_rooms, "default", "pyramid", tmp_path,
+                       options=("--roi", "-5", "-5", "-20", "5", "5", "30",
+                                "--min-quality", "0.3"))
+    points = read_ply(tmp_path / "pyramid.ply").points
+    assert points.size and np.all(np.abs(points[:, :2]) <= 5.0 + 1e-4)
+    assert cropped["points"] < whole["points"] / 3
+    assert cropped["median_mm"] < 0.05

@@ -256,3 +256,22 @@ def calibrate_phase_height(document: dict[str, Any], plate_path: str | Path,
                 "to another azimuth")
         section["units"][unit.id] = margin
     return section, arrays
+
+
+def add_phase_height(calibration: str | Path, plate_path: str | Path,
+                     reference_path: str | Path, progress: Progress = _quiet,
+                     ) -> dict[str, Any]:
+    """Calibrate phase to height and add it, with its inputs' hashes, to the stereo calibration
+    directory ``calibration`` (rewritten atomically); returns the new section."""
+    from eyeserver.calibration.artefact import load_calibration, write_calibration
+    from eyeserver.io import bundle_hash
+
+    document = load_calibration(calibration)
+    arrays = document.pop("arrays")
+    section, new_arrays = calibrate_phase_height(document, plate_path, reference_path,
+                                                 progress=progress)
+    document["phase_to_height"] = section
+    document["inputs"]["phase_to_height"] = [
+        {"bundle": Path(p).name, "sha256": bundle_hash(p)} for p in (plate_path, reference_path)]
+    write_calibration(calibration, document, {**arrays, **new_arrays}, overwrite=True)
+    return section

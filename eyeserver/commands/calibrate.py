@@ -6,14 +6,13 @@ import argparse
 import time
 from pathlib import Path
 
+from eyeserver.bench.figures import FIGURES
 from eyeserver.commands import Subparsers
 from eyeserver.commands import progress as _progress
 from eyeserver.errors import EyeserverError
 
-REPROJECTION_GOAL_PX = 0.15
-REPROJECTION_PAPER_PX = 0.88
-P2H_GOAL_MM = 0.03
-P2H_PAPER_MM = 0.12
+REPROJECTION = FIGURES["reprojection_px"]
+P2H = FIGURES["p2h_residual_mm"]
 
 
 def add_parser(subparsers: Subparsers) -> None:
@@ -55,8 +54,8 @@ def _stereo(args: argparse.Namespace) -> int:
         raise EyeserverError(f"{args.out} exists and is not empty (use --overwrite)") from exc
     print(f"stereo calibration of {len(result.cameras)} cameras from "
           f"{len(result.inputs)} chessboard bundles → {args.out}")
-    print(f"reprojection error (px): goal ≤ {REPROJECTION_GOAL_PX}, paper "
-          f"{REPROJECTION_PAPER_PX} median")
+    print(f"reprojection error (px): goal ≤ {REPROJECTION.goal} median, paper "
+          f"{REPROJECTION.paper}")
     print(f"  {'camera':<8}{'median':>8}{'IQR':>8}{'max':>8}{'boards':>8}")
     for cid, cam in result.cameras.items():
         q = cam.quality()
@@ -71,21 +70,12 @@ def _stereo(args: argparse.Namespace) -> int:
 
 
 def _p2h(args: argparse.Namespace) -> int:
-    from eyeserver.calibration.artefact import load_calibration, write_calibration
-    from eyeserver.calibration.phase_height import MARGIN_WARNING_RAD, calibrate_phase_height
-    from eyeserver.io import bundle_hash
+    from eyeserver.calibration.phase_height import MARGIN_WARNING_RAD, add_phase_height
 
-    document = load_calibration(args.calibration)
-    arrays = document.pop("arrays")
-    section, new_arrays = calibrate_phase_height(document, args.plate, args.reference,
-                                                 progress=_progress)
-    document["phase_to_height"] = section
-    document["inputs"]["phase_to_height"] = [
-        {"bundle": Path(p).name, "sha256": bundle_hash(p)} for p in (args.plate, args.reference)]
-    write_calibration(args.calibration, document, {**arrays, **new_arrays}, overwrite=True)
+    section = add_phase_height(args.calibration, args.plate, args.reference, progress=_progress)
     print(f"phase-to-height calibration → {args.calibration}")
-    print(f"residual |Z_model − Z_nominal| (mm): goal ≤ {P2H_GOAL_MM} median, paper "
-          f"{P2H_PAPER_MM} (IQR 0.15)")
+    print(f"residual |Z_model − Z_nominal| (mm): goal ≤ {P2H.goal} median, paper "
+          f"{P2H.paper}")
     print(f"  {'camera':<8}{'median':>8}{'IQR':>8}{'RMSE':>8}  range")
     for cid, cam in section["cameras"].items():
         q = cam["quality"]
@@ -112,12 +102,25 @@ def add_reconstruct_parser(subparsers: Subparsers) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="CLOUD.ply")
     parser.add_argument("--frames", metavar="I,J", help="frame indices to use (default: all)")
     parser.add_argument("--cameras", metavar="S1,S2", help="cameras to use (default: all)")
+    parser.add_argument("--method", choices=("multi-view", "spatial"), default="multi-view",
+                        help="fringe order: per pixel from the unit's other camera (fast, the "
+                        "default) or spatial unwrapping with one order per region voted by the "
+                        "other camera (slower, keeps more of what only one camera sees)")
+    parser.add_argument("--depth-prior", type=float, metavar="Z_MM",
+                        help="height (mm) the surface lies near, within half a fringe's depth: "
+                        "fixes the order of a camera alone in its unit and of spatial regions "
+                        "the other camera cannot judge")
+    parser.add_argument("--roi", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
+                        help="keep only points inside this WCS box (mm)")
+    parser.add_argument("--min-quality", type=float, default=0.0, metavar="Q",
+                        help="drop points of quality below Q (0–1; default 0)")
     parser.add_argument("bundle", type=Path, metavar="BUNDLE")
     parser.set_defaults(handler=_reconstruct)
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
     from eyeserver.io import write_ply
+    from eyeserver.pipeline.fusion import Region
     from eyeserver.service.reconstruction import reconstruct_bundle
 
     frames = None
@@ -128,12 +131,27 @@ def _reconstruct(args: argparse.Namespace) -> int:
             raise EyeserverError(f"--frames: not a list of frame numbers: {args.frames!r}") \
                 from None
     cameras = args.cameras.split(",") if args.cameras else None
+    region = None
+    if args.roi:
+        try:
+            region = Region(tuple(args.roi[:3]), tuple(args.roi[3:]))
+        except ValueError as exc:
+            raise EyeserverError(f"--roi: {exc}") from None
+    if not 0.0 <= args.min_quality <= 1.0:
+        raise EyeserverError(f"--min-quality must be between 0 and 1, not {args.min_quality}")
     started = time.perf_counter()
     cloud, summary = reconstruct_bundle(args.calibration, args.bundle, frames=frames,
-                                        cameras=cameras, progress=_progress)
+                                        cameras=cameras, method=args.method,
+                                        depth_prior_mm=args.depth_prior, region=region,
+                                        min_quality=args.min_quality, progress=_progress)
     write_ply(args.out, cloud)
     print(f"{summary['points']} points → {args.out} ({time.perf_counter() - started:.1f} s)")
     for cid, cam in summary["cameras"].items():
-        print(f"  {cid}: {cam['points']} points (frame {cam['frame']}, fringe order "
-              f"{cam['fringe_order']} with {cam['partner']})")
+        orders = ", ".join(f"{n} {name}" for name, n in cam["fringe_order"].items()) or "none"
+        partner = f"checked with {cam['partner']}" if cam["partner"] else "alone"
+        print(f"  {cid}: {cam['points']} points (frame {cam['frame']}, {partner}; fringe order "
+              f"from {orders})")
+    dropped = {k: v for k, v in summary["dropped"].items() if v}
+    if dropped:
+        print("  dropped: " + ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in dropped.items()))
     return 0

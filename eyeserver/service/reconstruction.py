@@ -13,8 +13,16 @@ from eyeserver.calibration.artefact import load_calibration
 from eyeserver.errors import EyeserverError
 from eyeserver.io import PointCloud, read_bundle
 from eyeserver.pipeline.demodulate import Carrier
+from eyeserver.pipeline.fusion import Part, Region, fuse
 from eyeserver.pipeline.phase_height import PhaseHeightModel
-from eyeserver.pipeline.reconstruct import CalibratedCamera, unit_clouds
+from eyeserver.pipeline.reconstruct import (
+    METHODS,
+    CalibratedCamera,
+    CameraCloud,
+    camera_cloud,
+    camera_phase,
+    unit_clouds,
+)
 
 Progress = Callable[[str], None]
 
@@ -50,12 +58,19 @@ def calibrated_cameras(document: dict[str, Any]) -> dict[str, CalibratedCamera]:
 
 def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
                        frames: Sequence[int] | None = None, cameras: Sequence[str] | None = None,
+                       method: str = "multi-view", depth_prior_mm: float | None = None,
+                       region: Region | None = None, min_quality: float = 0.0,
                        progress: Progress = _quiet) -> tuple[PointCloud, dict[str, Any]]:
     """The fused point cloud of a measurement bundle, and a summary per camera.
 
     ``frames`` and ``cameras`` restrict the views used (default: every fringe image). A camera's
-    fringe order is fixed with its unit's other camera in the same frame, which must be there.
+    fringe order is fixed with its unit's other camera in the same frame (``method``: see
+    :mod:`eyeserver.pipeline.reconstruct`); a camera alone in its frame needs
+    ``depth_prior_mm``. ``region`` and ``min_quality`` crop the fused cloud.
     """
+    if method not in METHODS:
+        raise ReconstructionError(f"unknown fringe-order method {method!r} (one of "
+                                  f"{', '.join(METHODS)})")
     bundle = read_bundle(bundle_path)
     document = load_calibration(calibration, bundle.rig)
     calibrated = calibrated_cameras(document)
@@ -69,42 +84,55 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
     if unknown:
         raise ReconstructionError(f"{bundle.path}: no camera {sorted(unknown)} in the rig")
     z_range = tuple(document["phase_to_height"]["cameras"][rig.camera_ids[0]]["z_range_mm"])
-    points, quality, camera_index = [], [], []
-    summary: dict[str, Any] = {"cameras": {}}
+    limits = (float(z_range[0]), float(z_range[1]))
+    saturation = float(2 ** bundle.bit_depth - 1) if bundle.bit_depth else None
     views = [(i, c) for i, c in bundle.fringe_images()
              if i in chosen_frames and c in chosen_cameras]
     if not views:
         raise ReconstructionError(f"{bundle.path}: no fringe image among the chosen frames and "
                                   "cameras (a camera's image counts only when its own unit's "
                                   "projector is lit)")
-    done: dict[tuple[int, str], Any] = {}
+    summary: dict[str, Any] = {"cameras": {}, "method": method}
+    done: dict[tuple[int, str], tuple[CameraCloud, str | None]] = {}
     for index, camera_id in views:
+        if (index, camera_id) in done:
+            continue
         unit = rig.unit_of_camera(camera_id)
-        partners = [c for c in unit.cameras if c != camera_id
-                    and c in bundle.frame(index).images]
+        partners = [c for c in unit.cameras if c != camera_id and (index, c) in views]
+        image = bundle.load_image(index, camera_id)
         if not partners:
-            raise ReconstructionError(f"{bundle.path}: frame {index} has no other camera of "
-                                      f"unit {unit.id} to fix camera {camera_id}'s fringe order")
+            if depth_prior_mm is None:
+                raise ReconstructionError(
+                    f"{bundle.path}: frame {index} has no other camera of unit {unit.id} to fix "
+                    f"camera {camera_id}'s fringe order; give a depth prior (the surface's "
+                    "height within half a fringe's depth) to use the camera alone")
+            progress(f"frame {index}: camera {camera_id} alone, order from the depth prior")
+            cam = calibrated[camera_id]
+            alone = camera_cloud(cam, camera_phase(cam, image, saturation), None, None, limits,
+                                 depth_prior_mm=depth_prior_mm)
+            done[(index, camera_id)] = (alone, None)
+            continue
         partner = partners[0]
-        if (index, camera_id) not in done:
-            progress(f"frame {index}: cameras {camera_id} and {partner} of unit {unit.id}")
-            cloud_a, cloud_b = unit_clouds(
-                calibrated[camera_id], bundle.load_image(index, camera_id),
-                calibrated[partner], bundle.load_image(index, partner),
-                (float(z_range[0]), float(z_range[1])))
-            done[(index, camera_id)] = (cloud_a, partner)
-            done[(index, partner)] = (cloud_b, camera_id)
-        cloud, partner = done[(index, camera_id)]
-        points.append(cloud.points)
-        quality.append(cloud.quality)
-        camera_index.append(np.full(len(cloud.points), rig.camera_index(camera_id), np.uint8))
-        summary["cameras"][camera_id] = {"frame": index, "points": len(cloud.points),
-                                         "fringe_order": cloud.method, "partner": partner}
-    fused = PointCloud(np.concatenate(points).astype(np.float32),
-                       np.concatenate(quality).astype(np.float32),
-                       np.concatenate(camera_index))
-    summary["points"] = len(fused)
-    if len(fused):
-        summary["extent_mm"] = {"min": fused.points.min(axis=0).tolist(),
-                                "max": fused.points.max(axis=0).tolist()}
-    return fused, summary
+        progress(f"frame {index}: cameras {camera_id} and {partner} of unit {unit.id}")
+        cloud_a, cloud_b = unit_clouds(
+            calibrated[camera_id], image, calibrated[partner], bundle.load_image(index, partner),
+            limits, method=method, depth_prior_mm=depth_prior_mm, saturation_dn=saturation)
+        done[(index, camera_id)] = (cloud_a, partner)
+        done[(index, partner)] = (cloud_b, camera_id)
+    parts = []
+    for (index, camera_id), (camera_points, partner_id) in done.items():
+        parts.append(Part(camera_points.points, camera_points.quality,
+                          rig.camera_index(camera_id), rig.unit_of_camera(camera_id).id))
+        summary["cameras"][camera_id] = {"frame": index, "points": len(camera_points.points),
+                                         "fringe_order": camera_points.order_counts,
+                                         "partner": partner_id}
+    fused = fuse(parts, region=region, min_quality=min_quality)
+    cloud = PointCloud(fused.points.astype(np.float32), fused.quality, fused.camera)
+    summary["points"] = len(cloud)
+    summary["dropped"] = {"seam_conflict": fused.dropped_seam,
+                          "low_quality": fused.dropped_quality,
+                          "outside_region": fused.dropped_region}
+    if len(cloud):
+        summary["extent_mm"] = {"min": cloud.points.min(axis=0).tolist(),
+                                "max": cloud.points.max(axis=0).tolist()}
+    return cloud, summary
