@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import os
 import platform
+import tempfile
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -25,7 +27,7 @@ from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 
 Progress = Callable[[str], None]
 
-PENDING = ("frameset_2cam_ms", "frameset_4cam_ms", "frame_to_pose_p99_ms")
+PENDING = ("frame_to_pose_p99_ms",)
 """Speed keys of DESIGN §8 whose stages are not built yet (reported as such, never invented)."""
 
 
@@ -87,18 +89,74 @@ def sim_render(config: RoomConfig, frames: int = 30, progress: Progress = _quiet
     return results
 
 
-def run(config: RoomConfig, frames: int = 30, progress: Progress = _quiet) -> dict[str, Any]:
-    """The whole speed report as one JSON-able document."""
+def pipeline(config: RoomConfig, calibration: Path, work: Path, frames: int = 30,
+             progress: Progress = _quiet) -> dict[str, Any]:
+    """Reconstruction times of a 2-camera (one unit) and a 4-camera frame-set of an eye
+    phantom, single-threaded, for both fringe-order paths (images already in memory)."""
+    from eyeserver.calibration.artefact import load_calibration
+    from eyeserver.hardware.sim.sessions import SimSession
+    from eyeserver.io import read_bundle
+    from eyeserver.pipeline.reconstruct import METHODS, unit_clouds
+    from eyeserver.service.reconstruction import calibrated_cameras
+
+    bundle_path = work / "speed_eye_phantom_1"
+    with SimSession.open(config, seed=3) as session:
+        session.record(SceneSpec(kind="eye_phantom_1"), bundle_path, overwrite=True)
+    bundle = read_bundle(bundle_path)
+    document = load_calibration(calibration, bundle.rig)
+    cameras = calibrated_cameras(document)
+    z_range = tuple(document["phase_to_height"]["cameras"][bundle.rig.camera_ids[0]]
+                    ["z_range_mm"])
+    pairs = []
+    for index in bundle.frame_indices:
+        ids = [c for i, c in bundle.fringe_images() if i == index]
+        if len(ids) >= 2:
+            pairs.append((bundle.load_image(index, ids[0]), cameras[ids[0]],
+                          bundle.load_image(index, ids[1]), cameras[ids[1]]))
+    results: dict[str, Any] = {}
+    for method in METHODS:
+        runs = frames if method == "multi-view" else max(3, frames // 5)
+        for label, used in (("2cam", pairs[:1]), ("4cam", pairs[:2])):
+            if len(used) < (1 if label == "2cam" else 2):
+                continue
+            progress(f"reconstruction, {method}, {label} ({runs} frame-sets)")
+            samples = []
+            for _ in range(runs + 1):
+                started = time.perf_counter()
+                for image_a, cam_a, image_b, cam_b in used:
+                    unit_clouds(cam_a, image_a, cam_b, image_b,
+                                (float(z_range[0]), float(z_range[1])), method=method)
+                samples.append(time.perf_counter() - started)
+            results[f"{method}_{label}"] = _summary(samples[1:])  # the first fills caches
+    return results
+
+
+def run(config: RoomConfig, frames: int = 30, progress: Progress = _quiet,
+        calibration: Path | None = None) -> dict[str, Any]:
+    """The whole speed report as one JSON-able document (``calibration``: a calibration of the
+    simulated rig; made on the spot when not given)."""
+    from eyeserver.bench.simcal import calibrate_room
+
     started = time.perf_counter()
     render = sim_render(config, frames, progress)
+    with tempfile.TemporaryDirectory(prefix="eyeserver-speed-") as tmp:
+        work = Path(tmp)
+        if calibration is None:
+            progress("calibrating the simulated rig for the pipeline timings")
+            calibration = calibrate_room(config, work, 0, progress)
+        reconstruction = pipeline(config, calibration, work, frames, progress)
     report: dict[str, Any] = {
         "format": "eyeserver.bench.speed/1",
         "machine": machine(),
         "units": "milliseconds per frame-set (median unless named p95)",
         "sim_render": render,
-        "pending": {key: "not built yet: the reconstruction pipeline (issue 3) comes first"
+        "reconstruction": reconstruction,
+        "pending": {key: "not built yet: the eye pose (issue 7) comes first"
                     for key in PENDING},
     }
+    for label in ("2cam", "4cam"):
+        if f"multi-view_{label}" in reconstruction:
+            report[f"frameset_{label}_ms"] = reconstruction[f"multi-view_{label}"]["median_ms"]
     if "moving_eye_2cam" in render:
         report["sim_render_2cam_ms"] = render["moving_eye_2cam"]["median_ms"]
     if "moving_eye_4cam" in render:
@@ -115,9 +173,15 @@ def format_text(report: dict[str, Any]) -> str:
     for key, value in report["sim_render"].items():
         lines.append(f"  {key.replace('_', ' '):<32}{value['median_ms']:>10.1f}"
                      f"{value['p95_ms']:>10.1f}")
-    lines.append("")
     lines.append("goal: a live 2-camera frame in ≤ 20 ms (25 Hz, sharing the cores with "
                  "reconstruction)")
+    lines.append("")
+    lines.append(f"{'reconstruction (one thread)':<34}{'median ms':>10}{'p95 ms':>10}")
+    for key, value in report["reconstruction"].items():
+        lines.append(f"  {key.replace('_', ' '):<32}{value['median_ms']:>10.1f}"
+                     f"{value['p95_ms']:>10.1f}")
+    lines.append("goal: a 2-camera frame-set in ≤ 10 ms, a 4-camera one in ≤ 20 ms (DESIGN §6)")
+    lines.append("")
     for key, why in report["pending"].items():
         lines.append(f"{key}: {why}")
     lines.append(f"took {report['duration_s']} s")

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from eyeserver.commands import Subparsers
 from eyeserver.commands import progress as _progress
-from eyeserver.errors import NotBuiltError
+from eyeserver.errors import EyeserverError
 
 
 def _positive_int(text: str) -> int:
@@ -32,9 +32,26 @@ def add_parser(subparsers: Subparsers) -> None:
     speed.add_argument("--frames", type=_positive_int, default=30,
                        help="frame-sets per figure (default 30)")
     speed.add_argument("--room", type=Path, metavar="FILE", help="room file (default room)")
+    speed.add_argument("--calibration", type=Path, metavar="CALDIR",
+                       help="a calibration of the simulated rig for the pipeline timings "
+                       "(default: make one, ≈ 1 minute)")
     speed.set_defaults(handler=_speed)
-    accuracy = commands.add_parser("accuracy", help="the paper's validation (not built yet)")
-    accuracy.add_argument("--json", action="store_true")
+    accuracy = commands.add_parser(
+        "accuracy", help="the paper's validation on the simulated room",
+        description="Calibrate a simulated rig, reconstruct phantoms at several poses with 4 "
+        "and 2 views, and print the paper's figures beside the goals (progress on stderr).")
+    accuracy.add_argument("--json", action="store_true", help="one JSON document on stdout")
+    accuracy.add_argument("--quick", action="store_true",
+                          help="one pose per phantom instead of four")
+    accuracy.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    accuracy.add_argument("--out", type=Path, metavar="DIR",
+                          help="keep the calibration set, calibration and scenes here")
+    accuracy.add_argument("--calibration", type=Path, metavar="CALDIR",
+                          help="use this calibration of the simulated rig instead of making one")
+    accuracy.add_argument("--room", type=Path, metavar="FILE", help="room file (default room)")
+    accuracy.add_argument("--phantoms", metavar="NAMES",
+                          help="comma-separated phantoms (default: pyramid,wedge,eye_phantom_1,"
+                          "eye_phantom_2)")
     accuracy.set_defaults(handler=_accuracy)
 
 
@@ -42,11 +59,24 @@ def _speed(args: argparse.Namespace) -> int:
     from eyeserver.bench import speed
     from eyeserver.hardware.sim.config import load_room
 
-    report = speed.run(load_room(args.room), frames=args.frames, progress=_progress)
+    report = speed.run(load_room(args.room), frames=args.frames, progress=_progress,
+                       calibration=args.calibration)
     print(json.dumps(report, indent=1) if args.json else speed.format_text(report))
     return 0
 
 
 def _accuracy(args: argparse.Namespace) -> int:
-    raise NotBuiltError("bench accuracy needs the reconstruction pipeline (issue 3) and the "
-                        "accuracy bench (issue 4), which are not built yet")
+    from eyeserver.bench import accuracy
+    from eyeserver.hardware.sim.config import load_room
+
+    phantoms = accuracy.PHANTOMS
+    if args.phantoms:
+        phantoms = tuple(args.phantoms.split(","))
+        unknown = sorted(set(phantoms) - set(accuracy.PHANTOMS))
+        if unknown:
+            raise EyeserverError(f"--phantoms: unknown {', '.join(unknown)} (choose from "
+                                 f"{', '.join(accuracy.PHANTOMS)})")
+    report = accuracy.run(load_room(args.room), quick=args.quick, seed=args.seed, out=args.out,
+                          calibration=args.calibration, phantoms=phantoms, progress=_progress)
+    print(json.dumps(report, indent=1) if args.json else accuracy.format_text(report))
+    return 0
