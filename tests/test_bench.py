@@ -12,6 +12,7 @@ from eyeserver.cli import main
 
 
 def _json(capsys: pytest.CaptureFixture[str], args: list[str]) -> dict[str, Any]:
+    capsys.readouterr()  # what the calibration fixture printed, when it ran in this test
     assert main(args) == 0
     report: dict[str, Any] = json.loads(capsys.readouterr().out)
     return report

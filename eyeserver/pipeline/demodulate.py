@@ -164,16 +164,18 @@ class Demodulated:
     modulation: F32
 
 
-def _checked_image(image: npt.ArrayLike, name: str = "image") -> npt.NDArray[Any]:
-    """``image`` as a 2-D real array (its own dtype), or a ValueError naming ``name``."""
+def checked_image(image: npt.ArrayLike, name: str = "image", min_size: int = _MIN_SIZE,
+                  ) -> npt.NDArray[Any]:
+    """``image`` as a 2-D real finite array (its own dtype) of at least ``min_size`` pixels a
+    side, or a ValueError naming ``name``."""
     array = np.asarray(image)
     if array.ndim != 2:
         raise ValueError(f"{name} must be a 2-D array, not {array.ndim}-D")
     if array.dtype == np.bool_ or not (np.issubdtype(array.dtype, np.integer)
                                        or np.issubdtype(array.dtype, np.floating)):
         raise ValueError(f"{name} must hold real numbers (integer or float), not {array.dtype}")
-    if min(array.shape) < _MIN_SIZE:
-        raise ValueError(f"{name} must be at least {_MIN_SIZE}×{_MIN_SIZE} px, not "
+    if min(array.shape) < min_size:
+        raise ValueError(f"{name} must be at least {min_size}×{min_size} px, not "
                          f"{array.shape[0]}×{array.shape[1]}")
     if np.issubdtype(array.dtype, np.floating) and not np.isfinite(array).all():
         raise ValueError(f"{name} must be finite (no NaN or inf)")
@@ -405,7 +407,7 @@ def measure_carrier(image: npt.ArrayLike, mask: npt.ArrayLike | None = None, *,
     >>> [round(f, 4) for f in carrier.frequency]
     [0.01, 0.06]
     """
-    values = np.asarray(_checked_image(image), dtype=np.float32)
+    values = np.asarray(checked_image(image), dtype=np.float32)
     height, width = values.shape
     if mask is None:
         weights = None
@@ -559,7 +561,7 @@ def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = 0.8
     >>> round(float(result.wrapped_phase[10, 0]), 3), round(float(result.modulation[10, 40]), 1)
     (1.0, 30.0)
     """
-    values = _checked_image(image)
+    values = checked_image(image)
     if not isinstance(carrier, Carrier):
         raise ValueError(f"carrier must be a Carrier, not {type(carrier).__name__}")
     if isinstance(bandwidth, bool) or not (isinstance(bandwidth, numbers.Real)
