@@ -25,11 +25,13 @@ def test_accuracy_bench_reports_the_papers_figures(calibrated_rooms: Any,
                             "eye_phantom_1", "--calibration", str(caldir)])
     for key in FIGURES:
         assert key in report, key
-    for key in ("reprojection_px", "p2h_residual_mm", "icp_rmse_4view_mm", "icp_rmse_2view_mm",
+    for key in ("reprojection_px", "p2h_residual_mm", "fiducial_error_mm", "icp_rmse_4view_mm",
+                "icp_rmse_2view_mm",
                 "surface_median_4view_mm", "surface_median_2view_mm", "surface_rmse_4view_mm",
                 "surface_rmse_2view_mm"):
         assert report[key] <= FIGURES[key].goal, (key, report[key])
     assert report["surface_median_4view_mm"] < 0.05
+    assert report["fiducials"]["measurements"] >= 8  # the dots found in both cameras of a unit
     assert report["4view_measurements"] == 1 and report["2view_measurements"] == 2
     assert report["spatial_4view_measurements"] == 1
     assert report["spatial_coverage_4view"] > report["coverage_4view"]
