@@ -115,7 +115,9 @@ def test_modulation_is_the_fringe_amplitude(name: str) -> None:
     modulation = demodulate(image, carrier).modulation
     interior, border = _regions(carrier)
     assert np.median(modulation[interior]) == pytest.approx(FRINGE_DN, rel=0.005)
-    assert np.abs(modulation[interior] - FRINGE_DN).max() < 0.05 * FRINGE_DN
+    # The long raised-cosine edge of the default band passes a strongly shifted local frequency
+    # at a little less than full gain: a few per cent of amplitude, for a better phase.
+    assert np.abs(modulation[interior] - FRINGE_DN).max() < 0.08 * FRINGE_DN
     assert np.abs(modulation[border] - FRINGE_DN).max() < 0.1 * FRINGE_DN
 
 
@@ -129,10 +131,11 @@ def test_phase_convention_of_a_pure_cosine() -> None:
     phase = demodulate(image, carrier).wrapped_phase
     interior, _ = _regions(carrier)
     assert np.abs(_wrap(phase - truth))[interior].max() < 5e-3
-    assert np.abs(_wrap(phase - truth)).max() < 1e-2  # the borders too
+    # The borders too (the band reaches within 0.1·|f| of the background there).
+    assert np.abs(_wrap(phase - truth)).max() < 1.5e-2
     assert float(phase[0, 0]) == pytest.approx(phase0, abs=1e-2)
     negated = demodulate(image, carrier.negated()).wrapped_phase
-    assert np.abs(_wrap(negated + truth)).max() < 1e-2
+    assert np.abs(_wrap(negated + truth)).max() < 1.5e-2
 
 
 def test_integer_images_demodulate_like_float_ones() -> None:

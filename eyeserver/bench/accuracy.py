@@ -25,15 +25,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from eyeserver.bench.figures import FIGURES
+from eyeserver.bench.plots import error_map, write_figures
+from eyeserver.bench.public import score_ftm
 from eyeserver.bench.simcal import calibrate_room
 from eyeserver.bench.speed import machine
 from eyeserver.calibration.artefact import load_calibration
+from eyeserver.errors import EyeserverError
 from eyeserver.hardware.sim.config import RoomConfig
 from eyeserver.hardware.sim.room import SimRoom
 from eyeserver.hardware.sim.scenes import SceneSpec, build_scene
-from eyeserver.hardware.sim.scoring import score_cloud
+from eyeserver.hardware.sim.scoring import score_by_surface, score_cloud
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.hardware.sim.truth import truth_scene
 from eyeserver.io import PointCloud, read_bundle
@@ -50,12 +54,12 @@ from eyeserver.service.reconstruction import calibrated_cameras, reconstruct_bun
 Progress = Callable[[str], None]
 
 PENDING = {
-    "seam_error_mm": "the seam figure comes with the accuracy bench (issue 4)",
-    "eye_model_distance_mm": "the eye model is issue 7",
-    "static_noise_mm": "the repeatability figure comes with the accuracy bench (issue 4)",
-    "ftm_phase_error_rad": "the public 4-step set is scored in the accuracy bench (issue 4)",
+    "eye_model_distance_mm": "the eye model and its fit are issue 7",
 }
 """DESIGN §8 keys this bench does not measure yet, and why."""
+
+STATIC_REPEATS = {True: 4, False: 10}
+"""Captures of the still surface for the repeatability figure (quick, full)."""
 
 ICP_SAMPLE = 5000
 """Cloud points each ICP iteration pairs (of a few hundred thousand)."""
@@ -160,39 +164,120 @@ FIDUCIAL_RING_PERIODS = (0.8, 1.6)
 erodes about a period around the dark dot, so the ring starts just beyond."""
 
 
-def fiducial_errors(caldir: Path, bundle_path: Path) -> list[list[float]]:
-    """Per dot seen by both cameras of a unit: fringe-derived position − stereo triangulation
-    (x, y, z in mm). The dots are located in the images (never taken from the truth)."""
+def fiducial_errors(caldir: Path, bundle_path: Path) -> list[dict[str, Any]]:
+    """Per dot seen by both cameras of a unit, once per camera: the position the camera's fringe
+    surface gives it against its stereo triangulation (x, y, z in mm). The dots are located in
+    the images (never taken from the truth)."""
     bundle = read_bundle(bundle_path)
     document = load_calibration(caldir, bundle.rig)
     cameras = calibrated_cameras(document)
     z_range = tuple(document["phase_to_height"]["cameras"][bundle.rig.camera_ids[0]]
                     ["z_range_mm"])
-    errors: list[list[float]] = []
+    found_errors: list[dict[str, Any]] = []
     for index in bundle.frame_indices:
         ids = [c for i, c in bundle.fringe_images() if i == index]
         if len(ids) < 2:
             continue
         a, b = cameras[ids[0]], cameras[ids[1]]
         image_a, image_b = bundle.load_image(index, ids[0]), bundle.load_image(index, ids[1])
-        cloud_a, _ = unit_clouds(a, image_a, b, image_b, (float(z_range[0]), float(z_range[1])))
-        dots_a = detect_fiducials(image_a, a.carrier.period_px)
-        dots_b = detect_fiducials(image_b, b.carrier.period_px)
-        pairs = match_stereo(dots_a, dots_b, a.K, a.dist, a.R, a.T, b.K, b.dist, b.R, b.T)
+        clouds = unit_clouds(a, image_a, b, image_b, (float(z_range[0]), float(z_range[1])))
+        dots = (detect_fiducials(image_a, a.carrier.period_px),
+                detect_fiducials(image_b, b.carrier.period_px))
+        pairs = match_stereo(dots[0], dots[1], a.K, a.dist, a.R, a.T, b.K, b.dist, b.R, b.T)
         if not len(pairs):
             continue
-        stereo = triangulate(dots_a[pairs[:, 0]], dots_b[pairs[:, 1]], a.K, a.dist, a.R, a.T,
+        stereo = triangulate(dots[0][pairs[:, 0]], dots[1][pairs[:, 1]], a.K, a.dist, a.R, a.T,
                              b.K, b.dist, b.R, b.T)
-        h, w = a.shape
-        depth = np.full((h * w, 3), np.nan)
-        depth[cloud_a.pixels] = cloud_a.points
-        ring = (FIDUCIAL_RING_PERIODS[0] * a.carrier.period_px,
-                FIDUCIAL_RING_PERIODS[1] * a.carrier.period_px)
-        fringe = surface_position(dots_a[pairs[:, 0]], depth.reshape(h, w, 3), a.K, a.dist,
-                                  a.R, a.T, ring_px=ring, degree=2)
-        found = np.all(np.isfinite(fringe), axis=1)
-        errors.extend((fringe[found] - stereo[found]).tolist())
-    return errors
+        for side, (cam, cloud) in enumerate(zip((a, b), clouds, strict=True)):
+            h, w = cam.shape
+            depth = np.full((h * w, 3), np.nan)
+            depth[cloud.pixels] = cloud.points
+            ring = (FIDUCIAL_RING_PERIODS[0] * cam.carrier.period_px,
+                    FIDUCIAL_RING_PERIODS[1] * cam.carrier.period_px)
+            fringe = surface_position(dots[side][pairs[:, side]], depth.reshape(h, w, 3), cam.K,
+                                      cam.dist, cam.R, cam.T, ring_px=ring, degree=2)
+            for position, error in zip(stereo, fringe - stereo, strict=True):
+                if np.all(np.isfinite(error)):
+                    found_errors.append({"camera": cam.camera_id, "stereo_mm": position.tolist(),
+                                         "error_mm": error.tolist()})
+    return found_errors
+
+
+SEAM_BAND_MM = 2.0
+"""The seam: within this distance of where one unit's coverage ends inside the other's."""
+SEAM_CELL_MM = 0.25
+
+
+def seam_distances(truth: dict[str, Any], cloud: PointCloud, config: RoomConfig) -> np.ndarray:
+    """|distance| to the exact surface of the fused points in the seam between the units:
+    within :data:`SEAM_BAND_MM` (in X, Y) of a place only one unit covers and of the other
+    unit's coverage."""
+    if cloud.camera is None or len(config.units) < 2 or not len(cloud):
+        return np.zeros(0)
+    camera_ids = [c.id for u in config.units for c in u.cameras]
+    unit_of = {c.id: n for n, u in enumerate(config.units) for c in u.cameras}
+    unit = np.asarray([unit_of[camera_ids[int(i)]] for i in cloud.camera])
+    xy = cloud.points[:, :2].astype(np.float64)
+    low = xy.min(axis=0)
+    cells = np.floor((xy - low) / SEAM_CELL_MM).astype(np.int64)
+    shape = tuple(cells.max(axis=0) + 1)
+    covered = []
+    for n in (0, 1):
+        grid = np.zeros(shape, bool)
+        grid[cells[unit == n, 0], cells[unit == n, 1]] = True
+        covered.append(ndimage.binary_closing(grid, iterations=2))
+    reach = round(SEAM_BAND_MM / SEAM_CELL_MM)
+    near = [ndimage.binary_dilation(c, iterations=reach) for c in covered]
+    only = [covered[0] & ~covered[1], covered[1] & ~covered[0]]
+    near_only = [ndimage.binary_dilation(o, iterations=reach) for o in only]
+    seam = (near_only[0] & near[1]) | (near_only[1] & near[0])
+    inside = seam[cells[:, 0], cells[:, 1]]
+    scene = build_scene(truth_scene(truth), float(truth.get("t_s", 0.0))).scene
+    return np.asarray(scene.distance(cloud.points[inside].astype(np.float64)))
+
+
+def static_noise(config: RoomConfig, caldir: Path, work: Path, seed: int, repeats: int,
+                 progress: Progress = _quiet) -> dict[str, Any]:
+    """Repeatability: the same still phantom captured ``repeats`` times (fresh sensor noise
+    each time); per pixel the spread (standard deviation) of its height, median over the
+    pixels every capture reconstructed."""
+    path = work / "scenes" / "static"
+    spec = SceneSpec(kind="eye_phantom_1")
+    stacks: dict[str, list[np.ndarray]] = {}
+    with SimSession.open(config, seed=seed + 2) as session:
+        for n in range(repeats):
+            progress(f"static surface, capture {n + 1}/{repeats}")
+            session.record(spec, path, overwrite=True)
+            bundle = read_bundle(path)
+            document = load_calibration(caldir, bundle.rig)
+            cameras = calibrated_cameras(document)
+            z_range = tuple(document["phase_to_height"]["cameras"][bundle.rig.camera_ids[0]]
+                            ["z_range_mm"])
+            for index in bundle.frame_indices:
+                ids = [c for i, c in bundle.fringe_images() if i == index]
+                if len(ids) < 2:
+                    continue
+                a, b = cameras[ids[0]], cameras[ids[1]]
+                clouds = unit_clouds(a, bundle.load_image(index, ids[0]), b,
+                                     bundle.load_image(index, ids[1]),
+                                     (float(z_range[0]), float(z_range[1])))
+                for cam, cloud in zip((a, b), clouds, strict=True):
+                    stacks.setdefault(cam.camera_id, []).append(cloud.depth_image(cam.shape))
+    spreads = {}
+    for camera_id, images in stacks.items():
+        stack = np.stack(images)
+        everywhere = np.all(np.isfinite(stack), axis=0)
+        spreads[camera_id] = float(np.median(np.std(stack[:, everywhere], axis=0, ddof=1))) \
+            if everywhere.any() else float("nan")
+    return {"repeats": repeats, "per_camera_mm": spreads,
+            "median_mm": float(np.nanmedian(list(spreads.values()))) if spreads else None}
+
+
+def _error_map(truth: dict[str, Any], cloud: PointCloud, config: RoomConfig,
+               ) -> dict[str, Any]:
+    """X, Y and |distance| to the exact surface of a cloud's points, per unit and fused."""
+    scene = build_scene(truth_scene(truth), float(truth.get("t_s", 0.0))).scene
+    return error_map(cloud, scene.distance(cloud.points.astype(np.float64)), config)
 
 
 def _views(config: RoomConfig) -> list[tuple[str, list[str] | None, str]]:
@@ -226,6 +311,8 @@ def run(config: RoomConfig, *, quick: bool = False, seed: int = 0, out: Path | N
         report["p2h_residual_mm"] = calib["p2h_residual_mm"]
         measurements = []
         fiducials: list[dict[str, Any]] = []
+        seam: list[float] = []
+        maps: dict[str, Any] = {}
         all_cases = cases(quick, phantoms)
         views = _views(config)
         with SimSession.open(config, seed=seed + 1) as session:
@@ -234,8 +321,8 @@ def run(config: RoomConfig, *, quick: bool = False, seed: int = 0, out: Path | N
                 bundle = work / "scenes" / case.name.replace("#", "_")
                 session.record(case.spec, bundle, overwrite=True)
                 truth = json.loads((bundle / "truth.json").read_text())
-                case_errors = fiducial_errors(caldir, bundle)
-                fiducials.extend({"case": case.name, "error_mm": e} for e in case_errors)
+                fiducials.extend({"case": case.name, **e}
+                                 for e in fiducial_errors(caldir, bundle))
                 for view, cameras, method in views:
                     started_view = time.perf_counter()
                     cloud, _ = reconstruct_bundle(caldir, bundle, cameras=cameras, method=method)
@@ -243,15 +330,22 @@ def run(config: RoomConfig, *, quick: bool = False, seed: int = 0, out: Path | N
                     ids = cameras or [c.id for u in config.units for c in u.cameras]
                     score = score_cloud(truth, cloud, config)
                     coverage = [c["share"] for c in score["coverage"].values()]
+                    if view == "4view" and method == "multi-view":
+                        seam.extend(seam_distances(truth, cloud, config).tolist())
+                        if case.spec.kind == "eye_phantom_1" and not maps:
+                            maps.update(_error_map(truth, cloud, config))
                     measurements.append({
                         "case": case.name, "views": view, "method": method,
                         "points": score["points"], "median_mm": score["median_mm"],
                         "rmse_mm": score["rmse_mm"], "beyond_1mm": score["beyond_1mm"],
                         "coverage": float(np.mean(coverage)) if coverage else 0.0,
+                        "by_surface": score_by_surface(truth, cloud),
                         "reconstruct_s": seconds,
                         "icp_rmse_mm": icp_rmse(truth, cloud, room, ids) if len(cloud)
                         else float("nan")})
         report["measurements"] = measurements
+        report["static_noise"] = static_noise(config, caldir, work, seed,
+                                              STATIC_REPEATS[quick], progress)
     vectors = np.asarray([f["error_mm"] for f in fiducials], dtype=np.float64).reshape(-1, 3)
     distance = np.linalg.norm(vectors, axis=1)
     report["fiducials"] = {
@@ -263,6 +357,12 @@ def run(config: RoomConfig, *, quick: bool = False, seed: int = 0, out: Path | N
         else None,
         "errors_mm": vectors.tolist()}
     report["fiducial_error_mm"] = float(np.median(distance)) if len(distance) else None
+    report["seam"] = {"points": len(seam), "band_mm": SEAM_BAND_MM,
+                      "rmse_mm": float(np.sqrt(np.mean(np.square(seam)))) if seam else None}
+    report["seam_error_mm"] = float(np.median(seam)) if seam else None
+    report["static_noise_mm"] = report["static_noise"]["median_mm"]
+    if out is not None:
+        report["figures"] = write_figures(report, fiducials, maps, out)
     for method, kind, prefix in (("multi-view", "4view", "4view"),
                                  ("multi-view", "2view", "2view"),
                                  ("spatial", "4view", "spatial_4view")):
@@ -280,8 +380,16 @@ def run(config: RoomConfig, *, quick: bool = False, seed: int = 0, out: Path | N
                     float(np.subtract(*np.nanpercentile(values, [75, 25]))) if len(values)
                     else None)
         report[f"{prefix}_measurements"] = len(rows)
-    report["pending"] = dict(PENDING)
-    for key in PENDING:
+    pending = dict(PENDING)
+    try:
+        progress("public 4-step fringe set (OpenCV contrib): single-shot phase against it")
+        public = score_ftm()
+        report["public_fringes"] = public
+        report["ftm_phase_error_rad"] = public["median_abs_rad"]
+    except EyeserverError as exc:  # a wheel without the repository's data directory
+        pending["ftm_phase_error_rad"] = str(exc)
+    report["pending"] = pending
+    for key in pending:
         report[key] = None
     report["duration_s"] = round(time.perf_counter() - started, 1)
     return report
@@ -315,6 +423,23 @@ def format_text(report: dict[str, Any]) -> str:
         lines.append(f"fiducials: {fid['measurements']} dots in {fid['sessions']} sessions, "
                      f"fringe − triangulation median {report['fiducial_error_mm']:.3f} mm "
                      f"(IQR {fid['iqr_mm']:.3f}; |x| {x:.3f}, |y| {y:.3f}, |z| {z:.3f})")
+    if report["seam"]["points"]:
+        lines.append(f"seam: {report['seam']['points']} fused points within "
+                     f"{report['seam']['band_mm']:.0f} mm of where one unit's coverage ends, "
+                     f"median |distance| {report['seam_error_mm']:.3f} mm, RMSE "
+                     f"{report['seam']['rmse_mm']:.3f} mm")
+    static = report["static_noise"]
+    if static["median_mm"] is not None:
+        lines.append(f"static surface: {static['repeats']} captures of a still phantom, per-pixel "
+                     f"height spread (std) median {static['median_mm']:.4f} mm")
+    public = report.get("public_fringes")
+    if public:
+        lines.append(f"public 4-step set ({public['pixels']} object pixels): single-shot phase "
+                     f"median {public['median_abs_rad']:.3f} rad, p95 {public['p95_abs_rad']:.3f}"
+                     f"; plain FFT baseline {public['baseline']['median_abs_rad']:.3f} / "
+                     f"{public['baseline']['p95_abs_rad']:.3f}")
+    if report.get("figures"):
+        lines.append("figures: " + ", ".join(report["figures"]))
     lines.append("")
     lines.append("fringe order, multi-view (fast) against spatial (robust), 4 views, medians:")
     for label, fast, robust, scale, unit in (
@@ -327,6 +452,13 @@ def format_text(report: dict[str, Any]) -> str:
         if report.get(fast) is not None and report.get(robust) is not None:
             lines.append(f"  {label:<42}{scale * report[fast]:>9.3f}{unit:<4}"
                          f"{scale * report[robust]:>9.3f}{unit}")
+    lines.append("")
+    lines.append("per surface, 4 views, multi-view (a phantom's own body apart from its base):")
+    for m in report["measurements"]:
+        if m["views"] == "4view" and m["method"] == "multi-view":
+            for label, v in m["by_surface"].items():
+                lines.append(f"  {m['case']:<18}{label:<14}{v['points']:>8} points, median "
+                             f"{v['median_mm']:.4f} mm, RMSE {v['rmse_mm']:.4f} mm")
     lines.append("")
     lines.append(f"{report['4view_measurements']} 4-view and {report['2view_measurements']} "
                  "2-view reconstructions of the phantoms:")

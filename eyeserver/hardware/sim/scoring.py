@@ -43,3 +43,32 @@ def score_cloud(truth: dict[str, Any], cloud: PointCloud, room: RoomConfig,
         "beyond_1mm": float(np.mean(distance > 1.0)) if len(points) else float("nan"),
         "coverage": coverage,
     }
+
+
+def score_by_surface(truth: dict[str, Any], cloud: PointCloud) -> dict[str, Any]:
+    """Points, median |distance| and RMSE per labelled surface of the scene (each point counted
+    on the surface nearest to it): a phantom's own body and its base plate apart, so a large
+    flat base cannot hide how the curved part fares."""
+    built = build_scene(truth_scene(truth), float(truth.get("t_s", 0.0)))
+    points = cloud.points.astype(np.float64)
+    if not len(points):
+        return {}
+    labels: list[str] = []
+    distances = []
+    for body in built.scene.bodies:
+        local = body.to_local(points)
+        for surface in body.surfaces:
+            labels.append(surface.label)
+            distances.append(surface.distance(local))
+    table = np.stack(distances)
+    nearest = np.argmin(table, axis=0)
+    distance = table[nearest, np.arange(len(points))]
+    out: dict[str, Any] = {}
+    for label in dict.fromkeys(labels):
+        mine = np.isin(nearest, [n for n, name in enumerate(labels) if name == label])
+        if mine.any():
+            d = distance[mine]
+            out[label] = {"points": int(mine.sum()), "median_mm": float(np.median(d)),
+                          "rmse_mm": float(np.sqrt(np.mean(d**2))),
+                          "beyond_1mm": float(np.mean(d > 1.0))}
+    return out
