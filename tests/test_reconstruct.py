@@ -120,7 +120,7 @@ def test_spatial_path_matches_and_covers_more(calibrated_rooms: Any, scene: str,
     assert robust["median_mm"] < 0.05, robust
     assert robust["beyond_1mm"] < SPATIAL_BEYOND_1MM[scene], robust
     for camera_id, coverage in robust["coverage"].items():
-        assert coverage["share"] > fast["coverage"][camera_id]["share"] + 0.03, (fast, robust)
+        assert coverage["share"] > fast["coverage"][camera_id]["share"] + 0.01, (fast, robust)
 
 
 def test_one_camera_alone_needs_and_uses_a_depth_prior(calibrated_rooms: Any, tmp_path: Path,

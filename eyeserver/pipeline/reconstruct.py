@@ -339,7 +339,7 @@ def grid_order(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCamera,
     ks = _candidate_orders(cam_a, x, y, z_range)
     z = _candidate_heights(cam_a, pixels, dphi, ks, z_range)
     mismatch = _mismatch(cam_a, cam_b, phase_b.pinhole_view(cam_b), pixels,
-                                 np.nan_to_num(z, nan=z_range[0]))
+                         np.nan_to_num(z, nan=z_range[0]))
     mismatch = np.where(np.isnan(z), np.inf, mismatch)
     best = np.argmin(mismatch, axis=1)
     rows = np.arange(len(pixels))
@@ -438,7 +438,7 @@ def spatial_order(cam_a: CalibratedCamera, phase_a: Phase, grid: GridOrder | Non
         labels_present, first = np.unique(region, return_index=True)
         index = first[np.searchsorted(labels_present, undecided)]
         x, y = cam_a.x.ravel()[pixels[index]], cam_a.y.ravel()[pixels[index]]
-        ks = np.arange(-60, 61)
+        ks = np.arange(-60, 61)  # far more orders than any calibrated volume holds
         z = cam_a.model.height(x[:, None], y[:, None],
                                np.asarray(medians)[:, None] + TWO_PI * ks[None, :])
         best = np.nanargmin(np.abs(np.where(np.isfinite(z), z, np.inf) - depth_prior_mm), axis=1)
