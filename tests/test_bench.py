@@ -5,10 +5,14 @@ from __future__ import annotations
 import json
 from typing import Any
 
+import cv2
+import numpy as np
 import pytest
 
+from eyeserver.bench import speed
 from eyeserver.bench.figures import FIGURES
 from eyeserver.cli import main
+from eyeserver.pipeline.demodulate import Carrier, demodulate
 
 
 def _json(capsys: pytest.CaptureFixture[str], args: list[str]) -> dict[str, Any]:
@@ -26,7 +30,7 @@ def test_accuracy_bench_reports_the_papers_figures(calibrated_rooms: Any,
     for key in FIGURES:
         assert key in report, key
     for key in ("reprojection_px", "p2h_residual_mm", "fiducial_error_mm", "icp_rmse_4view_mm",
-                "icp_rmse_2view_mm",
+                "icp_rmse_2view_mm", "seam_error_mm", "static_noise_mm",
                 "surface_median_4view_mm", "surface_median_2view_mm", "surface_rmse_4view_mm",
                 "surface_rmse_2view_mm"):
         assert report[key] <= FIGURES[key].goal, (key, report[key])
@@ -38,6 +42,10 @@ def test_accuracy_bench_reports_the_papers_figures(calibrated_rooms: Any,
     for key in report["pending"]:
         assert report[key] is None
     assert report["noise_model"]["bit_depth"] == 8
+    assert report["ftm_phase_error_rad"] < 0.032  # the public 4-step set (test_public_fringes)
+    assert report["static_noise"]["repeats"] == 4 and report["seam"]["points"] > 0
+    assert "eye_phantom_1#0" in {m["case"] for m in report["measurements"]}
+    assert {"phantom", "base"} <= set(report["measurements"][0]["by_surface"])
 
 
 def test_accuracy_bench_refuses_an_unknown_phantom(capsys: pytest.CaptureFixture[str]) -> None:
@@ -55,3 +63,77 @@ def test_speed_bench_times_the_pipeline(calibrated_rooms: Any,
                                              "spatial_2cam", "spatial_4cam"}
     assert report["sim_render_2cam_ms"] > 0
     assert "frame_to_pose_p99_ms" in report["pending"]
+    assert report["goals_ms"] == {"frameset_2cam_ms": 10.0, "frameset_4cam_ms": 20.0}
+    for key in ("framesets_2cam_per_s", "framesets_4cam_per_s", "frameset_4cam_2threads_ms",
+                "framesets_4cam_2threads_per_s", "peak_rss_mib"):
+        assert report[key] > 0, key
+    threads = report["parallel"]
+    assert threads["workers"] == 2
+    assert threads["framesets_per_worker_4cam"]["framesets_per_s"] > 0
+
+    stages = report["stages"]
+    assert stages["passes"] == 2 and stages["opencv_threads"] == 1
+    assert stages["reproduces_unit_clouds"]  # the stages one by one give unit_clouds' points
+    assert len(stages["per_camera"]) == 4
+    for per_camera in stages["per_camera"].values():
+        assert set(per_camera) == set(speed.STAGES)
+        for figure in per_camera.values():
+            assert figure["median_ms"] > 0 and figure["p95_ms"] >= figure["median_ms"]
+            assert figure["n"] == 2
+    for label in ("2cam", "4cam"):
+        block = stages["per_frameset"][label]
+        assert set(block) == {*speed.STAGES, "fusion", "sum_multi_view", "sum_spatial"}
+        assert block["sum_multi_view"]["median_ms"] > block["demodulation"]["median_ms"]
+    assert (stages["per_frameset"]["4cam"]["demodulation"]["median_ms"]
+            > stages["per_frameset"]["2cam"]["demodulation"]["median_ms"] / 2)
+
+    peers = report["peers"]
+    for name in ("skimage_unwrap_phase", "numpy_fft_ftm"):
+        assert peers[name]["available"], name
+        assert peers[name]["time_ratio"] == pytest.approx(
+            peers[name]["peer_median_ms"] / peers[name]["ours_median_ms"])
+    assert peers["numpy_fft_ftm"]["phase_vs_ours_median_rad"] < 0.1
+    contrib = peers["opencv_contrib_ftp"]
+    assert contrib["available"] == hasattr(cv2, "structured_light")
+    if contrib["available"]:
+        assert contrib["phase_vs_ours_median_rad"] < 0.2 and contrib["time_ratio"] > 0
+    else:
+        assert "opencv-contrib-python-headless" in contrib["reason"]
+    memory = report["memory"]
+    assert memory["peak_rss_mib"] >= memory["peak_rss_before_reconstruction_mib"] > 0
+    assert memory["frameset_4cam_traced_peak_mib"] > 0
+
+    text = speed.format_text(report)
+    for expected in ("≤ 10", "≤ 20", "fringe_order_grid", "fusion", "scikit-image unwrap_phase",
+                     "plain FFT FTM", "OpenCV contrib FTP", "peak resident set"):
+        assert expected in text, expected
+
+
+@pytest.mark.parametrize("angle_rad", [0.05, 1.5, 0.8])
+def test_speed_bench_fft_baseline_demodulates_like_ours(angle_rad: float) -> None:
+    rows, cols = np.mgrid[0:240, 0:320].astype(np.float64)
+    carrier = Carrier.from_polar(angle_rad, 0.06)
+    fy, fx = carrier.frequency
+    bump = 2.0 * np.exp(-((rows - 120) ** 2 + (cols - 160) ** 2) / (2 * 50.0 ** 2))
+    image = np.rint(90 + 50 * np.cos(2 * np.pi * (fy * rows + fx * cols) + bump))
+    ours = demodulate(image.astype(np.uint8), carrier).wrapped_phase
+    theirs = speed.fft_ftm(image.astype(np.uint8), carrier)
+    inner = (slice(30, -30), slice(30, -30))
+    difference = np.abs(np.angle(np.exp(1j * (theirs - ours))))[inner]
+    assert theirs.shape == ours.shape and theirs.dtype == np.float32
+    assert np.median(difference) < 0.03
+
+
+def test_speed_bench_contrib_peer_is_guarded() -> None:
+    ftp, reason = speed.opencv_ftp()
+    if not hasattr(cv2, "structured_light"):
+        assert ftp is None
+        assert "opencv-contrib-python-headless" in reason and "never install both" in reason
+        return
+    assert ftp is not None  # only with opencv-contrib-python-headless in place of the plain one
+    cols = np.mgrid[0:240, 0:320][1].astype(np.float64)
+    image = np.rint(90 + 50 * np.cos(2 * np.pi * 0.05 * cols)).astype(np.uint8)
+    carrier = Carrier((0.0, 0.05))
+    difference = np.angle(np.exp(1j * (ftp(image, carrier)
+                                       - demodulate(image, carrier).wrapped_phase)))
+    assert np.median(np.abs(difference[30:-30, 30:-30])) < 0.05
