@@ -50,6 +50,14 @@ fi
 
 say "installing eyeserver and its development tools into $venv (log: $venv/setup.log)"
 export PIP_DISABLE_PIP_VERSION_CHECK=1
+# OpenCV's plain and contrib wheels share the cv2 package and must never be installed together:
+# a venv made before the project moved to contrib loses the plain one (and a contrib left
+# broken by removing it) before the install.
+if "$venv/bin/python" -m pip show opencv-python-headless >/dev/null 2>&1; then
+    say "replacing opencv-python-headless by opencv-contrib-python-headless"
+    "$venv/bin/python" -m pip uninstall -y opencv-python-headless \
+        opencv-contrib-python-headless >"$venv/setup.log" 2>&1
+fi
 # The build backend's chatter goes to the log; it is shown only when the install fails.
 if ! "$venv/bin/python" -m pip install -e '.[dev]' >"$venv/setup.log" 2>&1; then
     tail -n 60 "$venv/setup.log" >&2
