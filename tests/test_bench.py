@@ -11,6 +11,7 @@ import pytest
 
 from eyeserver.bench import speed
 from eyeserver.bench.figures import FIGURES
+from eyeserver.bench.report import render
 from eyeserver.cli import main
 from eyeserver.pipeline.demodulate import Carrier, demodulate
 
@@ -46,6 +47,9 @@ def test_accuracy_bench_reports_the_papers_figures(calibrated_rooms: Any,
     assert report["static_noise"]["repeats"] == 4 and report["seam"]["points"] > 0
     assert "eye_phantom_1#0" in {m["case"] for m in report["measurements"]}
     assert {"phantom", "base"} <= set(report["measurements"][0]["by_surface"])
+    page = render(report, {"frameset_2cam_ms": 123.4, "pending": {}})
+    assert "| reprojection error, median (px) | 0.88 (IQR 1.44) | ≤ 0.15 |" in page
+    assert "`frameset_2cam_ms` | 123.4 |" in page
 
 
 def test_accuracy_bench_refuses_an_unknown_phantom(capsys: pytest.CaptureFixture[str]) -> None:

@@ -99,7 +99,13 @@ def render(accuracy: dict[str, Any], speed: dict[str, Any]) -> str:
         lines.append(f"- reconstruction {name.replace('_', ' ')}: median "
                      f"{value['median_ms']:.1f} ms, p95 {value['p95_ms']:.1f} ms")
     for key, value in speed.get("peers", {}).items():
-        lines.append(f"- peer `{key}`: {json.dumps(value)}")
+        if value.get("available"):
+            lines.append(f"- peer `{key}` ({value.get('peer')} against {value.get('against')}): "
+                         f"{_value(value.get('peer_median_ms'), 1)} ms against "
+                         f"{_value(value.get('ours_median_ms'), 1)} ms, ratio "
+                         f"{_value(value.get('time_ratio'), 2)}")
+        else:
+            lines.append(f"- peer `{key}`: unavailable ({value.get('reason')})")
     for key, why in speed.get("pending", {}).items():
         lines.append(f"- Pending `{key}`: {why}")
     lines += ["", f"The speed run took {speed.get('duration_s')} s.", ""]
