@@ -200,32 +200,42 @@ def fiducial_errors(caldir: Path, bundle_path: Path) -> list[dict[str, Any]]:
 
 SEAM_BAND_MM = 2.0
 """The seam: within this distance of where one unit's coverage ends inside the other's."""
-SEAM_CELL_MM = 0.25
+SEAM_CELL_MM = 0.5
+SEAM_HOLE_MM = 2.0
+"""Gaps in a unit's coverage narrower than this (masked dots, shadows' rims) are not edges."""
+SEAM_MIN_AREA_MM2 = 4.0
+"""Places only one unit covers must be at least this large to make a seam."""
 
 
 def seam_distances(truth: dict[str, Any], cloud: PointCloud, config: RoomConfig) -> np.ndarray:
-    """|distance| to the exact surface of the fused points in the seam between the units:
-    within :data:`SEAM_BAND_MM` (in X, Y) of a place only one unit covers and of the other
-    unit's coverage."""
+    """|distance| to the exact surface of the fused points in the seam between the units: within
+    :data:`SEAM_BAND_MM` (in X, Y) of the edge of a place only one unit covers, inside the
+    other unit's coverage or next to it."""
     if cloud.camera is None or len(config.units) < 2 or not len(cloud):
         return np.zeros(0)
     camera_ids = [c.id for u in config.units for c in u.cameras]
     unit_of = {c.id: n for n, u in enumerate(config.units) for c in u.cameras}
     unit = np.asarray([unit_of[camera_ids[int(i)]] for i in cloud.camera])
     xy = cloud.points[:, :2].astype(np.float64)
-    low = xy.min(axis=0)
-    cells = np.floor((xy - low) / SEAM_CELL_MM).astype(np.int64)
-    shape = tuple(cells.max(axis=0) + 1)
+    margin = 2 * round(SEAM_BAND_MM / SEAM_CELL_MM)
+    cells = np.floor((xy - xy.min(axis=0)) / SEAM_CELL_MM).astype(np.int64) + margin
+    shape = tuple(cells.max(axis=0) + 1 + margin)
+    hole = max(1, round(SEAM_HOLE_MM / SEAM_CELL_MM / 2))
     covered = []
     for n in (0, 1):
         grid = np.zeros(shape, bool)
         grid[cells[unit == n, 0], cells[unit == n, 1]] = True
-        covered.append(ndimage.binary_closing(grid, iterations=2))
+        covered.append(ndimage.binary_closing(grid, iterations=hole))
     reach = round(SEAM_BAND_MM / SEAM_CELL_MM)
-    near = [ndimage.binary_dilation(c, iterations=reach) for c in covered]
-    only = [covered[0] & ~covered[1], covered[1] & ~covered[0]]
-    near_only = [ndimage.binary_dilation(o, iterations=reach) for o in only]
-    seam = (near_only[0] & near[1]) | (near_only[1] & near[0])
+    min_cells = SEAM_MIN_AREA_MM2 / SEAM_CELL_MM**2
+    seam = np.zeros(shape, bool)
+    for mine, other in ((0, 1), (1, 0)):
+        only = covered[mine] & ~covered[other]
+        labels, count = ndimage.label(only)
+        sizes = np.bincount(labels.ravel(), minlength=count + 1)
+        only &= sizes[labels] >= min_cells
+        seam |= (ndimage.binary_dilation(only, iterations=reach)
+                 & ndimage.binary_dilation(covered[other], iterations=reach))
     inside = seam[cells[:, 0], cells[:, 1]]
     scene = build_scene(truth_scene(truth), float(truth.get("t_s", 0.0))).scene
     return np.asarray(scene.distance(cloud.points[inside].astype(np.float64)))
@@ -366,11 +376,11 @@ def run(config: RoomConfig, *, quick: bool = False, seed: int = 0, out: Path | N
                            ("icp_rmse", "icp_rmse_mm"), ("coverage", "coverage"),
                            ("beyond_1mm", "beyond_1mm")):
             values = np.asarray([m[field] for m in rows], dtype=np.float64)
-            unit = "" if key in ("coverage", "beyond_1mm") else "_mm"
+            unit = "_fraction" if key in ("coverage", "beyond_1mm") else "_mm"
             name = f"{key}_{prefix}{unit}" if prefix != "spatial_4view" else \
                 f"spatial_{key}_4view{unit}"
             report[name] = float(np.nanmedian(values)) if len(values) else None
-            if unit:
+            if unit == "_mm":
                 report[name.replace("_mm", "_iqr_mm")] = (
                     float(np.subtract(*np.nanpercentile(values, [75, 25]))) if len(values)
                     else None)
@@ -417,7 +427,9 @@ def format_text(report: dict[str, Any]) -> str:
     lines = [f"eyeserver bench accuracy — simulated room, seed {report['seed']}, "
              f"{'quick' if report['quick'] else 'full'} run",
              f"noise model: shot noise (full well {noise['shot_noise_full_well_e']:.0f} e⁻), "
-             f"read noise {noise['read_noise_dn']} DN, {noise['bit_depth']}-bit", "",
+             f"read noise {noise['read_noise_dn']} DN, {noise['bit_depth']}-bit",
+             "rig: " + "; ".join(f"{unit} = {v['projector']} + {', '.join(v['cameras'])}"
+                                 for unit, v in noise["rig"].items()), "",
              f"{'figure':<54}{'paper':>21}{'goal':>8}{'eyeserver':>11}"]
     for key, figure in FIGURES.items():
         value = report.get(key)
@@ -454,9 +466,10 @@ def format_text(report: dict[str, Any]) -> str:
             ("|distance| to exact surface", "surface_median_4view_mm",
              "spatial_surface_median_4view_mm", 1.0, " mm"),
             ("RMSE", "surface_rmse_4view_mm", "spatial_surface_rmse_4view_mm", 1.0, " mm"),
-            ("share beyond 1 mm", "beyond_1mm_4view", "spatial_beyond_1mm_4view", 100.0, " %"),
-            ("coverage of the pixels seeing the scene", "coverage_4view",
-             "spatial_coverage_4view", 100.0, " %")):
+            ("share beyond 1 mm", "beyond_1mm_4view_fraction",
+             "spatial_beyond_1mm_4view_fraction", 100.0, " %"),
+            ("coverage of the pixels seeing the scene", "coverage_4view_fraction",
+             "spatial_coverage_4view_fraction", 100.0, " %")):
         if report.get(fast) is not None and report.get(robust) is not None:
             lines.append(f"  {label:<42}{scale * report[fast]:>9.3f}{unit:<4}"
                          f"{scale * report[robust]:>9.3f}{unit}")

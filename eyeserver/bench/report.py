@@ -80,8 +80,10 @@ def render(accuracy: dict[str, Any], speed: dict[str, Any]) -> str:
             ("median distance (mm)", "surface_median_4view_mm",
              "spatial_surface_median_4view_mm"),
             ("RMSE (mm)", "surface_rmse_4view_mm", "spatial_surface_rmse_4view_mm"),
-            ("share beyond 1 mm", "beyond_1mm_4view", "spatial_beyond_1mm_4view"),
-            ("coverage", "coverage_4view", "spatial_coverage_4view")):
+            ("share beyond 1 mm", "beyond_1mm_4view_fraction",
+             "spatial_beyond_1mm_4view_fraction"),
+            ("coverage (share of the pixels seeing the scene)", "coverage_4view_fraction",
+             "spatial_coverage_4view_fraction")):
         lines.append(f"| {label} | {_value(accuracy.get(fast), 4)} | "
                      f"{_value(accuracy.get(robust), 4)} |")
     if accuracy.get("figures"):

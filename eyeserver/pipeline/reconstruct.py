@@ -49,7 +49,11 @@ from scipy import ndimage
 from skimage.restoration import unwrap_phase
 
 from eyeserver.pipeline.demodulate import Carrier, border_mask, demodulate, phase_difference
-from eyeserver.pipeline.geometry import pixel_grid_normalised, rays_from_normalised
+from eyeserver.pipeline.geometry import (
+    intersect_plane_z,
+    pixel_grid_normalised,
+    rays_from_normalised,
+)
 from eyeserver.pipeline.phase_height import PhaseHeightModel
 
 F32 = npt.NDArray[np.float32]
@@ -468,9 +472,7 @@ def _points(camera: CalibratedCamera, phase: Phase, pixels: npt.NDArray[np.intp]
     """WCS points (N, 3) and their heights: Z from the model, X and Y from the pixel's ray."""
     x, y = camera.x.ravel()[pixels], camera.y.ravel()[pixels]
     z = camera.model.height(x, y, phase.dphi.ravel()[pixels] + TWO_PI * order)
-    rays = camera.rays[pixels]
-    t = (z - camera.centre[2]) / rays[:, 2]
-    return camera.centre + t[:, None] * rays, z
+    return intersect_plane_z(camera.centre, camera.rays[pixels], z), z
 
 
 def _despeckle(pixels: npt.NDArray[np.intp], z: F64, shape: tuple[int, int]) -> Bool:
