@@ -11,11 +11,13 @@ from collections.abc import AsyncIterator, Callable
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
 
 from fastapi import FastAPI
+from starlette.concurrency import run_in_threadpool
 
 import eyeserver
 from eyeserver.api.errors import install_error_handlers
-from eyeserver.api.routers import health
+from eyeserver.api.routers import captures, devices, health, status
 from eyeserver.config import Settings
+from eyeserver.service.core import Service
 
 __all__ = ["API_PREFIX", "create_app"]
 
@@ -37,9 +39,15 @@ def _lifespan(settings: Settings) -> Callable[[FastAPI], AbstractAsyncContextMan
                 "room_file": None if settings.room_file is None else str(settings.room_file),
             },
         )
+        # Opening devices and the store blocks; it runs on a worker thread, as does closing.
+        service = Service(settings)
+        await run_in_threadpool(service.open)
+        app.state.service = service
         try:
             yield
         finally:
+            del app.state.service
+            await run_in_threadpool(service.close)
             _log.info("eyeserver stopped")
 
     return lifespan
@@ -48,7 +56,9 @@ def _lifespan(settings: Settings) -> Callable[[FastAPI], AbstractAsyncContextMan
 def create_app(settings: Settings) -> FastAPI:
     """Build the eyeserver API for ``settings``.
 
-    The settings are kept in ``app.state.settings`` for the routers. The OpenAPI document is
+    The settings are kept in ``app.state.settings`` for the routers; the lifespan opens a
+    :class:`~eyeserver.service.core.Service` (store, then rig) into ``app.state.service`` and
+    closes it on shut-down. ``/health`` does not use it. The OpenAPI document is
     served at ``/api/v1/openapi.json`` and its interactive view at ``/api/v1/docs``.
     """
     app = FastAPI(
@@ -63,4 +73,7 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.settings = settings
     install_error_handlers(app)
     app.include_router(health.router, prefix=API_PREFIX)
+    app.include_router(status.router, prefix=API_PREFIX)
+    app.include_router(devices.router, prefix=API_PREFIX)
+    app.include_router(captures.router, prefix=API_PREFIX)
     return app

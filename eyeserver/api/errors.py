@@ -4,6 +4,8 @@
 error                       status
 ==========================  ======
 ``StateConflictError``      409
+``UnknownIdError``          404
+``UnknownUnitError``        422
 ``DeviceTimeoutError``      504
 ``DeviceValueError``        422
 other ``DeviceError``       503
@@ -34,6 +36,8 @@ from eyeserver.errors import (
     NotBuiltError,
     StateConflictError,
 )
+from eyeserver.service.core import UnknownUnitError
+from eyeserver.service.storage import UnknownIdError
 
 __all__ = ["install_error_handlers", "status_code_for"]
 
@@ -42,6 +46,8 @@ _log = logging.getLogger(__name__)
 # First match wins, so subclasses come before their bases.
 _STATUS_BY_ERROR: tuple[tuple[type[EyeserverError], int], ...] = (
     (StateConflictError, 409),
+    (UnknownIdError, 404),
+    (UnknownUnitError, 422),
     (DeviceTimeoutError, 504),
     (DeviceValueError, 422),
     (DeviceError, 503),

@@ -4,9 +4,20 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field
 
-__all__ = ["ErrorResponse", "HealthResponse"]
+__all__ = [
+    "CaptureList",
+    "CaptureRequest",
+    "CaptureResponse",
+    "DeviceResponse",
+    "ErrorResponse",
+    "HealthResponse",
+    "StatusResponse",
+    "UnitResponse",
+]
+
+_CAPTURE_ID_EXAMPLE = "cap-20261123T151200123Z-4f2a"
 
 
 class HealthResponse(BaseModel):
@@ -25,3 +36,84 @@ class ErrorResponse(BaseModel):
         description="Why the request failed, in words meant for a person.",
         examples=["cam-left: no frame within 500 ms"],
     )
+
+
+Health = Literal["ok", "fault"]
+
+
+class DeviceResponse(BaseModel):
+    """One device of the rig and its health."""
+
+    id: str = Field(description="Device id from the rig configuration.", examples=["S1"])
+    kind: str = Field(description="camera, projector or trigger.", examples=["camera"])
+    driver: str = Field(description="Driver that runs it.", examples=["SimCamera"])
+    unit: str | None = Field(description="The unit it belongs to; null for the trigger, which "
+                             "serves every unit.", examples=["left"])
+    open: bool = Field(description="Whether the device is open.")
+    health: Health = Field(description="'fault' after the device failed, until it works again.")
+    reason: str | None = Field(description="Why it is in fault; null when ok.",
+                               examples=[None, "camera is not responding"])
+    details: dict[str, object] = Field(
+        description="The driver's own description: current settings, sizes.",
+        examples=[{"id": "S1", "kind": "camera", "driver": "SimCamera", "open": True,
+                   "width": 1280, "height": 1024, "bit_depth": 8}])
+
+
+class UnitResponse(BaseModel):
+    """One optical unit: a projector and its cameras; in fault while one of them is."""
+
+    id: str = Field(examples=["left"])
+    projector: str = Field(examples=["P1"])
+    cameras: list[str] = Field(examples=[["S1", "S2"]])
+    health: Health
+    reason: str | None = Field(examples=[None, "S1: camera is not responding"])
+
+
+class StatusResponse(BaseModel):
+    """What the daemon is doing and how its hardware is."""
+
+    state: Literal["idle", "capturing", "calibrating", "tracking", "fault"] = Field(
+        description="The state machine: one hardware operation at a time; 'fault' after a "
+        "device failed.", examples=["idle"])
+    devices: list[DeviceResponse]
+    units: list[UnitResponse]
+    active_calibration_id: str | None = Field(
+        description="The calibration new captures are taken with; null before one is active.",
+        examples=[None, "cal-20261123T151200123Z-9c1d"])
+    uptime_s: float = Field(description="Seconds since the daemon opened its hardware.",
+                            examples=[12.5])
+    version: str = Field(description="Version of the running eyeserver.", examples=["0.1.0"])
+
+
+class CaptureRequest(BaseModel):
+    """Capture one frame set."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    unit: str = Field(description="A unit id, or 'all' for every unit, interleaved (one "
+                      "trigger pulse per unit).", examples=["all", "left"])
+
+
+class CaptureResponse(BaseModel):
+    """A stored capture (its bundle is durable on disk)."""
+
+    id: str = Field(description="Capture id; sorts in order of creation.",
+                    examples=[_CAPTURE_ID_EXAMPLE])
+    kind: str = Field(description="Bundle kind (FORMATS.md).", examples=["measurement"])
+    unit: str = Field(description="The unit captured, or 'all'.", examples=["all"])
+    calibration_id: str | None = Field(description="The calibration active when it was taken.",
+                                       examples=[None])
+    created: str = Field(description="UTC creation time, ISO 8601 with milliseconds.",
+                         examples=["2026-11-23T15:12:00.123Z"])
+    frame_count: int = Field(description="Frames in the bundle: one per unit.", examples=[2])
+    status: Literal["ok", "missing"] = Field(
+        description="'missing' when start-up recovery found the index row without its bundle.")
+
+
+class CaptureList(BaseModel):
+    """One page of captures, newest first."""
+
+    items: list[CaptureResponse]
+    total: int = Field(description="Captures matching the filter over all pages.", examples=[1])
+    limit: int = Field(examples=[50])
+    offset: int = Field(examples=[0])

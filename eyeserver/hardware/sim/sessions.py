@@ -15,7 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from eyeserver.core.clock import ManualClock
-from eyeserver.hardware.rig import AcquiredStep, Rig
+from eyeserver.hardware.bundling import bundle_frames
+from eyeserver.hardware.rig import Rig
 from eyeserver.hardware.sim.config import RoomConfig
 from eyeserver.hardware.sim.drivers import build_sim_rig
 from eyeserver.hardware.sim.room import SimRoom
@@ -79,12 +80,6 @@ class SimSession:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _frames(self, steps: Sequence[AcquiredStep], z_mm: float | None) -> list[BundleFrameData]:
-        return [BundleFrameData(images={cid: f.image for cid, f in step.frames.items()},
-                                z_mm=z_mm, projectors_on=tuple(step.pulse.step.projectors),
-                                t_ns=next(iter(step.frames.values())).meta.t_ns)
-                for step in steps]
-
     def acquire(self, spec: SceneSpec, units: Sequence[str] | None = None,
                 scene_time_s: float = 0.0) -> list[BundleFrameData]:
         """Place ``spec`` and capture it as a bundle would hold it.
@@ -98,12 +93,12 @@ class SimSession:
         if spec.kind == "chessboard":
             self.room.set_room_lights(True)
             try:
-                return self._frames([self.rig.acquire_unlit()], None)
+                return bundle_frames([self.rig.acquire_unlit()], None)
             finally:
                 self.room.set_room_lights(False)
         unit_ids = list(units) if units is not None else [u.id for u in self.rig.units]
         z_mm = spec.position[2] if spec.kind in ("plate", "reference") else None
-        return self._frames(self.rig.acquire(unit_ids), z_mm)
+        return bundle_frames(self.rig.acquire(unit_ids), z_mm)
 
     def record(self, spec: SceneSpec, out: Path, *, units: Sequence[str] | None = None,
                origin: bool = False, overwrite: bool = False, scene_time_s: float = 0.0,

@@ -1,0 +1,367 @@
+"""The running daemon's heart: the rig, the store and the state machine that guards them.
+
+::
+
+              capture()                  a device fails
+    idle ───────────────► capturing ──────────────────► fault
+     ▲                        │                            │
+     └────────────────────────┘◄───────────────────────────┘
+          done (no device left in fault)    a later operation succeeds
+
+One operation holds the hardware at a time: :meth:`Service.operation` moves the machine from
+``idle`` (or ``fault``) into a busy state and back, and any other request meanwhile gets a
+:class:`~eyeserver.errors.StateConflictError` naming the state the daemon is in. ``fault`` does
+not lock the hardware: it says that a device failed (its reason is kept in :meth:`Service.status`)
+and the next operation first reopens the failed devices it needs, so the daemon recovers when
+the device does.
+
+Every method here blocks (hardware, disk, SQLite): the API calls them from worker threads, never
+on the event loop.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Literal
+
+import eyeserver
+from eyeserver.config import Settings
+from eyeserver.errors import DeviceError, EyeserverError, StateConflictError
+from eyeserver.hardware.base import Device
+from eyeserver.hardware.bundling import bundle_bit_depth, bundle_frames
+from eyeserver.hardware.rig import Rig
+from eyeserver.hardware.sim.config import load_room
+from eyeserver.hardware.sim.drivers import build_sim_rig
+from eyeserver.hardware.sim.room import SimRoom
+from eyeserver.hardware.sim.scenes import SceneSpec
+from eyeserver.io import rig_from_dict
+from eyeserver.service.storage import CaptureRecord, Store
+
+__all__ = [
+    "ALL_UNITS",
+    "BusyState",
+    "DeviceHealth",
+    "DeviceStatus",
+    "Service",
+    "ServiceState",
+    "ServiceStatus",
+    "UnitStatus",
+    "UnknownUnitError",
+]
+
+ServiceState = Literal["idle", "capturing", "calibrating", "tracking", "fault"]
+BusyState = Literal["capturing", "calibrating", "tracking"]
+DeviceHealth = Literal["ok", "fault"]
+
+ALL_UNITS = "all"
+"""The ``unit`` of a capture that interleaves every unit of the rig."""
+
+_log = logging.getLogger(__name__)
+
+
+class UnknownUnitError(EyeserverError, ValueError):
+    """A request named a unit the rig does not have (the API answers 422)."""
+
+
+@dataclass(frozen=True)
+class DeviceStatus:
+    """One device as the daemon sees it: what it is, which unit owns it and its health."""
+
+    id: str
+    kind: str
+    driver: str
+    unit: str | None
+    open: bool
+    health: DeviceHealth
+    reason: str | None
+    details: dict[str, object]
+
+
+@dataclass(frozen=True)
+class UnitStatus:
+    """One optical unit; in fault while any of its devices (or the trigger) is."""
+
+    id: str
+    projector: str
+    cameras: tuple[str, ...]
+    health: DeviceHealth
+    reason: str | None
+
+
+@dataclass(frozen=True)
+class ServiceStatus:
+    """A snapshot of the daemon for ``GET /status``."""
+
+    state: ServiceState
+    devices: tuple[DeviceStatus, ...]
+    units: tuple[UnitStatus, ...]
+    active_calibration_id: str | None
+    uptime_s: float
+    version: str
+
+
+class Service:
+    """Owns the rig and the store of one daemon and serialises access to the hardware.
+
+    Parameters
+    ----------
+    settings : Settings
+        ``data_dir`` holds the store; ``room_file`` names the simulated room (None: the default
+        room). The simulated scene is an eye (``SceneSpec(kind="eye")``), so captures show one.
+
+    Notes
+    -----
+    Nothing happens in the constructor; :meth:`open` opens the store then the rig, :meth:`close`
+    closes them in reverse order. All methods block and are thread-safe.
+    """
+
+    def __init__(self, settings: Settings) -> None:
+        self._settings = settings
+        self._lock = threading.Lock()
+        self._state: ServiceState = "idle"
+        self._faults: dict[str, str] = {}  # device id -> reason
+        self._store: Store | None = None
+        self._rig: Rig | None = None
+        self._started = time.monotonic()
+
+    # --- lifecycle --------------------------------------------------------------------------
+
+    def open(self) -> None:
+        """Open the store under ``data_dir``, then build and open the rig.
+
+        Raises
+        ------
+        StateConflictError
+            The store is open in another process.
+        DeviceError, ConfigError, FormatError
+            The rig cannot be built or opened (the store is closed again).
+        """
+        store = Store.open(self._settings.ensure_data_dir())
+        try:
+            room = SimRoom(load_room(self._settings.room_file))
+            room.set_scene(SceneSpec(kind="eye"))
+            rig = build_sim_rig(room)
+            rig.open()
+        except BaseException:
+            store.close()
+            raise
+        self._store, self._rig = store, rig
+        self._started = time.monotonic()
+        _log.info("service open", extra={"units": [u.id for u in rig.units]})
+
+    def close(self) -> None:
+        """Close the rig, then the store (the reverse of :meth:`open`). Idempotent."""
+        rig, store = self._rig, self._store
+        self._rig = self._store = None
+        if rig is not None:
+            errors = rig.close()
+            if errors:
+                _log.warning("devices failed to close", extra={"devices": sorted(errors)})
+        if store is not None:
+            store.close()
+
+    def __enter__(self) -> Service:
+        self.open()
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    @property
+    def rig(self) -> Rig:
+        """The open rig."""
+        if self._rig is None:
+            raise StateConflictError("the daemon's hardware is not open")
+        return self._rig
+
+    @property
+    def store(self) -> Store:
+        """The open store."""
+        if self._store is None:
+            raise StateConflictError("the daemon's store is not open")
+        return self._store
+
+    # --- the state machine ------------------------------------------------------------------
+
+    @property
+    def state(self) -> ServiceState:
+        """What the daemon is doing now."""
+        with self._lock:
+            return self._state
+
+    @contextmanager
+    def operation(self, busy: BusyState, what: str | None = None) -> Iterator[None]:
+        """Hold the hardware in state ``busy`` for the duration of the block.
+
+        On leaving, the state returns to ``idle``, or to ``fault`` while a device is in fault.
+
+        Raises
+        ------
+        StateConflictError
+            Another operation holds the hardware; the message names the daemon's state.
+        """
+        with self._lock:
+            if self._state not in ("idle", "fault"):
+                raise StateConflictError(f"cannot start {what or busy}: the daemon is "
+                                         f"{self._state}")
+            self._state = busy
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._state = "fault" if self._faults else "idle"
+
+    def _mark_fault(self, error: DeviceError) -> None:
+        with self._lock:
+            self._faults[error.device_id] = str(error.reason)
+        _log.error("device fault", extra={"device_id": error.device_id, "reason": error.reason})
+
+    def _mark_ok(self, device_ids: Sequence[str]) -> None:
+        with self._lock:
+            for device_id in device_ids:
+                if self._faults.pop(device_id, None) is not None:
+                    _log.info("device recovered", extra={"device_id": device_id})
+
+    def _recover(self, devices: Sequence[Device]) -> None:
+        """Reopen the devices among ``devices`` that are in fault (a device that was unplugged
+        and came back works only after close and open)."""
+        with self._lock:
+            faulty = [d for d in devices if d.id in self._faults]
+        for device in faulty:
+            # A broken connection may refuse a clean close; open() decides.
+            with contextlib.suppress(DeviceError):
+                device.close()
+            try:
+                device.open()
+            except DeviceError as exc:
+                self._mark_fault(exc)
+                raise
+        self._mark_ok([d.id for d in faulty])
+
+    def _reset_cameras(self, cameras: Sequence[Device], failed_id: str) -> None:
+        """Close and reopen the healthy cameras of a failed acquisition.
+
+        A camera whose read was never reached still holds that pulse's exposure; left there,
+        the next acquisition would read it as its own frame.
+        """
+        for camera in cameras:
+            if camera.id == failed_id:
+                continue
+            with contextlib.suppress(DeviceError):
+                camera.close()
+            try:
+                camera.open()
+            except DeviceError as exc:
+                self._mark_fault(exc)
+
+    # --- operations -------------------------------------------------------------------------
+
+    def unit_ids(self, unit: str) -> list[str]:
+        """The units a capture of ``unit`` (a unit id or ``"all"``) interleaves.
+
+        Raises
+        ------
+        UnknownUnitError
+            ``unit`` is neither a unit of the rig nor ``"all"``.
+        """
+        units = [u.id for u in self.rig.units]
+        if unit == ALL_UNITS:
+            return units
+        if unit not in units:
+            raise UnknownUnitError(f"unknown unit {unit!r}; the rig has "
+                                   f"{', '.join(units)} (or {ALL_UNITS!r})")
+        return [unit]
+
+    def capture(self, unit: str) -> CaptureRecord:
+        """Capture one frame set of ``unit`` (or ``"all"``, interleaved) and store it.
+
+        Returns once the bundle and its index row are durable.
+
+        Raises
+        ------
+        UnknownUnitError
+            For a unit the rig does not have.
+        StateConflictError
+            Another operation holds the hardware.
+        DeviceError
+            A device failed; it and its unit are in fault until an operation succeeds with it.
+        """
+        unit_ids = self.unit_ids(unit)
+        rig, store = self.rig, self.store
+        with self.operation("capturing", "a capture"):
+            units = [rig.unit(u) for u in unit_ids]
+            devices: list[Device] = [rig.trigger]
+            for optical_unit in units:
+                devices += [optical_unit.projector, *optical_unit.cameras]
+            self._recover(devices)
+            try:
+                steps = rig.acquire(unit_ids)
+            except DeviceError as exc:
+                self._mark_fault(exc)
+                self._reset_cameras([c for u in units for c in u.cameras], exc.device_id)
+                raise
+            frames = bundle_frames(steps)
+            active = store.active_calibration()
+            record = store.add_capture(
+                "measurement", rig_from_dict(rig.spec(), "<daemon rig>"), frames, unit=unit,
+                calibration_id=None if active is None else active.id,
+                bit_depth=bundle_bit_depth(rig, frames), extra={"simulated": True})
+        _log.info("capture stored", extra={"capture_id": record.id, "unit": unit})
+        return record
+
+    # --- status -----------------------------------------------------------------------------
+
+    def devices(self) -> list[DeviceStatus]:
+        """Every device of the rig with its health, in opening order."""
+        rig = self.rig
+        with self._lock:
+            faults = dict(self._faults)
+        result = []
+        for device in rig.devices:
+            try:
+                unit: str | None = rig.unit_of(device.id).id
+            except KeyError:
+                unit = None  # the trigger serves every unit
+            details = device.describe()
+            reason = faults.get(device.id)
+            result.append(DeviceStatus(
+                id=device.id, kind=device.kind, driver=str(details.get("driver", "")),
+                unit=unit, open=device.is_open, health="ok" if reason is None else "fault",
+                reason=reason, details=details))
+        return result
+
+    def device(self, device_id: str) -> DeviceStatus:
+        """One device with its health; ``KeyError`` for an unknown id."""
+        for device in self.devices():
+            if device.id == device_id:
+                return device
+        raise KeyError(device_id)
+
+    def status(self) -> ServiceStatus:
+        """A snapshot of state, devices, units, active calibration and uptime."""
+        rig = self.rig
+        devices = self.devices()
+        trigger_fault = next((d.reason for d in devices
+                              if d.id == rig.trigger.id and d.reason is not None), None)
+        units = []
+        for unit in rig.units:
+            members = {unit.projector.id, *(c.id for c in unit.cameras)}
+            reasons = [f"{d.id}: {d.reason}" for d in devices
+                       if d.id in members and d.reason is not None]
+            if trigger_fault is not None:
+                reasons.append(f"{rig.trigger.id}: {trigger_fault}")
+            units.append(UnitStatus(id=unit.id, projector=unit.projector.id,
+                                    cameras=tuple(c.id for c in unit.cameras),
+                                    health="fault" if reasons else "ok",
+                                    reason="; ".join(reasons) or None))
+        active = self.store.active_calibration()
+        return ServiceStatus(state=self.state, devices=tuple(devices), units=tuple(units),
+                             active_calibration_id=None if active is None else active.id,
+                             uptime_s=time.monotonic() - self._started,
+                             version=eyeserver.__version__)

@@ -1,0 +1,295 @@
+"""The daemon's service through its REST API: status, devices, captures, the state machine.
+
+The app runs in process with its lifespan (the simulated default room, an eye in the scene).
+Rendering a room's first frames takes seconds, so one app serves most tests of this module;
+each test leaves it idle and healthy.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import pytest
+from anyio.from_thread import start_blocking_portal
+from fastapi import FastAPI
+
+import eyeserver
+from eyeserver.api import create_app
+from eyeserver.config import Settings
+from eyeserver.hardware.sim.drivers import SimCamera
+from eyeserver.io import read_bundle
+from eyeserver.service.core import Service
+
+API = "/api/v1"
+
+
+class Client:
+    """A blocking client of an app running with its lifespan on an event loop in a thread.
+
+    (Starlette's TestClient wants a package this project does not use.) Any thread may call
+    it, so tests can run requests side by side as a real server would.
+    """
+
+    def __init__(self, portal: Any, client: httpx.AsyncClient) -> None:
+        self._portal = portal
+        self._client = client
+
+    def get(self, path: str, **kwargs: Any) -> httpx.Response:
+        response: httpx.Response = self._portal.call(lambda: self._client.get(path, **kwargs))
+        return response
+
+    def post(self, path: str, **kwargs: Any) -> httpx.Response:
+        response: httpx.Response = self._portal.call(lambda: self._client.post(path, **kwargs))
+        return response
+
+
+@contextmanager
+def serving(app: FastAPI) -> Iterator[Client]:
+    """Run ``app``'s lifespan, answer requests through the yielded client, then shut down."""
+    with ExitStack() as stack:
+        portal = stack.enter_context(start_blocking_portal())
+        stack.enter_context(portal.wrap_async_context_manager(app.router.lifespan_context(app)))
+        # raise_app_exceptions=False: a crashing route gives its 500 answer, as over a socket.
+        transport = httpx.ASGITransport(app=app, raise_app_exceptions=False)
+        client = stack.enter_context(portal.wrap_async_context_manager(
+            httpx.AsyncClient(transport=transport, base_url="http://test")))
+        yield Client(portal, client)
+
+
+def _settings(data_dir: Path) -> Settings:
+    with pytest.MonkeyPatch.context() as patch:
+        for name in list(os.environ):
+            if name.upper().startswith("EYESERVER_"):
+                patch.delenv(name)
+        return Settings.load(data_dir=data_dir)
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("service") / "data"
+
+
+@pytest.fixture(scope="module")
+def app(data_dir: Path) -> FastAPI:
+    return create_app(_settings(data_dir))
+
+
+@pytest.fixture(scope="module")
+def client(app: FastAPI) -> Iterator[Client]:
+    with serving(app) as running:
+        yield running
+
+
+@pytest.fixture
+def service(app: FastAPI, client: Client) -> Service:
+    running = app.state.service
+    assert isinstance(running, Service)
+    return running
+
+
+def _camera(service: Service, camera_id: str) -> SimCamera:
+    camera = service.rig.camera(camera_id)
+    assert isinstance(camera, SimCamera)
+    return camera
+
+
+def _capture(client: Client, unit: str) -> Any:
+    response = client.post(f"{API}/captures", json={"unit": unit})
+    assert response.status_code == 201, response.text
+    return response.json()
+
+
+def test_status_reports_state_devices_units_and_version(client: Client) -> None:
+    response = client.get(f"{API}/status")
+
+    assert response.status_code == 200
+    body = response.json()
+    assert body["state"] == "idle"
+    assert body["version"] == eyeserver.__version__
+    assert body["active_calibration_id"] is None
+    assert body["uptime_s"] >= 0
+    assert [d["id"] for d in body["devices"]] == ["P1", "P2", "S1", "S2", "S3", "S4", "T1"]
+    assert all(d["health"] == "ok" and d["reason"] is None and d["open"]
+               for d in body["devices"])
+    assert body["units"] == [
+        {"id": "left", "projector": "P1", "cameras": ["S1", "S2"], "health": "ok",
+         "reason": None},
+        {"id": "right", "projector": "P2", "cameras": ["S3", "S4"], "health": "ok",
+         "reason": None},
+    ]
+
+
+def test_devices_are_listed_and_found_by_id(client: Client) -> None:
+    listed = client.get(f"{API}/devices").json()
+    camera = client.get(f"{API}/devices/S3")
+    missing = client.get(f"{API}/devices/S9")
+
+    assert {d["kind"] for d in listed} == {"camera", "projector", "trigger"}
+    assert camera.status_code == 200
+    assert camera.json()["unit"] == "right"
+    assert camera.json()["driver"] == "SimCamera"
+    assert camera.json()["details"]["width"] > 0
+    assert next(d for d in listed if d["id"] == "T1")["unit"] is None
+    assert missing.status_code == 404
+    assert missing.json() == {"detail": "no device with id 'S9'"}
+
+
+@pytest.mark.parametrize(("unit", "cameras"), [("left", [["S1", "S2"]]),
+                                              ("all", [["S1", "S2"], ["S3", "S4"]])])
+def test_a_capture_is_acknowledged_with_its_bundle_on_disk(
+    client: Client, data_dir: Path, unit: str, cameras: list[list[str]]
+) -> None:
+    created = _capture(client, unit)
+
+    assert created["id"].startswith("cap-")
+    assert created["unit"] == unit
+    assert created["kind"] == "measurement"
+    assert created["frame_count"] == len(cameras)
+    bundle = read_bundle(data_dir / "captures" / created["id"])
+    # "all" interleaves the units: one pulse (frame) per unit, lit by that unit's projector only.
+    assert [sorted(f.images) for f in bundle.frames] == cameras
+    assert [f.projectors_on for f in bundle.frames] == [("P1",), ("P2",)][:len(cameras)]
+    for frame, camera_ids in zip(bundle.frames, cameras, strict=True):
+        for camera_id in camera_ids:
+            image = np.asarray(bundle.load_image(frame.index, camera_id))
+            assert image.ndim == 2 and image.size > 0
+            assert image.std() > 1  # the fringes on the eye, not a blank frame
+    assert client.get(f"{API}/captures/{created['id']}").json() == created
+
+
+def test_captures_are_listed_newest_first_in_pages_and_by_unit(client: Client) -> None:
+    taken = [_capture(client, "right")["id"] for _ in range(3)]
+
+    first = client.get(f"{API}/captures", params={"limit": 2}).json()
+    second = client.get(f"{API}/captures", params={"limit": 2, "offset": 2}).json()
+    right = client.get(f"{API}/captures", params={"unit": "right"}).json()
+    bad_page = client.get(f"{API}/captures", params={"limit": 0})
+
+    assert [c["id"] for c in first["items"]] == taken[::-1][:2]
+    assert second["items"][0]["id"] == taken[0]
+    assert first["total"] == second["total"] >= 3
+    assert (first["limit"], second["offset"]) == (2, 2)
+    assert [c["id"] for c in right["items"]] == taken[::-1]
+    assert right["total"] == 3
+    assert bad_page.status_code == 422
+
+
+@pytest.mark.parametrize("capture_id", ["cap-20200101T000000000Z-0000", "not-an-id"])
+def test_an_unknown_capture_is_a_json_404(client: Client, capture_id: str) -> None:
+    response = client.get(f"{API}/captures/{capture_id}")
+
+    assert response.status_code == 404
+    assert response.json() == {"detail": f"no capture with id {capture_id!r}"}
+
+
+def test_an_unknown_unit_is_a_json_422_with_the_reason(client: Client) -> None:
+    response = client.post(f"{API}/captures", json={"unit": "middle"})
+    malformed = client.post(f"{API}/captures", json={"units": "all"})
+
+    assert response.status_code == 422
+    assert response.json() == {
+        "detail": "unknown unit 'middle'; the rig has left, right (or 'all')"}
+    assert malformed.status_code == 422
+    assert "detail" in malformed.json()
+
+
+def test_a_busy_daemon_answers_409_naming_its_state(client: Client,
+                                                    service: Service) -> None:
+    with service.operation("calibrating"):
+        state = client.get(f"{API}/status").json()["state"]
+        response = client.post(f"{API}/captures", json={"unit": "left"})
+
+    assert state == "calibrating"
+    assert response.status_code == 409
+    assert response.json() == {"detail": "cannot start a capture: the daemon is calibrating"}
+    assert client.get(f"{API}/status").json()["state"] == "idle"
+
+
+def test_a_capture_in_progress_blocks_another(client: Client, service: Service) -> None:
+    # A lost transfer makes S1's read wait out its time-out (2 s): the capture stays running.
+    _camera(service, "S1").inject_fault("timeout")
+    slow: dict[str, Any] = {}
+    runner = threading.Thread(
+        target=lambda: slow.update(response=client.post(f"{API}/captures",
+                                                        json={"unit": "left"})))
+    runner.start()
+    deadline = time.monotonic() + 5
+    while service.state != "capturing" and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+    conflict = client.post(f"{API}/captures", json={"unit": "right"})
+    runner.join(timeout=30)
+
+    assert conflict.status_code == 409
+    assert conflict.json() == {"detail": "cannot start a capture: the daemon is capturing"}
+    assert slow["response"].status_code == 504
+    assert slow["response"].json()["detail"].startswith("S1: frame lost in transfer")
+    # The time-out put S1 in fault; the next capture reopens it and the daemon is idle again.
+    assert client.get(f"{API}/status").json()["state"] == "fault"
+    _capture(client, "left")
+    assert client.get(f"{API}/status").json()["state"] == "idle"
+
+
+def test_a_disconnected_camera_faults_its_unit_until_it_comes_back(
+    client: Client, service: Service
+) -> None:
+    camera = _camera(service, "S3")
+    camera.inject_fault("disconnect")
+
+    failed = client.post(f"{API}/captures", json={"unit": "right"})
+    status = client.get(f"{API}/status").json()
+    still_failing = client.post(f"{API}/captures", json={"unit": "all"})
+    other_unit = client.post(f"{API}/captures", json={"unit": "left"})
+    status_during = client.get(f"{API}/status").json()["state"]
+    camera.reconnect()
+    recovered = client.post(f"{API}/captures", json={"unit": "right"})
+    after = client.get(f"{API}/status").json()
+
+    assert failed.status_code == 503
+    assert failed.json() == {"detail": "S3: camera is not responding"}
+    assert status["state"] == "fault"
+    units = {u["id"]: u for u in status["units"]}
+    assert units["right"]["health"] == "fault"
+    assert units["right"]["reason"] == "S3: camera is not responding"
+    assert units["left"]["health"] == "ok"
+    s3 = next(d for d in status["devices"] if d["id"] == "S3")
+    assert (s3["health"], s3["reason"]) == ("fault", "camera is not responding")
+    assert still_failing.status_code == 503
+    assert other_unit.status_code == 201  # the healthy unit keeps working
+    assert status_during == "fault"
+    assert recovered.status_code == 201
+    assert after["state"] == "idle"
+    assert all(d["health"] == "ok" for d in after["devices"])
+    assert all(u["health"] == "ok" for u in after["units"])
+
+
+def test_a_capture_is_found_again_after_a_restart(tmp_path: Path) -> None:
+    settings = _settings(tmp_path / "data")
+    with serving(create_app(settings)) as first:
+        created = _capture(first, "left")
+
+    with serving(create_app(settings)) as second:
+        found = second.get(f"{API}/captures/{created['id']}")
+        listed = second.get(f"{API}/captures").json()
+
+    assert found.status_code == 200
+    assert found.json() == created
+    assert [c["id"] for c in listed["items"]] == [created["id"]]
+
+
+def test_the_openapi_document_has_the_routes_and_examples(client: Client) -> None:
+    document = client.get(f"{API}/openapi.json").json()
+
+    assert {"/api/v1/status", "/api/v1/devices", "/api/v1/devices/{device_id}",
+            "/api/v1/captures", "/api/v1/captures/{capture_id}"} <= set(document["paths"])
+    request = document["components"]["schemas"]["CaptureRequest"]
+    assert request["properties"]["unit"]["examples"] == ["all", "left"]
+    assert "201" in document["paths"]["/api/v1/captures"]["post"]["responses"]
