@@ -101,6 +101,9 @@ class Settings(BaseSettings):
         One of ``critical``, ``error``, ``warning``, ``info``, ``debug``. Default ``info``.
     ``log_json``
         ``true`` for one JSON object per log line on stderr (default), ``false`` for plain text.
+    ``max_upload_mb``
+        Largest upload (a calibration archive) the API accepts, and the most it may unpack to,
+        in MiB. Default ``200``.
 
     Build it with :meth:`load`; constructing ``Settings()`` directly reads only the defaults and
     the environment.
@@ -145,6 +148,12 @@ class Settings(BaseSettings):
     log_json: bool = Field(
         default=True,
         description="Log one JSON object per line on stderr (true) or plain text (false).",
+    )
+    max_upload_mb: int = Field(
+        default=200,
+        ge=1,
+        description="Largest upload (a calibration archive) the API accepts, and the most it "
+        "may unpack to, in MiB.",
     )
 
     @field_validator("data_dir", "room_file", mode="after")

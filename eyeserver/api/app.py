@@ -15,7 +15,7 @@ from starlette.concurrency import run_in_threadpool
 
 import eyeserver
 from eyeserver.api.errors import install_error_handlers
-from eyeserver.api.routers import captures, devices, health, status
+from eyeserver.api.routers import calibrations, captures, devices, health, status
 from eyeserver.config import Settings
 from eyeserver.service.core import Service
 
@@ -76,4 +76,5 @@ def create_app(settings: Settings) -> FastAPI:
     app.include_router(status.router, prefix=API_PREFIX)
     app.include_router(devices.router, prefix=API_PREFIX)
     app.include_router(captures.router, prefix=API_PREFIX)
+    app.include_router(calibrations.router, prefix=API_PREFIX)
     return app

@@ -5,6 +5,9 @@ error                       status
 ==========================  ======
 ``StateConflictError``      409
 ``UnknownIdError``          404
+``NoCloudError``            404
+``UploadTooLargeError``     413
+``ReconstructionError``     422
 ``UnknownUnitError``        422
 ``DeviceTimeoutError``      504
 ``DeviceValueError``        422
@@ -36,8 +39,10 @@ from eyeserver.errors import (
     NotBuiltError,
     StateConflictError,
 )
-from eyeserver.service.core import UnknownUnitError
+from eyeserver.service.core import NoCloudError, UnknownUnitError
+from eyeserver.service.reconstruction import ReconstructionError
 from eyeserver.service.storage import UnknownIdError
+from eyeserver.service.uploads import UploadTooLargeError
 
 __all__ = ["install_error_handlers", "status_code_for"]
 
@@ -47,6 +52,9 @@ _log = logging.getLogger(__name__)
 _STATUS_BY_ERROR: tuple[tuple[type[EyeserverError], int], ...] = (
     (StateConflictError, 409),
     (UnknownIdError, 404),
+    (NoCloudError, 404),
+    (UploadTooLargeError, 413),
+    (ReconstructionError, 422),
     (UnknownUnitError, 422),
     (DeviceTimeoutError, 504),
     (DeviceValueError, 422),

@@ -7,17 +7,23 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 __all__ = [
+    "CalibrationList",
+    "CalibrationResponse",
+    "CameraSurface",
     "CaptureList",
     "CaptureRequest",
     "CaptureResponse",
     "DeviceResponse",
     "ErrorResponse",
+    "Extent",
     "HealthResponse",
+    "ReconstructionResponse",
     "StatusResponse",
     "UnitResponse",
 ]
 
 _CAPTURE_ID_EXAMPLE = "cap-20261123T151200123Z-4f2a"
+_CALIBRATION_ID_EXAMPLE = "cal-20261123T151200123Z-9c1d"
 
 
 class HealthResponse(BaseModel):
@@ -117,3 +123,61 @@ class CaptureList(BaseModel):
     total: int = Field(description="Captures matching the filter over all pages.", examples=[1])
     limit: int = Field(examples=[50])
     offset: int = Field(examples=[0])
+
+
+class CalibrationResponse(BaseModel):
+    """A calibration kept in the store."""
+
+    id: str = Field(description="Calibration id; sorts in order of import.",
+                    examples=[_CALIBRATION_ID_EXAMPLE])
+    created: str = Field(description="When it was computed (its calibration.json).",
+                         examples=["2026-11-23T14:02:11Z"])
+    imported: str = Field(description="UTC import time, ISO 8601 with milliseconds.",
+                          examples=["2026-11-23T15:12:00.123Z"])
+    active: bool = Field(description="Whether captures and reconstructions use it now.")
+    status: Literal["ok", "missing"] = Field(
+        description="'missing' when start-up recovery found the index row without its files.")
+    quality: dict[str, object] = Field(
+        description="The quality figures of its calibration.json (reprojection errors, "
+        "phase-to-height residuals); empty when it has none.",
+        examples=[{"stereo": {"left": {"rms_px": 0.12}}}])
+
+
+class CalibrationList(BaseModel):
+    """Every stored calibration, newest first."""
+
+    items: list[CalibrationResponse]
+
+
+class Extent(BaseModel):
+    """The bounding box of a point cloud, in mm (world coordinates)."""
+
+    min: list[float] = Field(examples=[[-6.1, -5.9, 1.2]])
+    max: list[float] = Field(examples=[[6.0, 6.2, 4.8]])
+
+
+class CameraSurface(BaseModel):
+    """What one camera contributed to a reconstruction."""
+
+    frame: int = Field(description="The bundle frame its image comes from.", examples=[0])
+    points: int = Field(description="Points it measured before fusion.", examples=[120000])
+    partner: str | None = Field(description="The camera of its unit that fixed its fringe "
+                                "order; null when a depth prior did.", examples=["S2"])
+    fringe_order: dict[str, int] = Field(
+        description="Points per source that fixed their fringe order.",
+        examples=[{"multi-view": 118000, "spatial + multi-view": 2000}])
+
+
+class ReconstructionResponse(BaseModel):
+    """The surface of a capture, reconstructed and stored as its cloud.ply."""
+
+    capture_id: str = Field(examples=[_CAPTURE_ID_EXAMPLE])
+    calibration_id: str = Field(description="The (active) calibration used.",
+                                examples=[_CALIBRATION_ID_EXAMPLE])
+    points: int = Field(description="Points in the fused cloud.", examples=[240000])
+    extent_mm: Extent | None = Field(description="Bounding box; null for an empty cloud.")
+    cameras: dict[str, CameraSurface] = Field(description="Per camera, by camera id.")
+    dropped: dict[str, int] = Field(
+        description="Points removed during fusion, by reason.",
+        examples=[{"seam_conflict": 120, "low_quality": 0, "outside_region": 0}])
+    method: str = Field(description="How fringe orders were fixed.", examples=["multi-view"])

@@ -23,14 +23,17 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import tempfile
 import threading
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Literal
+from pathlib import Path
+from typing import Any, Literal
 
 import eyeserver
+from eyeserver.calibration.artefact import load_calibration
 from eyeserver.config import Settings
 from eyeserver.errors import DeviceError, EyeserverError, StateConflictError
 from eyeserver.hardware.base import Device
@@ -40,14 +43,20 @@ from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.drivers import build_sim_rig
 from eyeserver.hardware.sim.room import SimRoom
 from eyeserver.hardware.sim.scenes import SceneSpec
-from eyeserver.io import rig_from_dict
-from eyeserver.service.storage import CaptureRecord, Store
+from eyeserver.io import RigSpec, read_ply, rig_from_dict, write_ply
+from eyeserver.service.preview import height_map_png
+from eyeserver.service.reconstruction import reconstruct_bundle
+from eyeserver.service.storage import CalibrationRecord, CaptureRecord, Store
+from eyeserver.service.uploads import UploadTooLargeError, unpack_calibration_zip
 
 __all__ = [
     "ALL_UNITS",
+    "CLOUD_FILE",
     "BusyState",
     "DeviceHealth",
     "DeviceStatus",
+    "NoActiveCalibrationError",
+    "NoCloudError",
     "Service",
     "ServiceState",
     "ServiceStatus",
@@ -62,7 +71,18 @@ DeviceHealth = Literal["ok", "fault"]
 ALL_UNITS = "all"
 """The ``unit`` of a capture that interleaves every unit of the rig."""
 
+CLOUD_FILE = "cloud.ply"
+"""The reconstructed surface, kept beside a capture's bundle."""
+
 _log = logging.getLogger(__name__)
+
+
+class NoActiveCalibrationError(StateConflictError):
+    """A reconstruction was asked for before any calibration was activated (HTTP 409)."""
+
+
+class NoCloudError(EyeserverError):
+    """A capture has not been reconstructed yet (HTTP 404)."""
 
 
 class UnknownUnitError(EyeserverError, ValueError):
@@ -314,6 +334,109 @@ class Service:
                 bit_depth=bundle_bit_depth(rig, frames), extra={"simulated": True})
         _log.info("capture stored", extra={"capture_id": record.id, "unit": unit})
         return record
+
+    def rig_spec(self) -> RigSpec:
+        """The open rig as its rig file would describe it (what calibrations must match)."""
+        return rig_from_dict(self.rig.spec(), "<daemon rig>")
+
+    # --- calibrations -----------------------------------------------------------------------
+
+    def import_calibration(self, archive: bytes, *, actor: str) -> CalibrationRecord:
+        """Store the calibration zipped in ``archive`` under a new id (not yet active).
+
+        Raises
+        ------
+        UploadTooLargeError
+            The archive, or what it unpacks to, is larger than ``max_upload_mb``.
+        FormatError
+            The archive is unsafe or not a calibration directory, the calibration is invalid,
+            or it was made for another rig (the message names the member or field).
+        """
+        limit = self._settings.max_upload_mb * 2**20
+        if len(archive) > limit:
+            raise UploadTooLargeError(f"the upload exceeds {self._settings.max_upload_mb} MiB")
+        with tempfile.TemporaryDirectory(prefix="eyeserver-calibration-") as unpacked:
+            unpack_calibration_zip(archive, Path(unpacked), max_unpacked_bytes=limit)
+            load_calibration(unpacked, self.rig_spec())
+            record = self.store.import_calibration(unpacked, actor=actor)
+        _log.info("calibration imported", extra={"calibration_id": record.id, "actor": actor})
+        return record
+
+    def activate_calibration(self, calibration_id: str, *, actor: str) -> CalibrationRecord:
+        """Make a stored calibration the one new captures and reconstructions use.
+
+        Raises
+        ------
+        StateConflictError
+            An operation holds the hardware (a capture must not change calibration midway).
+        UnknownIdError, StorageError
+            As for :meth:`Store.activate_calibration`.
+        """
+        with self.operation("calibrating", "activating a calibration"):
+            record = self.store.activate_calibration(calibration_id, actor=actor)
+        _log.info("calibration activated", extra={"calibration_id": record.id, "actor": actor})
+        return record
+
+    # --- reconstruction ---------------------------------------------------------------------
+
+    def reconstruct(self, capture_id: str) -> dict[str, Any]:
+        """Reconstruct a stored capture with the active calibration; keep its cloud.
+
+        The cloud replaces ``cloud.ply`` in the capture's directory atomically. The hardware is
+        not involved, so this does not enter the state machine and may run beside a capture.
+
+        Returns
+        -------
+        dict
+            The summary of :func:`~eyeserver.service.reconstruction.reconstruct_bundle` with
+            ``capture_id`` and ``calibration_id`` added.
+
+        Raises
+        ------
+        NoActiveCalibrationError
+            No calibration is active.
+        UnknownIdError, StorageError
+            As for :meth:`Store.get_capture`.
+        ReconstructionError, FormatError
+            The capture cannot be reconstructed with the active calibration.
+        """
+        store = self.store
+        capture = store.get_capture(capture_id)
+        active = store.active_calibration()
+        if active is None:
+            raise NoActiveCalibrationError(
+                "no calibration is active: import one (POST /api/v1/calibrations) and activate "
+                "it (POST /api/v1/calibrations/{id}/activate)")
+        started = time.monotonic()
+        cloud, summary = reconstruct_bundle(active.path, capture.path)
+        write_ply(capture.path / CLOUD_FILE, cloud,
+                  comments=[f"capture {capture.id}", f"calibration {active.id}"])
+        summary.update(capture_id=capture.id, calibration_id=active.id)
+        _log.info("capture reconstructed", extra={
+            "capture_id": capture.id, "calibration_id": active.id, "points": summary["points"],
+            "duration_s": round(time.monotonic() - started, 3)})
+        return summary
+
+    def cloud_path(self, capture_id: str) -> Path:
+        """The stored ``cloud.ply`` of a capture.
+
+        Raises
+        ------
+        NoCloudError
+            The capture has not been reconstructed.
+        UnknownIdError, StorageError
+            As for :meth:`Store.get_capture`.
+        """
+        path = self.store.get_capture(capture_id).path / CLOUD_FILE
+        if not path.is_file():
+            raise NoCloudError(f"capture {capture_id} has not been reconstructed yet "
+                               f"(POST /api/v1/captures/{capture_id}/reconstruction)")
+        return path
+
+    def preview_png(self, capture_id: str) -> bytes:
+        """A colour-coded height map (PNG) of a capture's stored cloud (errors as for
+        :meth:`cloud_path`)."""
+        return height_map_png(read_ply(self.cloud_path(capture_id)).points)
 
     # --- status -----------------------------------------------------------------------------
 

@@ -5,10 +5,17 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Query
+from fastapi.responses import FileResponse, Response
 from starlette.concurrency import run_in_threadpool
 
 from eyeserver.api.deps import ServiceDep
-from eyeserver.api.schemas import CaptureList, CaptureRequest, CaptureResponse, ErrorResponse
+from eyeserver.api.schemas import (
+    CaptureList,
+    CaptureRequest,
+    CaptureResponse,
+    ErrorResponse,
+    ReconstructionResponse,
+)
 from eyeserver.service.storage import CaptureRecord, UnknownIdError, is_capture_id
 
 __all__ = ["router"]
@@ -60,3 +67,51 @@ async def get_capture(capture_id: str, service: ServiceDep) -> CaptureResponse:
         raise UnknownIdError(capture_id, "capture")
     record = await run_in_threadpool(service.store.get_capture, capture_id)
     return _response(record)
+
+
+def _checked(capture_id: str) -> str:
+    if not is_capture_id(capture_id):
+        raise UnknownIdError(capture_id, "capture")
+    return capture_id
+
+
+@router.post("/captures/{capture_id}/reconstruction", summary="Reconstruct a capture",
+             responses={404: {"model": ErrorResponse, "description": "No such capture."},
+                        409: {"model": ErrorResponse, "description": "No calibration is "
+                              "active."},
+                        422: {"model": ErrorResponse, "description": "The capture cannot be "
+                              "reconstructed with the active calibration."}})
+async def reconstruct_capture(capture_id: str, service: ServiceDep) -> ReconstructionResponse:
+    """Reconstruct the capture's surface with the active calibration.
+
+    The fused cloud is kept as the capture's ``cloud.ply`` (replacing an earlier one); the
+    answer summarises it. Takes seconds: it runs on a worker thread.
+    """
+    summary = await run_in_threadpool(service.reconstruct, _checked(capture_id))
+    return ReconstructionResponse.model_validate(summary)
+
+
+@router.get("/captures/{capture_id}/cloud.ply", summary="A capture's point cloud",
+            response_class=FileResponse,
+            responses={200: {"content": {"application/octet-stream": {}},
+                             "description": "Binary little-endian PLY (FORMATS.md)."},
+                       404: {"model": ErrorResponse, "description": "No such capture, or it "
+                             "has not been reconstructed."}})
+async def get_cloud(capture_id: str, service: ServiceDep) -> FileResponse:
+    """The stored cloud of a reconstructed capture: x, y, z in mm, quality, camera index."""
+    path = await run_in_threadpool(service.cloud_path, _checked(capture_id))
+    return FileResponse(path, media_type="application/octet-stream",
+                        filename=f"{capture_id}.ply")
+
+
+@router.get("/captures/{capture_id}/preview.png", summary="A height map of a capture",
+            response_class=Response,
+            responses={200: {"content": {"image/png": {}},
+                             "description": "Z colour-coded over X and Y (turbo: blue low, "
+                             "red high)."},
+                       404: {"model": ErrorResponse, "description": "No such capture, or it "
+                             "has not been reconstructed."}})
+async def get_preview(capture_id: str, service: ServiceDep) -> Response:
+    """A colour-coded height map of the capture's stored cloud, seen along Z."""
+    png = await run_in_threadpool(service.preview_png, _checked(capture_id))
+    return Response(png, media_type="image/png")
