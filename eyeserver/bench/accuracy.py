@@ -40,7 +40,7 @@ from eyeserver.hardware.sim.scenes import SceneSpec, build_scene
 from eyeserver.hardware.sim.scoring import score_by_surface, score_cloud
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.hardware.sim.truth import truth_scene
-from eyeserver.io import PointCloud, read_bundle
+from eyeserver.io import PointCloud, read_bundle, rig_from_dict
 from eyeserver.pipeline.fiducials import (
     detect_fiducials,
     match_stereo,
@@ -49,7 +49,12 @@ from eyeserver.pipeline.fiducials import (
 )
 from eyeserver.pipeline.reconstruct import unit_clouds
 from eyeserver.pipeline.registration import icp_point_to_plane
-from eyeserver.service.reconstruction import calibrated_cameras, reconstruct_bundle
+from eyeserver.service.reconstruction import (
+    calibrated_cameras,
+    reconstruct_bundle,
+    unit_pairs,
+    z_range,
+)
 
 Progress = Callable[[str], None]
 
@@ -166,16 +171,11 @@ def fiducial_errors(caldir: Path, bundle_path: Path) -> list[dict[str, Any]]:
     bundle = read_bundle(bundle_path)
     document = load_calibration(caldir, bundle.rig)
     cameras = calibrated_cameras(document)
-    z_range = tuple(document["phase_to_height"]["cameras"][bundle.rig.camera_ids[0]]
-                    ["z_range_mm"])
     found_errors: list[dict[str, Any]] = []
-    for index in bundle.frame_indices:
-        ids = [c for i, c in bundle.fringe_images() if i == index]
-        if len(ids) < 2:
-            continue
-        a, b = cameras[ids[0]], cameras[ids[1]]
-        image_a, image_b = bundle.load_image(index, ids[0]), bundle.load_image(index, ids[1])
-        clouds = unit_clouds(a, image_a, b, image_b, (float(z_range[0]), float(z_range[1])))
+    for index, id_a, id_b in unit_pairs(bundle):
+        a, b = cameras[id_a], cameras[id_b]
+        image_a, image_b = bundle.load_image(index, id_a), bundle.load_image(index, id_b)
+        clouds = unit_clouds(a, image_a, b, image_b, z_range(document))
         dots = (detect_fiducials(image_a, a.carrier.period_px),
                 detect_fiducials(image_b, b.carrier.period_px))
         pairs = match_stereo(dots[0], dots[1], a.K, a.dist, a.R, a.T, b.K, b.dist, b.R, b.T)
@@ -250,22 +250,16 @@ def static_noise(config: RoomConfig, caldir: Path, work: Path, seed: int, repeat
     spec = SceneSpec(kind="eye_phantom_1")
     stacks: dict[str, list[np.ndarray]] = {}
     with SimSession.open(config, seed=seed + 2) as session:
+        document = load_calibration(caldir, rig_from_dict(session.rig.spec(), "<simulated rig>"))
+        cameras = calibrated_cameras(document)
         for n in range(repeats):
             progress(f"static surface, capture {n + 1}/{repeats}")
             session.record(spec, path, overwrite=True)
             bundle = read_bundle(path)
-            document = load_calibration(caldir, bundle.rig)
-            cameras = calibrated_cameras(document)
-            z_range = tuple(document["phase_to_height"]["cameras"][bundle.rig.camera_ids[0]]
-                            ["z_range_mm"])
-            for index in bundle.frame_indices:
-                ids = [c for i, c in bundle.fringe_images() if i == index]
-                if len(ids) < 2:
-                    continue
-                a, b = cameras[ids[0]], cameras[ids[1]]
-                clouds = unit_clouds(a, bundle.load_image(index, ids[0]), b,
-                                     bundle.load_image(index, ids[1]),
-                                     (float(z_range[0]), float(z_range[1])))
+            for index, id_a, id_b in unit_pairs(bundle):
+                a, b = cameras[id_a], cameras[id_b]
+                clouds = unit_clouds(a, bundle.load_image(index, id_a), b,
+                                     bundle.load_image(index, id_b), z_range(document))
                 for cam, cloud in zip((a, b), clouds, strict=True):
                     stacks.setdefault(cam.camera_id, []).append(cloud.depth_image(cam.shape))
     spreads = {}

@@ -211,7 +211,12 @@ def record_frameset(config: RoomConfig, calibration: Path, work: Path) -> FrameS
     from eyeserver.calibration.artefact import load_calibration
     from eyeserver.hardware.sim.sessions import SimSession
     from eyeserver.io import read_bundle
-    from eyeserver.service.reconstruction import calibrated_cameras
+    from eyeserver.service.reconstruction import (
+        calibrated_cameras,
+        saturation_dn,
+        unit_pairs,
+        z_range,
+    )
 
     bundle_path = work / "speed_eye_phantom_1"
     with SimSession.open(config, seed=3) as session:
@@ -219,18 +224,12 @@ def record_frameset(config: RoomConfig, calibration: Path, work: Path) -> FrameS
     bundle = read_bundle(bundle_path)
     document = load_calibration(calibration, bundle.rig)
     cameras = calibrated_cameras(document)
-    z_range = tuple(document["phase_to_height"]["cameras"][bundle.rig.camera_ids[0]]
-                    ["z_range_mm"])
-    units = []
-    for index in bundle.frame_indices:
-        ids = [c for i, c in bundle.fringe_images() if i == index]
-        if len(ids) >= 2:
-            units.append(UnitImages(bundle.rig.unit_of_camera(ids[0]).id,
-                                    cameras[ids[0]], bundle.load_image(index, ids[0]),
-                                    cameras[ids[1]], bundle.load_image(index, ids[1])))
+    units = [UnitImages(bundle.rig.unit_of_camera(id_a).id, cameras[id_a],
+                        bundle.load_image(index, id_a), cameras[id_b],
+                        bundle.load_image(index, id_b))
+             for index, id_a, id_b in unit_pairs(bundle)]
     return FrameSet(
-        units=tuple(units), z_range=(float(z_range[0]), float(z_range[1])),
-        saturation_dn=float(2 ** bundle.bit_depth - 1) if bundle.bit_depth else None,
+        units=tuple(units), z_range=z_range(document), saturation_dn=saturation_dn(bundle),
         camera_index={c: bundle.rig.camera_index(c) for c in bundle.rig.camera_ids})
 
 

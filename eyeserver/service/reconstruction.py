@@ -11,7 +11,7 @@ import numpy as np
 
 from eyeserver.calibration.artefact import load_calibration
 from eyeserver.errors import EyeserverError
-from eyeserver.io import PointCloud, read_bundle
+from eyeserver.io import Bundle, PointCloud, read_bundle
 from eyeserver.pipeline.demodulate import Carrier
 from eyeserver.pipeline.fusion import Part, Region, fuse
 from eyeserver.pipeline.phase_height import PhaseHeightModel
@@ -56,6 +56,27 @@ def calibrated_cameras(document: dict[str, Any]) -> dict[str, CalibratedCamera]:
     return cameras
 
 
+def z_range(document: dict[str, Any]) -> tuple[float, float]:
+    """The calibrated height range (mm) of a loaded calibration with phase-to-height models."""
+    cameras = document["phase_to_height"]["cameras"]
+    low, high = cameras[next(iter(cameras))]["z_range_mm"]
+    return float(low), float(high)
+
+
+def saturation_dn(bundle: Bundle) -> float | None:
+    """The full scale of the bundle's images when it states its bit depth."""
+    return float(2 ** bundle.bit_depth - 1) if bundle.bit_depth else None
+
+
+def unit_pairs(bundle: Bundle) -> list[tuple[int, str, str]]:
+    """``(frame, camera, partner)``: in each frame, the first two fringe cameras of each unit
+    (the pair whose fringe order fixes the other's)."""
+    by_unit: dict[tuple[int, str], list[str]] = {}
+    for index, camera_id in bundle.fringe_images():
+        by_unit.setdefault((index, bundle.rig.unit_of_camera(camera_id).id), []).append(camera_id)
+    return [(index, ids[0], ids[1]) for (index, _), ids in by_unit.items() if len(ids) >= 2]
+
+
 def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
                        frames: Sequence[int] | None = None, cameras: Sequence[str] | None = None,
                        method: str = "multi-view", depth_prior_mm: float | None = None,
@@ -83,9 +104,8 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
     unknown = chosen_cameras - set(rig.camera_ids)
     if unknown:
         raise ReconstructionError(f"{bundle.path}: no camera {sorted(unknown)} in the rig")
-    z_range = tuple(document["phase_to_height"]["cameras"][rig.camera_ids[0]]["z_range_mm"])
-    limits = (float(z_range[0]), float(z_range[1]))
-    saturation = float(2 ** bundle.bit_depth - 1) if bundle.bit_depth else None
+    limits = z_range(document)
+    saturation = saturation_dn(bundle)
     views = [(i, c) for i, c in bundle.fringe_images()
              if i in chosen_frames and c in chosen_cameras]
     if not views:
