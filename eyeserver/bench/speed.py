@@ -103,7 +103,7 @@ STAGES: dict[str, str] = {
     "phase_to_height": "PhaseHeightModel.height of every masked-in pixel",
     "transversal_mapping": "intersect_plane_z: X, Y where each pixel's ray meets its height",
     "order_check": "every pixel's order checked against the partner camera's phase",
-    "cloud_assembly": "points again, quality, range crop (camera_cloud's last step)",
+    "cloud_assembly": "quality, range crop (camera_cloud's last step)",
     "cross_check": "points the partner's own reconstruction confirms (unit_clouds)",
     "despeckle": "patches of continuous depth under 1000 px dropped",
     "spatial_unwrapping": "spatial path: scikit-image unwrap_phase (Herráez) of the masked "
@@ -452,11 +452,11 @@ def _multi_view_pass(frameset: FrameSet, samples: _Samples) -> dict[str, Any]:
                                          phases[a])
             z = samples.time(a, "phase_to_height", _phase_to_height, cam_a, phases[a], pixels,
                              order)
-            samples.time(a, "transversal_mapping", _transversal, cam_a, pixels, z)
+            points = samples.time(a, "transversal_mapping", _transversal, cam_a, pixels, z)
             cost, keep = samples.time(a, "order_check", _order_check, cam_a, cam_b, phases[b],
                                       pixels, z)
             clouds[a] = samples.time(a, "cloud_assembly", _cloud, cam_a, phases[a],
-                                     pixels[keep], order[keep], cost[keep],
+                                     pixels[keep], points[keep], z[keep], cost[keep],
                                      np.zeros(int(keep.sum()), np.uint8), frameset.z_range)
             out["grids"][a] = grid
         checked = {

@@ -489,10 +489,11 @@ def _despeckle(pixels: npt.NDArray[np.intp], z: F64, shape: tuple[int, int]) -> 
     return np.asarray(finite & (depth.ravel()[pixels] != invalid))
 
 
-def _cloud(camera: CalibratedCamera, phase: Phase, pixels: npt.NDArray[np.intp], order: Int,
-           cost: F64, source: npt.NDArray[np.uint8], z_range: tuple[float, float],
+def _cloud(camera: CalibratedCamera, phase: Phase, pixels: npt.NDArray[np.intp], points: F64,
+           z: F64, cost: F64, source: npt.NDArray[np.uint8], z_range: tuple[float, float],
            ) -> CameraCloud:
-    points, z = _points(camera, phase, pixels, order)
+    """A camera's cloud from its pixels' points (:func:`_points`): their quality, and only the
+    points within the calibrated range."""
     keep = np.isfinite(z) & (z >= z_range[0] - BEYOND_RANGE_MM) & (z <= z_range[1]
                                                                   + BEYOND_RANGE_MM)
     modulation = phase.modulation.ravel()[pixels]
@@ -515,7 +516,8 @@ def camera_cloud(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCamer
             raise ValueError("a camera without a partner needs depth_prior_mm")
         pixels, order = depth_prior_order(cam_a, phase_a, z_range, depth_prior_mm)
         source = np.full(pixels.size, ORDER_SOURCES.index("depth prior"), np.uint8)
-        return _cloud(cam_a, phase_a, pixels, order, np.zeros(pixels.size), source, z_range)
+        points, z = _points(cam_a, phase_a, pixels, order)
+        return _cloud(cam_a, phase_a, pixels, points, z, np.zeros(pixels.size), source, z_range)
     grid = grid_order(cam_a, phase_a, cam_b, phase_b, z_range)
     if method == "multi-view":
         pixels, order = propagate_order(grid, phase_a)
@@ -525,7 +527,7 @@ def camera_cloud(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCamer
         source = np.where(by_votes, 1, 2).astype(np.uint8)
     # Every pixel's final order checked against B: a multi-view pixel must match B's phase; a
     # spatially unwrapped one must not contradict it where B can judge.
-    _, z = _points(cam_a, phase_a, pixels, order)
+    points, z = _points(cam_a, phase_a, pixels, order)
     cost = _mismatch(cam_a, cam_b, phase_b.pinhole_view(cam_b), pixels, np.nan_to_num(z))
     # A pixel whose region the depth prior fixed is kept where B cannot judge it (there is no
     # better evidence); every other pixel must match B. Spatial unwrapping that slipped by a
@@ -533,7 +535,8 @@ def camera_cloud(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCamer
     by_prior = source == ORDER_SOURCES.index("spatial + depth prior")
     keep = (cost < MAX_MISMATCH_RAD) | (by_prior & (cost == np.pi))
     cost = np.where(by_prior & (cost == np.pi), 0.0, cost)
-    return _cloud(cam_a, phase_a, pixels[keep], order[keep], cost[keep], source[keep], z_range)
+    return _cloud(cam_a, phase_a, pixels[keep], points[keep], z[keep], cost[keep], source[keep],
+                  z_range)
 
 
 def _contradicted(cloud: CameraCloud, cam: CalibratedCamera, other: CameraCloud,
