@@ -29,13 +29,14 @@ from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
-from typing import Any, Literal, Self
+from typing import Annotated, Any, Literal, Self
 
 import platformdirs
-from pydantic import Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, field_validator
 from pydantic_core import ErrorDetails
 from pydantic_settings import (
     BaseSettings,
+    NoDecode,
     PydanticBaseSettingsSource,
     SettingsConfigDict,
     SettingsError,
@@ -44,12 +45,37 @@ from pydantic_settings import (
 
 from eyeserver.errors import ConfigError
 
-__all__ = ["ENV_PREFIX", "LogLevel", "Settings"]
+__all__ = ["ENV_PREFIX", "MIN_TOKEN_LENGTH", "ROLES", "LogLevel", "Role", "Settings", "TokenConfig"]
 
 #: Prefix of the environment variables that override settings.
 ENV_PREFIX = "EYESERVER_"
 
 LogLevel = Literal["critical", "error", "warning", "info", "debug"]
+
+Role = Literal["operator", "physicist"]
+ROLES: tuple[Role, ...] = ("operator", "physicist")
+"""The roles, each allowed what the ones before it are: an ``operator`` measures and reads, a
+``physicist`` also calibrates, deletes and configures."""
+
+MIN_TOKEN_LENGTH = 16
+"""Shortest bearer token accepted: a guessable token protects nothing."""
+
+
+class TokenConfig(BaseModel):
+    """One bearer token: who holds it (the name the audit trail records) and its role."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field(min_length=1, description="Who holds the token (recorded in the audit).")
+    role: Role = Field(description="operator or physicist.")
+    token: SecretStr = Field(description=f"The secret, at least {MIN_TOKEN_LENGTH} characters.")
+
+    @field_validator("token", mode="after")
+    @classmethod
+    def _long_enough(cls, value: SecretStr) -> SecretStr:
+        if len(value.get_secret_value()) < MIN_TOKEN_LENGTH:
+            raise ValueError(f"a token needs at least {MIN_TOKEN_LENGTH} characters")
+        return value
 
 # The configuration file of the ``load`` call in progress. ``settings_customise_sources`` is a
 # classmethod pydantic-settings calls without our arguments, so the file travels this way; a
@@ -58,6 +84,8 @@ _config_file: ContextVar[Path | None] = ContextVar("eyeserver_config_file", defa
 
 # Keys holding paths; relative values in the TOML file are resolved against the file's directory.
 _PATH_KEYS = ("data_dir", "room_file")
+# Keys whose values are never repeated in an error message.
+_SECRET_KEYS = ("tokens",)
 
 
 def _default_data_dir() -> Path:
@@ -104,6 +132,11 @@ class Settings(BaseSettings):
     ``max_upload_mb``
         Largest upload (a calibration archive) the API accepts, and the most it may unpack to,
         in MiB. Default ``200``.
+    ``tokens``
+        The bearer tokens the API accepts. In the file, named tokens as an array of tables
+        (``[[tokens]]`` with ``name``, ``role``, ``token``); in ``EYESERVER_TOKENS``,
+        comma-separated ``role:token`` pairs, the role doubling as the name. Empty (default):
+        the daemon generates one token per role in ``DATA_DIR/tokens.toml`` at its first start.
 
     Build it with :meth:`load`; constructing ``Settings()`` directly reads only the defaults and
     the environment.
@@ -155,6 +188,36 @@ class Settings(BaseSettings):
         description="Largest upload (a calibration archive) the API accepts, and the most it "
         "may unpack to, in MiB.",
     )
+
+    tokens: Annotated[tuple[TokenConfig, ...], NoDecode] = Field(
+        default=(),
+        description="Bearer tokens with their holder's name and role; empty: generated in "
+        "DATA_DIR/tokens.toml at the first start.",
+    )
+
+    @field_validator("tokens", mode="before")
+    @classmethod
+    def _parse_token_pairs(cls, value: object) -> object:
+        # EYESERVER_TOKENS="operator:s3cret...,physicist:other..." (NoDecode: not JSON).
+        if not isinstance(value, str):
+            return value
+        tokens = []
+        for pair in filter(None, (part.strip() for part in value.split(","))):
+            role, colon, token = pair.partition(":")
+            if not colon:
+                raise ValueError(f"expected comma-separated role:token pairs, got {pair[:12]!r}…"
+                                 if len(pair) > 12 else
+                                 f"expected comma-separated role:token pairs, got {pair!r}")
+            tokens.append({"name": role.strip(), "role": role.strip(), "token": token.strip()})
+        return tokens
+
+    @field_validator("tokens", mode="after")
+    @classmethod
+    def _unique_tokens(cls, value: tuple[TokenConfig, ...]) -> tuple[TokenConfig, ...]:
+        secrets = [t.token.get_secret_value() for t in value]
+        if len(set(secrets)) != len(secrets):
+            raise ValueError("the same token is given twice (each holder needs their own)")
+        return value
 
     @field_validator("data_dir", "room_file", mode="after")
     @classmethod
@@ -297,4 +360,6 @@ def _describe_error(
         where = f"{config_file}: key '{key}'"
     else:
         where = f"key '{key}'"
+    if top in _SECRET_KEYS:
+        return f"{where}: {error['msg']}"  # never echo a secret into a log or a terminal
     return f"{where}: {error['msg']} (got {error['input']!r})"

@@ -7,69 +7,22 @@ each test leaves it idle and healthy.
 
 from __future__ import annotations
 
-import os
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
-import httpx
 import numpy as np
 import pytest
-from anyio.from_thread import start_blocking_portal
 from fastapi import FastAPI
 
 import eyeserver
 from eyeserver.api import create_app
-from eyeserver.config import Settings
 from eyeserver.hardware.sim.drivers import SimCamera
 from eyeserver.io import read_bundle
 from eyeserver.service.core import Service
-
-API = "/api/v1"
-
-
-class Client:
-    """A blocking client of an app running with its lifespan on an event loop in a thread.
-
-    (Starlette's TestClient wants a package this project does not use.) Any thread may call
-    it, so tests can run requests side by side as a real server would.
-    """
-
-    def __init__(self, portal: Any, client: httpx.AsyncClient) -> None:
-        self._portal = portal
-        self._client = client
-
-    def get(self, path: str, **kwargs: Any) -> httpx.Response:
-        response: httpx.Response = self._portal.call(lambda: self._client.get(path, **kwargs))
-        return response
-
-    def post(self, path: str, **kwargs: Any) -> httpx.Response:
-        response: httpx.Response = self._portal.call(lambda: self._client.post(path, **kwargs))
-        return response
-
-
-@contextmanager
-def serving(app: FastAPI) -> Iterator[Client]:
-    """Run ``app``'s lifespan, answer requests through the yielded client, then shut down."""
-    with ExitStack() as stack:
-        portal = stack.enter_context(start_blocking_portal())
-        stack.enter_context(portal.wrap_async_context_manager(app.router.lifespan_context(app)))
-        # raise_app_exceptions=False: a crashing route gives its 500 answer, as over a socket.
-        transport = httpx.ASGITransport(app=app, raise_app_exceptions=False)
-        client = stack.enter_context(portal.wrap_async_context_manager(
-            httpx.AsyncClient(transport=transport, base_url="http://test")))
-        yield Client(portal, client)
-
-
-def _settings(data_dir: Path) -> Settings:
-    with pytest.MonkeyPatch.context() as patch:
-        for name in list(os.environ):
-            if name.upper().startswith("EYESERVER_"):
-                patch.delenv(name)
-        return Settings.load(data_dir=data_dir)
+from tests.apiclient import API, Client, serving, test_settings
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +32,7 @@ def data_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def app(data_dir: Path) -> FastAPI:
-    return create_app(_settings(data_dir))
+    return create_app(test_settings(data_dir))
 
 
 @pytest.fixture(scope="module")
@@ -272,7 +225,7 @@ def test_a_disconnected_camera_faults_its_unit_until_it_comes_back(
 
 
 def test_a_capture_is_found_again_after_a_restart(tmp_path: Path) -> None:
-    settings = _settings(tmp_path / "data")
+    settings = test_settings(tmp_path / "data")
     with serving(create_app(settings)) as first:
         created = _capture(first, "left")
 

@@ -25,7 +25,7 @@ from eyeserver.calibration.artefact import ARRAYS_FILE, CALIBRATION_FILE
 from eyeserver.io import read_ply
 from eyeserver.service.core import Service
 from eyeserver.service.uploads import UploadTooLargeError, unpack_calibration_zip
-from tests.test_service_api import API, Client, _settings, serving
+from tests.apiclient import API, Client, serving, test_settings
 
 ZIP = {"content-type": "application/zip"}
 
@@ -53,7 +53,7 @@ def caldir(calibrated_rooms: Callable[[str], tuple[Path, Path]]) -> Path:
 
 @pytest.fixture(scope="module")
 def app(tmp_path_factory: pytest.TempPathFactory) -> FastAPI:
-    return create_app(_settings(tmp_path_factory.mktemp("calibration-api") / "data"))
+    return create_app(test_settings(tmp_path_factory.mktemp("calibration-api") / "data"))
 
 
 @pytest.fixture(scope="module")

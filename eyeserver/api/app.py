@@ -10,11 +10,12 @@ import logging
 from collections.abc import AsyncIterator, Callable
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 from starlette.concurrency import run_in_threadpool
 
 import eyeserver
-from eyeserver.api.errors import install_error_handlers
+from eyeserver.api.auth import TokenTable, require
+from eyeserver.api.errors import AUTH_RESPONSES, install_error_handlers
 from eyeserver.api.routers import calibrations, captures, devices, health, status
 from eyeserver.config import Settings
 from eyeserver.service.core import Service
@@ -39,6 +40,7 @@ def _lifespan(settings: Settings) -> Callable[[FastAPI], AbstractAsyncContextMan
                 "room_file": None if settings.room_file is None else str(settings.room_file),
             },
         )
+        app.state.tokens = await run_in_threadpool(TokenTable.for_settings, settings)
         # Opening devices and the store blocks; it runs on a worker thread, as does closing.
         service = Service(settings)
         await run_in_threadpool(service.open)
@@ -58,7 +60,8 @@ def create_app(settings: Settings) -> FastAPI:
 
     The settings are kept in ``app.state.settings`` for the routers; the lifespan opens a
     :class:`~eyeserver.service.core.Service` (store, then rig) into ``app.state.service`` and
-    closes it on shut-down. ``/health`` does not use it. The OpenAPI document is
+    closes it on shut-down, after reading the bearer tokens into ``app.state.tokens``
+    (:mod:`eyeserver.api.auth`). ``/health`` uses neither. The OpenAPI document is
     served at ``/api/v1/openapi.json`` and its interactive view at ``/api/v1/docs``.
     """
     app = FastAPI(
@@ -73,8 +76,9 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.settings = settings
     install_error_handlers(app)
     app.include_router(health.router, prefix=API_PREFIX)
-    app.include_router(status.router, prefix=API_PREFIX)
-    app.include_router(devices.router, prefix=API_PREFIX)
-    app.include_router(captures.router, prefix=API_PREFIX)
-    app.include_router(calibrations.router, prefix=API_PREFIX)
+    # Everything else needs a token; routes that need more than an operator say so themselves.
+    authenticated = [Depends(require("operator"))]
+    for router in (status.router, devices.router, captures.router, calibrations.router):
+        app.include_router(router, prefix=API_PREFIX, dependencies=authenticated,
+                           responses=AUTH_RESPONSES)
     return app

@@ -24,6 +24,7 @@ The body is always :class:`~eyeserver.api.schemas.ErrorResponse`, ``{"detail": "
 from __future__ import annotations
 
 import logging
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
@@ -44,9 +45,15 @@ from eyeserver.service.reconstruction import ReconstructionError
 from eyeserver.service.storage import UnknownIdError
 from eyeserver.service.uploads import UploadTooLargeError
 
-__all__ = ["install_error_handlers", "status_code_for"]
+__all__ = ["AUTH_RESPONSES", "install_error_handlers", "status_code_for"]
 
 _log = logging.getLogger(__name__)
+
+AUTH_RESPONSES: dict[int | str, dict[str, Any]] = {
+    401: {"model": ErrorResponse, "description": "No valid bearer token."},
+    403: {"model": ErrorResponse, "description": "The token's role may not do this."},
+}
+"""The answers every authenticated route may give, for the OpenAPI document."""
 
 # First match wins, so subclasses come before their bases.
 _STATUS_BY_ERROR: tuple[tuple[type[EyeserverError], int], ...] = (

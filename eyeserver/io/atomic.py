@@ -74,7 +74,8 @@ def makedirs_synced(path: str | os.PathLike[str]) -> None:
         raise FileExistsError(f"{target} exists and is not a directory")
 
 
-def write_synced(path: str | os.PathLike[str], data: bytes | bytearray | memoryview) -> None:
+def write_synced(path: str | os.PathLike[str], data: bytes | bytearray | memoryview, *,
+                 mode: int = 0o666) -> None:
     """Create ``path`` (which must not exist), write ``data`` and fsync it.
 
     Not atomic by itself: it is the building block for files inside a directory that is
@@ -87,14 +88,16 @@ def write_synced(path: str | os.PathLike[str], data: bytes | bytearray | memoryv
         The file to create.
     data : bytes-like
         Its content.
+    mode : int
+        Permissions of the new file, before the process umask (0o600 for secrets).
 
     Raises
     ------
     FileExistsError
         When ``path`` already exists.
     """
-    # 0o666 lets the process umask decide the permissions, as open() would.
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
+    # The default 0o666 lets the process umask decide the permissions, as open() would.
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), mode)
     try:
         view = memoryview(data)
         while view:

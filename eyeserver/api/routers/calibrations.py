@@ -5,6 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, HTTPException, Request
 from starlette.concurrency import run_in_threadpool
 
+from eyeserver.api.auth import PhysicistDep
 from eyeserver.api.deps import ServiceDep
 from eyeserver.api.schemas import CalibrationList, CalibrationResponse, ErrorResponse
 from eyeserver.service.storage import CalibrationRecord, UnknownIdError, is_calibration_id
@@ -15,7 +16,6 @@ __all__ = ["router"]
 router = APIRouter(tags=["calibrations"])
 
 _ZIP_TYPES = ("application/zip", "application/x-zip-compressed")
-_ACTOR = "api"
 
 
 def _response(record: CalibrationRecord) -> CalibrationResponse:
@@ -45,19 +45,20 @@ async def _read_limited(request: Request, limit: int) -> bytes:
                415: {"model": ErrorResponse, "description": "The body is not application/zip."},
                422: {"model": ErrorResponse, "description": "Not a safe zip of a valid "
                      "calibration for this rig; the reason names the member or field."}})
-async def import_calibration(request: Request, service: ServiceDep) -> CalibrationResponse:
+async def import_calibration(request: Request, service: ServiceDep,
+                             caller: PhysicistDep) -> CalibrationResponse:
     """Store a calibration: the body is a zip of the directory ``eyeserver calibrate`` writes
     (``calibration.json`` and ``arrays.npz``, flat or in one folder).
 
     The calibration is checked as the pipeline will read it and must have been made for this
-    daemon's rig. It is not activated.
+    daemon's rig. It is not activated. Physicists only.
     """
     content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if content_type not in _ZIP_TYPES:
         raise HTTPException(415, f"the body must be application/zip, not {content_type!r}")
     limit = request.app.state.settings.max_upload_mb * 2**20
     archive = await _read_limited(request, limit)
-    record = await run_in_threadpool(lambda: service.import_calibration(archive, actor=_ACTOR))
+    record = await run_in_threadpool(lambda: service.import_calibration(archive, actor=caller.name))
     return _response(record)
 
 
@@ -81,13 +82,14 @@ async def get_calibration(calibration_id: str, service: ServiceDep) -> Calibrati
 @router.post("/calibrations/{calibration_id}/activate", summary="Activate a calibration",
              responses={404: {"model": ErrorResponse, "description": "No such calibration."},
                         409: {"model": ErrorResponse, "description": "The hardware is busy."}})
-async def activate_calibration(calibration_id: str, service: ServiceDep) -> CalibrationResponse:
-    """Make this calibration the one new captures and reconstructions use.
+async def activate_calibration(calibration_id: str, service: ServiceDep,
+                               caller: PhysicistDep) -> CalibrationResponse:
+    """Make this calibration the one new captures and reconstructions use (physicists only).
 
     Only while the daemon is idle (or in fault): a capture in progress answers 409.
     """
     if not is_calibration_id(calibration_id):
         raise UnknownIdError(calibration_id, "calibration")
     record = await run_in_threadpool(
-        lambda: service.activate_calibration(calibration_id, actor=_ACTOR))
+        lambda: service.activate_calibration(calibration_id, actor=caller.name))
     return _response(record)
