@@ -60,7 +60,7 @@ def test_speed_bench_times_the_pipeline(calibrated_rooms: Any,
                                         capsys: pytest.CaptureFixture[str]) -> None:
     _, caldir = calibrated_rooms("default")
     report = _json(capsys, ["bench", "speed", "--json", "--frames", "2", "--calibration",
-                            str(caldir)])
+                            str(caldir), "--api-requests", "2"])
     assert report["frameset_2cam_ms"] > 0 and report["frameset_4cam_ms"] > 0
     assert set(report["reconstruction"]) == {"multi-view_2cam", "multi-view_4cam",
                                              "spatial_2cam", "spatial_4cam"}
@@ -106,9 +106,22 @@ def test_speed_bench_times_the_pipeline(calibrated_rooms: Any,
     assert memory["peak_rss_mib"] >= memory["peak_rss_before_reconstruction_mib"] > 0
     assert memory["frameset_4cam_traced_peak_mib"] > 0
 
+    api = report["api"]
+    assert api["requests"] == 2
+    assert set(api["captures"]) == {"left", "right", "all"}
+    assert set(api["reconstructions"]) == {"left", "all"}
+    for table in (api["captures"], api["reconstructions"]):
+        for figure in table.values():
+            assert figure["n"] == 2 and figure["median_ms"] > 0
+    # A reconstruction runs the pipeline on what a capture stored: it cannot be quicker than
+    # the pipeline alone on the same number of cameras.
+    assert api["reconstructions"]["all"]["min_ms"] > report["frameset_4cam_ms"] / 2
+    assert report["api_capture_all_ms"] == api["captures"]["all"]["median_ms"]
+
     text = speed.format_text(report)
     for expected in ("≤ 10", "≤ 20", "fringe_order_grid", "fusion", "scikit-image unwrap_phase",
-                     "plain FFT FTM", "OpenCV contrib FTP", "peak resident set"):
+                     "plain FFT FTM", "OpenCV contrib FTP", "peak resident set",
+                     "capture →201 of all", "reconstruction of left"):
         assert expected in text, expected
 
 

@@ -778,9 +778,13 @@ def traced_peak_mib(frameset: FrameSet, units: Sequence[UnitImages]) -> float:
 
 
 def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
-        calibration: Path | None = None) -> dict[str, Any]:
+        calibration: Path | None = None, room_file: Path | None = None,
+        api_requests: int = 10) -> dict[str, Any]:
     """The whole speed report as one JSON-able document (``calibration``: a calibration of the
-    simulated rig; made on the spot when not given)."""
+    simulated rig; made on the spot when not given). ``room_file`` is the file ``config`` came
+    from (None: the default room), for the daemon of the API timings; ``api_requests`` requests
+    of each kind are timed through the API (0: none)."""
+    from eyeserver.bench.api import api_latency
     from eyeserver.bench.simcal import calibrate_room
 
     started = time.perf_counter()
@@ -792,6 +796,9 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
             progress("calibrating the simulated rig for the pipeline timings")
             calibration = calibrate_room(config, work, 0, progress)
         frameset = record_frameset(config, calibration, work)
+        api = None
+        if api_requests:
+            api = api_latency(calibration, work, api_requests, room_file, progress)
     rss_before_mib = peak_rss_mib()
     with _opencv_threads(1):
         reconstruction = pipeline(frameset, frames, progress)
@@ -831,6 +838,18 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
         report["frameset_4cam_2threads_ms"] = threads["units_in_parallel_4cam"]["median_ms"]
         report["framesets_4cam_2threads_per_s"] = threads["units_in_parallel_4cam_per_s"]
     report["peak_rss_mib"] = report["memory"]["peak_rss_mib"]
+    if api is not None:
+        report["api"] = {
+            "requests": api_requests,
+            "what": "request sent → answer received, from a client on loopback to an "
+                    "'eyeserver serve' process: a capture until its 201 (bundle durable; the "
+                    "simulated room renders the images), a reconstruction until its summary "
+                    "(bundle read, pipeline, cloud.ply written)",
+            "captures": {unit: _summary(s) for unit, s in api["captures"].items()},
+            "reconstructions": {unit: _summary(s) for unit, s in api["reconstructions"].items()},
+        }
+        report["api_capture_all_ms"] = report["api"]["captures"]["all"]["median_ms"]
+        report["api_reconstruction_all_ms"] = report["api"]["reconstructions"]["all"]["median_ms"]
     if "moving_eye_2cam" in render:
         report["sim_render_2cam_ms"] = render["moving_eye_2cam"]["median_ms"]
     if "moving_eye_4cam" in render:
@@ -925,6 +944,17 @@ def format_text(report: dict[str, Any]) -> str:
                 line += (f"   phase vs ours: median {peer['phase_vs_ours_median_rad']:.3f} rad,"
                          f" p95 {peer['phase_vs_ours_p95_rad']:.3f} rad")
             lines.append(line)
+    api = report.get("api")
+    if api:
+        lines.append("")
+        lines.append(f"{'through the API (eyeserver serve, loopback)':<44}{'median ms':>10}"
+                     f"{'p95 ms':>10}")
+        for what, table in (("capture →201", api["captures"]),
+                            ("reconstruction", api["reconstructions"])):
+            for unit, value in table.items():
+                lines.append(f"  {what + ' of ' + unit:<42}{value['median_ms']:>10.1f}"
+                             f"{value['p95_ms']:>10.1f}")
+        lines.append(f"({api['requests']} requests each; {api['what']})")
     memory = report.get("memory")
     if memory:
         lines.append("")

@@ -11,14 +11,22 @@ from eyeserver.commands import progress as _progress
 from eyeserver.errors import EyeserverError
 
 
-def _positive_int(text: str) -> int:
+def _whole_number(text: str, least: int) -> int:
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
+    if value < least:
+        raise argparse.ArgumentTypeError(f"must be at least {least}, not {value}")
     return value
+
+
+def _positive_int(text: str) -> int:
+    return _whole_number(text, 1)
+
+
+def _non_negative_int(text: str) -> int:
+    return _whole_number(text, 0)
 
 
 def add_parser(subparsers: Subparsers) -> None:
@@ -39,6 +47,9 @@ def add_parser(subparsers: Subparsers) -> None:
                        help="repetitions per figure: frame-sets, stage passes, rendered frames "
                        "(default 100; the spatial path's frame-sets a fifth as many)")
     speed.add_argument("--room", type=Path, metavar="FILE", help="room file (default room)")
+    speed.add_argument("--api-requests", type=_non_negative_int, default=10, metavar="N",
+                       help="captures and reconstructions of each kind timed through the API "
+                       "of a daemon on loopback (default 10; 0 skips them)")
     speed.add_argument("--calibration", type=Path, metavar="CALDIR",
                        help="a calibration of the simulated rig for the pipeline timings "
                        "(default: make one, ≈ 1 minute)")
@@ -67,7 +78,8 @@ def _speed(args: argparse.Namespace) -> int:
     from eyeserver.hardware.sim.config import load_room
 
     report = speed.run(load_room(args.room), frames=args.frames, progress=_progress,
-                       calibration=args.calibration)
+                       calibration=args.calibration, room_file=args.room,
+                       api_requests=args.api_requests)
     print(json.dumps(report, indent=1) if args.json else speed.format_text(report))
     return 0
 
