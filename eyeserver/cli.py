@@ -34,6 +34,9 @@ __all__ = ["REGISTRARS", "Registrar", "Subparsers", "build_parser", "main"]
 
 PROG = "eyeserver"
 
+SHUTDOWN_GRACE_S = 10
+"""Seconds ``eyeserver serve`` waits for open connections when asked to stop."""
+
 
 #: Adds one subcommand (or group of them) to the command line.
 Registrar = Callable[[Subparsers], None]
@@ -86,6 +89,8 @@ def _serve(args: argparse.Namespace) -> int:
         # No uvicorn logging config: its loggers propagate to our root handler (JSON lines).
         log_config=None,
         log_level=settings.log_level,
+        # A client that never reads (an event stream) must not hold the shut-down up forever.
+        timeout_graceful_shutdown=SHUTDOWN_GRACE_S,
     )
     return 0
 

@@ -132,6 +132,15 @@ class Settings(BaseSettings):
     ``max_upload_mb``
         Largest upload (a calibration archive) the API accepts, and the most it may unpack to,
         in MiB. Default ``200``.
+    ``event_queue_size``
+        Events held for each client of the live event stream (``/api/v1/ws/events``) that
+        reads too slowly; when full, its oldest event is dropped. Default ``256``.
+    ``acquisition_queue``
+        Hardware jobs (captures, device settings) that may wait while one runs; one more is
+        refused with HTTP 503. Default ``8``.
+    ``reconstruction_queue``
+        Reconstructions that may wait while one runs; one more is refused with HTTP 503.
+        Default ``4``.
     ``tokens``
         The bearer tokens the API accepts. In the file, named tokens as an array of tables
         (``[[tokens]]`` with ``name``, ``role``, ``token``); in ``EYESERVER_TOKENS``,
@@ -187,6 +196,24 @@ class Settings(BaseSettings):
         ge=1,
         description="Largest upload (a calibration archive) the API accepts, and the most it "
         "may unpack to, in MiB.",
+    )
+    event_queue_size: int = Field(
+        default=256,
+        ge=1,
+        description="Events held for each slow client of the live event stream; when full, "
+        "its oldest event is dropped.",
+    )
+    acquisition_queue: int = Field(
+        default=8,
+        ge=1,
+        description="Hardware jobs (captures, device settings) that may wait while one runs; "
+        "one more is refused with HTTP 503.",
+    )
+    reconstruction_queue: int = Field(
+        default=4,
+        ge=1,
+        description="Reconstructions that may wait while one runs; one more is refused with "
+        "HTTP 503.",
     )
 
     tokens: Annotated[tuple[TokenConfig, ...], NoDecode] = Field(

@@ -7,9 +7,10 @@ each test leaves it idle and healthy.
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,7 @@ import pytest
 from fastapi import FastAPI
 
 import eyeserver
+import eyeserver.api.app as app_module
 from eyeserver.api import create_app
 from eyeserver.hardware.sim.drivers import SimCamera
 from eyeserver.io import read_bundle
@@ -52,6 +54,15 @@ def _camera(service: Service, camera_id: str) -> SimCamera:
     camera = service.rig.camera(camera_id)
     assert isinstance(camera, SimCamera)
     return camera
+
+
+def _wait_until(condition: Callable[[], bool], timeout_s: float = 10) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
 
 
 def _capture(client: Client, unit: str) -> Any:
@@ -168,27 +179,56 @@ def test_a_busy_daemon_answers_409_naming_its_state(client: Client,
 
 def test_a_capture_in_progress_blocks_another(client: Client, service: Service) -> None:
     # A lost transfer makes S1's read wait out its time-out (2 s): the capture stays running.
+    # A second capture asked for meanwhile is not refused: it waits its turn on the
+    # acquisition worker (a triggered capture is never dropped) and runs after the first.
     _camera(service, "S1").inject_fault("timeout")
-    slow: dict[str, Any] = {}
-    runner = threading.Thread(
-        target=lambda: slow.update(response=client.post(f"{API}/captures",
-                                                        json={"unit": "left"})))
-    runner.start()
-    deadline = time.monotonic() + 5
-    while service.state != "capturing" and time.monotonic() < deadline:
-        time.sleep(0.01)
+    responses: dict[str, Any] = {}
 
-    conflict = client.post(f"{API}/captures", json={"unit": "right"})
-    runner.join(timeout=30)
+    def post(name: str, unit: str) -> threading.Thread:
+        runner = threading.Thread(target=lambda: responses.update(
+            {name: client.post(f"{API}/captures", json={"unit": unit})}))
+        runner.start()
+        return runner
 
-    assert conflict.status_code == 409
-    assert conflict.json() == {"detail": "cannot start a capture: the daemon is capturing"}
-    assert slow["response"].status_code == 504
-    assert slow["response"].json()["detail"].startswith("S1: frame lost in transfer")
-    # The time-out put S1 in fault; the next capture reopens it and the daemon is idle again.
-    assert client.get(f"{API}/status").json()["state"] == "fault"
+    slow = post("slow", "left")
+    assert _wait_until(lambda: service.state == "capturing")
+    queued = post("queued", "right")
+    assert _wait_until(lambda: service.acquisition_worker.waiting == 1)
+    state_while_queued = service.state
+    slow.join(timeout=30)
+    queued.join(timeout=30)
+
+    assert state_while_queued == "capturing"
+    assert responses["slow"].status_code == 504
+    assert responses["slow"].json()["detail"].startswith("S1: frame lost in transfer")
+    assert responses["queued"].status_code == 201, responses["queued"].text
+    assert responses["queued"].json()["unit"] == "right"
+    # The time-out put S1 in fault; the next capture (or the background retry) reopens it.
     _capture(client, "left")
     assert client.get(f"{API}/status").json()["state"] == "idle"
+
+
+def test_a_full_acquisition_queue_answers_503_naming_it(client: Client,
+                                                        service: Service) -> None:
+    worker = service.acquisition_worker
+    running, release = threading.Event(), threading.Event()
+    blocker = worker.submit(lambda: running.set() or release.wait(30))
+    assert running.wait(10)
+    fillers = [worker.submit(lambda: None) for _ in range(worker.capacity)]
+    try:
+        capture = client.post(f"{API}/captures", json={"unit": "left"})
+        setting = client.request("PATCH", f"{API}/devices/S1", json={"gain_db": 1.0})
+    finally:
+        release.set()
+    blocker.result(timeout=10)
+    for filler in fillers:
+        filler.result(timeout=10)
+
+    expected = {"detail": "the acquisition queue is full (8 jobs waiting); try again later"}
+    assert (capture.status_code, capture.json()) == (503, expected)
+    assert (setting.status_code, setting.json()) == (503, expected)
+    assert client.get(f"{API}/devices/S1").json()["details"]["gain_db"] == 0.0
+    _capture(client, "left")  # nothing was lost: the queue works again
 
 
 def test_a_disconnected_camera_faults_its_unit_until_it_comes_back(
@@ -222,6 +262,83 @@ def test_a_disconnected_camera_faults_its_unit_until_it_comes_back(
     assert after["state"] == "idle"
     assert all(d["health"] == "ok" for d in after["devices"])
     assert all(u["health"] == "ok" for u in after["units"])
+
+
+class SteppedWaits:
+    """The background recovery's wait, stepped by the test instead of the clock.
+
+    Records every delay asked for; the ``n``-th wait returns once :meth:`release` was called
+    ``n`` times (or the service stops).
+    """
+
+    def __init__(self) -> None:
+        self.delays: list[float] = []
+        self._released = 0
+        self._changed = threading.Condition()
+
+    def __call__(self, delay_s: float, stop: threading.Event) -> bool:
+        with self._changed:
+            self.delays.append(delay_s)
+            turn = len(self.delays)
+            self._changed.notify_all()
+            while self._released < turn and not stop.is_set():
+                self._changed.wait(0.05)
+        return stop.is_set()
+
+    def release(self) -> None:
+        with self._changed:
+            self._released += 1
+            self._changed.notify_all()
+
+    def wait_for(self, count: int, timeout_s: float = 30) -> list[float]:
+        """The delays once ``count`` waits were asked for (the attempt before them is done)."""
+        with self._changed:
+            assert self._changed.wait_for(lambda: len(self.delays) >= count, timeout_s), \
+                f"the recovery asked for {len(self.delays)} waits, not {count}"
+            return list(self.delays)
+
+
+def test_a_failed_device_recovers_in_the_background_with_back_off(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    waits = SteppedWaits()
+    monkeypatch.setattr(app_module, "Service", functools.partial(Service, retry_wait=waits))
+    app = create_app(test_settings(tmp_path / "data"))
+    with serving(app) as client:
+        service = app.state.service
+        camera = _camera(service, "S3")
+        camera.inject_fault("disconnect")
+
+        failed = client.post(f"{API}/captures", json={"unit": "right"})
+        status = client.get(f"{API}/status").json()
+        first = waits.wait_for(1)
+        for attempt in range(1, 7):  # S3 is still unplugged: each retry fails, the wait grows
+            waits.release()
+            waits.wait_for(attempt + 1)
+        still_failing = client.get(f"{API}/status").json()
+        camera.reconnect()
+        waits.release()  # the seventh retry reopens S3: no capture is needed for that
+        recovered = _wait_until(lambda: service.state == "idle")
+        after = client.get(f"{API}/status").json()
+        camera.inject_fault("disconnect")  # a new fault starts the schedule again
+        again = client.post(f"{API}/captures", json={"unit": "right"})
+        schedule = waits.wait_for(8)
+        camera.reconnect()
+        waits.release()
+        assert _wait_until(lambda: service.state == "idle")
+
+    assert failed.status_code == 503
+    assert failed.json() == {"detail": "S3: camera is not responding"}
+    assert status["state"] == "fault"
+    assert first == [1.0]
+    assert still_failing["state"] == "fault"
+    assert next(u for u in still_failing["units"] if u["id"] == "right")["reason"] == \
+        "S3: camera is not responding"
+    assert recovered
+    assert after["state"] == "idle"
+    assert all(d["health"] == "ok" and d["open"] for d in after["devices"])
+    assert again.status_code == 503
+    assert schedule == [1.0, 2.0, 4.0, 8.0, 16.0, 30.0, 30.0, 1.0]
 
 
 def test_a_capture_is_found_again_after_a_restart(tmp_path: Path) -> None:

@@ -16,7 +16,7 @@ from starlette.concurrency import run_in_threadpool
 import eyeserver
 from eyeserver.api.auth import TokenTable, require
 from eyeserver.api.errors import AUTH_RESPONSES, install_error_handlers
-from eyeserver.api.routers import calibrations, captures, devices, health, status
+from eyeserver.api.routers import calibrations, captures, devices, events, health, sim, status
 from eyeserver.config import Settings
 from eyeserver.service.core import Service
 
@@ -76,9 +76,12 @@ def create_app(settings: Settings) -> FastAPI:
     app.state.settings = settings
     install_error_handlers(app)
     app.include_router(health.router, prefix=API_PREFIX)
+    # WebSocket routes authenticate themselves before accepting (websocket_caller).
+    app.include_router(events.router, prefix=API_PREFIX)
     # Everything else needs a token; routes that need more than an operator say so themselves.
     authenticated = [Depends(require("operator"))]
-    for router in (status.router, devices.router, captures.router, calibrations.router):
+    for router in (status.router, devices.router, captures.router, calibrations.router,
+                   sim.router):
         app.include_router(router, prefix=API_PREFIX, dependencies=authenticated,
                            responses=AUTH_RESPONSES)
     return app

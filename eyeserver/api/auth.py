@@ -173,10 +173,11 @@ WS_POLICY_VIOLATION = 1008
 
 
 async def websocket_caller(websocket: WebSocket, role: Role = "operator") -> Caller | None:
-    """The caller of a WebSocket (``?token=`` or ``Authorization: Bearer``), before accepting.
+    """The caller of a WebSocket (``?token=`` or ``Authorization: Bearer``); call it first.
 
-    Returns None after closing the socket with 1008 (policy violation) and the reason when the
-    token is missing, unknown or of too low a role; the route then simply returns.
+    Returns None after accepting and at once closing the socket with 1008 (policy violation)
+    and the reason when the token is missing, unknown or of too low a role; the route then
+    simply returns. Nothing is sent before the close.
     """
     token = websocket.query_params.get("token")
     if token is None:
@@ -189,6 +190,9 @@ async def websocket_caller(websocket: WebSocket, role: Role = "operator") -> Cal
     elif not caller.may(role):
         reason = f"{caller.name} ({caller.role}) needs the {role} role"
     if reason is not None:
+        # Accepted first: a close before the handshake completes reaches the client as an HTTP
+        # 403 without a reason (uvicorn), a close after it as 1008 with the reason.
+        await websocket.accept()
         await websocket.close(code=WS_POLICY_VIOLATION, reason=reason)
         return None
     return caller

@@ -1,22 +1,24 @@
 """The one place where eyeserver's exception tree becomes HTTP status codes.
 
-==========================  ======
-error                       status
-==========================  ======
-``StateConflictError``      409
-``UnknownIdError``          404
-``NoCloudError``            404
-``UploadTooLargeError``     413
-``ReconstructionError``     422
-``UnknownUnitError``        422
-``DeviceTimeoutError``      504
-``DeviceValueError``        422
-other ``DeviceError``       503
-``NotBuiltError``           501
-``FormatError``             422
-``ConfigError``             422
-other ``EyeserverError``    500
-==========================  ======
+============================  ======
+error                         status
+============================  ======
+``StateConflictError``        409
+``UnknownIdError``            404
+``NoCloudError``              404
+``CaptureDataNotFoundError``  404
+``UploadTooLargeError``       413
+``ReconstructionError``       422
+``UnknownUnitError``          422
+``QueueFullError``            503
+``DeviceTimeoutError``        504
+``DeviceValueError``          422
+other ``DeviceError``         503
+``NotBuiltError``             501
+``FormatError``               422
+``ConfigError``               422
+other ``EyeserverError``      500
+============================  ======
 
 The body is always :class:`~eyeserver.api.schemas.ErrorResponse`, ``{"detail": "<reason>"}``.
 """
@@ -24,9 +26,12 @@ The body is always :class:`~eyeserver.api.schemas.ErrorResponse`, ``{"detail": "
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any
 
 from fastapi import FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from eyeserver.api.schemas import ErrorResponse
@@ -40,10 +45,12 @@ from eyeserver.errors import (
     NotBuiltError,
     StateConflictError,
 )
+from eyeserver.service.capture_files import CaptureDataNotFoundError
 from eyeserver.service.core import NoCloudError, UnknownUnitError
 from eyeserver.service.reconstruction import ReconstructionError
 from eyeserver.service.storage import UnknownIdError
 from eyeserver.service.uploads import UploadTooLargeError
+from eyeserver.service.workers import QueueFullError
 
 __all__ = ["AUTH_RESPONSES", "install_error_handlers", "status_code_for"]
 
@@ -60,9 +67,11 @@ _STATUS_BY_ERROR: tuple[tuple[type[EyeserverError], int], ...] = (
     (StateConflictError, 409),
     (UnknownIdError, 404),
     (NoCloudError, 404),
+    (CaptureDataNotFoundError, 404),
     (UploadTooLargeError, 413),
     (ReconstructionError, 422),
     (UnknownUnitError, 422),
+    (QueueFullError, 503),
     (DeviceTimeoutError, 504),
     (DeviceValueError, 422),
     (DeviceError, 503),
@@ -106,7 +115,27 @@ async def _unexpected_error(request: Request, exc: Exception) -> JSONResponse:
     return JSONResponse(status_code=500, content=body.model_dump())
 
 
+def _finite(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {key: _finite(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_finite(item) for item in value]
+    return value
+
+
+async def _invalid_request(request: Request, exc: Exception) -> JSONResponse:
+    # FastAPI's own 422 (a list of reasons under "detail"), except that it echoes each bad
+    # input: a JSON body may hold NaN or Infinity (Python's parser reads them) but a response
+    # cannot, so those are echoed as text instead of failing with a 500.
+    assert isinstance(exc, RequestValidationError)
+    return JSONResponse(status_code=422,
+                        content={"detail": _finite(jsonable_encoder(exc.errors()))})
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Register the handlers that turn exceptions into JSON error responses on ``app``."""
     app.add_exception_handler(EyeserverError, _eyeserver_error)
+    app.add_exception_handler(RequestValidationError, _invalid_request)
     app.add_exception_handler(Exception, _unexpected_error)

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 __all__ = [
     "CalibrationList",
@@ -14,9 +15,11 @@ __all__ = [
     "CaptureRequest",
     "CaptureResponse",
     "DeviceResponse",
+    "DeviceSettingsRequest",
     "ErrorResponse",
     "Extent",
     "HealthResponse",
+    "ReconstructionRequest",
     "ReconstructionResponse",
     "StatusResponse",
     "UnitResponse",
@@ -63,6 +66,26 @@ class DeviceResponse(BaseModel):
         description="The driver's own description: current settings, sizes.",
         examples=[{"id": "S1", "kind": "camera", "driver": "SimCamera", "open": True,
                    "width": 1280, "height": 1024, "bit_depth": 8}])
+
+
+class DeviceSettingsRequest(BaseModel):
+    """New settings for one device; fields left out (or null) stay as they are.
+
+    Projectors take ``enabled`` and ``intensity``, cameras ``exposure_us`` and ``gain_db``; a
+    field that does not apply to the device's kind is refused (422), as is a value outside the
+    device's range.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool | None = Field(default=None, description="Projector: whether it may light.",
+                                 examples=[True])
+    intensity: float | None = Field(default=None, description="Projector: relative drive "
+                                    "level, 0 (dark) to 1 (full current).", examples=[0.8])
+    exposure_us: float | None = Field(default=None, description="Camera: exposure time in "
+                                      "microseconds.", examples=[8000.0])
+    gain_db: float | None = Field(default=None, description="Camera: analogue gain in dB "
+                                  "(0 dB = unity).", examples=[6.0])
 
 
 class UnitResponse(BaseModel):
@@ -135,6 +158,9 @@ class CalibrationResponse(BaseModel):
     imported: str = Field(description="UTC import time, ISO 8601 with milliseconds.",
                           examples=["2026-11-23T15:12:00.123Z"])
     active: bool = Field(description="Whether captures and reconstructions use it now.")
+    source: str = Field(description="Where it came from: who uploaded it and the archive's "
+                        "SHA-256, or the directory it was imported from.",
+                        examples=["upload by physicist, sha256:9f86d081884c7d65…"])
     status: Literal["ok", "missing"] = Field(
         description="'missing' when start-up recovery found the index row without its files.")
     quality: dict[str, object] = Field(
@@ -168,6 +194,38 @@ class CameraSurface(BaseModel):
         examples=[{"multi-view": 118000, "spatial + multi-view": 2000}])
 
 
+class ReconstructionRequest(BaseModel):
+    """Options of a reconstruction (those of ``eyeserver reconstruct``); all optional."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    method: Literal["multi-view", "spatial"] = Field(
+        default="multi-view", description="Fringe order per pixel from the unit's other camera "
+        "(fast), or spatial unwrapping with one order per region voted by the other camera "
+        "(slower, keeps more of what only one camera sees).")
+    depth_prior_mm: float | None = Field(
+        default=None, allow_inf_nan=False, description="Height (mm) the surface lies near, "
+        "within half a fringe's depth; fixes the order of a camera alone in its unit and of "
+        "regions the other camera cannot judge.", examples=[None, 3.0])
+    roi: list[float] | None = Field(
+        default=None, min_length=6, max_length=6, description="[x0, y0, z0, x1, y1, z1]: keep "
+        "only points inside this WCS box (mm); each low corner value below the high one.",
+        examples=[[-5.0, -5.0, 0.0, 5.0, 5.0, 10.0]])
+    min_quality: float = Field(default=0.0, ge=0.0, le=1.0, allow_inf_nan=False,
+                               description="Drop points of quality below this.")
+
+    @model_validator(mode="after")
+    def _roi_is_a_box(self) -> ReconstructionRequest:
+        if self.roi is not None:
+            if not all(math.isfinite(value) for value in self.roi):
+                raise ValueError("roi: every value must be finite")
+            low, high = self.roi[:3], self.roi[3:]
+            if any(lo >= hi for lo, hi in zip(low, high, strict=True)):
+                raise ValueError(f"roi: the low corner {low} must be below the high corner "
+                                 f"{high} on every axis")
+        return self
+
+
 class ReconstructionResponse(BaseModel):
     """The surface of a capture, reconstructed and stored as its cloud.ply."""
 
@@ -181,3 +239,8 @@ class ReconstructionResponse(BaseModel):
         description="Points removed during fusion, by reason.",
         examples=[{"seam_conflict": 120, "low_quality": 0, "outside_region": 0}])
     method: str = Field(description="How fringe orders were fixed.", examples=["multi-view"])
+    options: ReconstructionRequest = Field(description="The options it was made with, "
+                                           "defaults filled in.")
+    reconstructed: str = Field(description="UTC time it finished, ISO 8601 with milliseconds.",
+                               examples=["2026-11-23T15:12:03.456Z"])
+    duration_s: float = Field(description="Seconds it took.", examples=[2.7])

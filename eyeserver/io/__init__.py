@@ -26,6 +26,7 @@ from eyeserver.io.bundle import (
     bundle_hash,
     read_bundle,
     write_bundle,
+    write_bundle_zip,
 )
 from eyeserver.io.ply import PointCloud, read_ply, write_ply
 from eyeserver.io.rig_file import (
@@ -68,6 +69,7 @@ __all__ = [
     "read_rig",
     "rig_from_dict",
     "write_bundle",
+    "write_bundle_zip",
     "write_ply",
     "write_rig",
     "write_synced",

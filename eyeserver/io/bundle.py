@@ -14,11 +14,12 @@ import math
 import os
 import secrets
 import shutil
+import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path, PurePosixPath, PureWindowsPath
-from typing import Literal, TypeAlias, cast, get_args
+from typing import IO, Literal, TypeAlias, cast, get_args
 
 import cv2
 import numpy as np
@@ -55,6 +56,7 @@ __all__ = [
     "bundle_hash",
     "read_bundle",
     "write_bundle",
+    "write_bundle_zip",
 ]
 
 BUNDLE_FORMAT = "eyeserver.bundle/1"
@@ -239,6 +241,23 @@ class Bundle:
         except KeyError:
             raise KeyError(f"frame {frame_index} holds no image of camera {camera_id!r}") from None
         return self.path / name
+
+    def image_bytes(self, frame_index: int, camera_id: str) -> bytes:
+        """One image file's content as stored (the PNG, not checked against the rig).
+
+        Raises
+        ------
+        KeyError
+            When the bundle has no such frame or the frame no image of that camera.
+        FormatError
+            Naming the image file, when it resolves outside the bundle directory.
+        OSError
+            When it cannot be read (``FileNotFoundError`` when it is gone).
+        """
+        path = self.image_path(frame_index, camera_id)
+        if not _stays_inside(self.path, path):
+            raise FormatError(path, None, "resolves outside the bundle directory")
+        return path.read_bytes()
 
     def load_image(self, frame_index: int, camera_id: str) -> Image:
         """Read one image and check it against the rig.
@@ -810,3 +829,56 @@ def bundle_hash(directory: str | os.PathLike[str]) -> str:
         except OSError as exc:
             raise FormatError(path, None, f"cannot read the file: {exc}") from exc
     return digest.hexdigest()
+
+
+def write_bundle_zip(bundle: Bundle, stream: IO[bytes], *, folder: str | None = None
+                     ) -> list[str]:
+    """Write a bundle's files, byte for byte, into a zip archive.
+
+    The archive holds ``bundle.json`` and the image files it names (each once, in frame then
+    rig order), nothing else found in the directory. Images are stored as they are: PNG is
+    compressed already, so deflating it again would cost time and save nothing;
+    ``bundle.json`` is deflated.
+
+    Parameters
+    ----------
+    bundle : Bundle
+        A bundle from :func:`read_bundle`.
+    stream : binary file
+        Writable (and, for :mod:`zipfile`'s headers, preferably seekable); left open.
+    folder : str, optional
+        A top-level folder for the members (``<folder>/bundle.json``), so that unpacking the
+        archive gives a bundle directory; without it the members are at the top.
+
+    Returns
+    -------
+    list of str
+        The member names, in archive order.
+
+    Raises
+    ------
+    FormatError
+        When an image resolves outside the bundle directory.
+    OSError
+        When a file cannot be read (for instance deleted meanwhile).
+    """
+    if folder is not None and _relative_name_problem(folder) is not None:
+        raise ValueError(f"folder: {_relative_name_problem(folder)}")
+    prefix = "" if folder is None else PurePosixPath(folder).as_posix() + "/"
+    names = [BUNDLE_FILE]
+    for frame in bundle.frames:
+        for camera_id in bundle.cameras_in_frame(frame.index):
+            name = PurePosixPath(frame.images[camera_id]).as_posix()
+            if name not in names:
+                names.append(name)
+    members = []
+    # strict_timestamps=False: a file time before 1980 (a clock never set) is clamped, not fatal.
+    with zipfile.ZipFile(stream, "w", strict_timestamps=False) as archive:
+        for name in names:
+            path = bundle.path / name
+            if not _stays_inside(bundle.path, path):
+                raise FormatError(path, None, "resolves outside the bundle directory")
+            compression = zipfile.ZIP_DEFLATED if name == BUNDLE_FILE else zipfile.ZIP_STORED
+            archive.write(path, prefix + name, compress_type=compression)
+            members.append(prefix + name)
+    return members

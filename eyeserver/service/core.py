@@ -6,14 +6,15 @@
     idle ───────────────► capturing ──────────────────► fault
      ▲                        │                            │
      └────────────────────────┘◄───────────────────────────┘
-          done (no device left in fault)    a later operation succeeds
+          done (no device left in fault)    the failed devices reopen
 
 One operation holds the hardware at a time: :meth:`Service.operation` moves the machine from
 ``idle`` (or ``fault``) into a busy state and back, and any other request meanwhile gets a
-:class:`~eyeserver.errors.StateConflictError` naming the state the daemon is in. ``fault`` does
-not lock the hardware: it says that a device failed (its reason is kept in :meth:`Service.status`)
-and the next operation first reopens the failed devices it needs, so the daemon recovers when
-the device does.
+:class:`~eyeserver.errors.StateConflictError` naming the state the daemon is in; captures do not
+conflict with each other: they queue on the acquisition worker and run in turn. ``fault`` does
+not lock the hardware: it says that a device failed (its reason is kept in :meth:`Service.status`);
+the next operation first reopens the failed devices it needs, and a background retry reopens
+them with back-off (1 s doubling to 30 s), so the daemon recovers when the device does.
 
 Every method here blocks (hardware, disk, SQLite): the API calls them from worker threads, never
 on the event loop.
@@ -22,20 +23,23 @@ on the event loop.
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import json
 import logging
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal
 
 import eyeserver
 from eyeserver.calibration.artefact import load_calibration
 from eyeserver.config import Settings
-from eyeserver.errors import DeviceError, EyeserverError, StateConflictError
+from eyeserver.errors import DeviceError, DeviceValueError, EyeserverError, StateConflictError
 from eyeserver.hardware.base import Device
 from eyeserver.hardware.bundling import bundle_bit_depth, bundle_frames
 from eyeserver.hardware.rig import Rig
@@ -43,15 +47,26 @@ from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.drivers import build_sim_rig
 from eyeserver.hardware.sim.room import SimRoom
 from eyeserver.hardware.sim.scenes import SceneSpec
-from eyeserver.io import RigSpec, read_ply, rig_from_dict, write_ply
+from eyeserver.io import (
+    RigSpec,
+    atomic_write_text,
+    fsync_dir,
+    read_ply,
+    rig_from_dict,
+    write_ply,
+)
+from eyeserver.service.device_control import apply_settings, check_settings
+from eyeserver.service.events import EventBus
 from eyeserver.service.preview import height_map_png
-from eyeserver.service.reconstruction import reconstruct_bundle
+from eyeserver.service.reconstruction import ReconstructionOptions, reconstruct_bundle
 from eyeserver.service.storage import CalibrationRecord, CaptureRecord, Store
 from eyeserver.service.uploads import UploadTooLargeError, unpack_calibration_zip
+from eyeserver.service.workers import BoundedWorker, RetryLoop, RetryWait, wait_on_event
 
 __all__ = [
     "ALL_UNITS",
     "CLOUD_FILE",
+    "SUMMARY_FILE",
     "BusyState",
     "DeviceHealth",
     "DeviceStatus",
@@ -74,7 +89,18 @@ ALL_UNITS = "all"
 CLOUD_FILE = "cloud.ply"
 """The reconstructed surface, kept beside a capture's bundle."""
 
+SUMMARY_FILE = "reconstruction.json"
+"""The summary of the reconstruction that made :data:`CLOUD_FILE`, kept beside it."""
+
 _log = logging.getLogger(__name__)
+
+
+def _json_scalar(value: object) -> object:
+    # Counts from the pipeline may be numpy scalars, which json cannot write by itself.
+    item = getattr(value, "item", None)
+    if callable(item):
+        return item()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
 class NoActiveCalibrationError(StateConflictError):
@@ -134,21 +160,46 @@ class Service:
     settings : Settings
         ``data_dir`` holds the store; ``room_file`` names the simulated room (None: the default
         room). The simulated scene is an eye (``SceneSpec(kind="eye")``), so captures show one.
+    rig : Rig, optional
+        A rig (not yet open) to drive instead of building the simulated room's; the daemon then
+        has no :attr:`sim_room`, as on real hardware (tests of a non-simulated daemon).
+    retry_wait : RetryWait, optional
+        How the background recovery waits between retries of failed devices (default: real
+        time, :func:`~eyeserver.service.workers.wait_on_event`); tests step it by hand.
 
     Notes
     -----
-    Nothing happens in the constructor; :meth:`open` opens the store then the rig, :meth:`close`
-    closes them in reverse order. All methods block and are thread-safe.
+    Nothing happens in the constructor; :meth:`open` opens the store then the rig and starts
+    the workers (:mod:`eyeserver.service.workers`), :meth:`close` stops and closes them in
+    reverse order. All methods block and are thread-safe. The hardware is driven only from the
+    acquisition worker (captures, device settings, reopening failed devices), reconstructions
+    only from the reconstruction worker; both queues are bounded (``acquisition_queue``,
+    ``reconstruction_queue``) and a full one refuses a job with :class:`QueueFullError`.
+
+    What happens (state changes, device faults and recoveries, captures, reconstructions,
+    calibrations) is published on :attr:`events`, an :class:`~eyeserver.service.events.EventBus`
+    that the live stream (``/api/v1/ws/events``) reads; publishing never waits for a reader.
     """
 
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: Settings, rig: Rig | None = None, *,
+                 retry_wait: RetryWait = wait_on_event) -> None:
+        # The one thread that drives the hardware, and the one that runs the pipeline.
+        self.acquisition_worker = BoundedWorker("acquisition", settings.acquisition_queue)
+        self.reconstruction_worker = BoundedWorker("reconstruction",
+                                                   settings.reconstruction_queue)
+        self._recovery = RetryLoop("device-recovery", pending=self._has_faults,
+                                   attempt=self._retry_faults, wait=retry_wait)
         self._settings = settings
+        self._given_rig = rig
+        self._sim_room: SimRoom | None = None
         self._lock = threading.Lock()
+        self._results_lock = threading.Lock()  # a capture's cloud and summary change together
         self._state: ServiceState = "idle"
         self._faults: dict[str, str] = {}  # device id -> reason
         self._store: Store | None = None
         self._rig: Rig | None = None
         self._started = time.monotonic()
+        self.events = EventBus()  # what happens, for the live stream (/api/v1/ws/events)
 
     # --- lifecycle --------------------------------------------------------------------------
 
@@ -163,22 +214,34 @@ class Service:
             The rig cannot be built or opened (the store is closed again).
         """
         store = Store.open(self._settings.ensure_data_dir())
+        room: SimRoom | None = None
         try:
-            room = SimRoom(load_room(self._settings.room_file))
-            room.set_scene(SceneSpec(kind="eye"))
-            rig = build_sim_rig(room)
+            if self._given_rig is not None:
+                rig = self._given_rig
+            else:
+                room = SimRoom(load_room(self._settings.room_file))
+                room.set_scene(SceneSpec(kind="eye"))
+                rig = build_sim_rig(room)
             rig.open()
         except BaseException:
             store.close()
             raise
-        self._store, self._rig = store, rig
+        self._store, self._rig, self._sim_room = store, rig, room
         self._started = time.monotonic()
+        self.acquisition_worker.start()
+        self.reconstruction_worker.start()
+        self._recovery.start()
         _log.info("service open", extra={"units": [u.id for u in rig.units]})
 
     def close(self) -> None:
-        """Close the rig, then the store (the reverse of :meth:`open`). Idempotent."""
+        """Stop the background recovery and the workers (jobs already queued finish), then
+        close the rig and the store (the reverse of :meth:`open`). Idempotent."""
+        self._recovery.stop()
+        self.acquisition_worker.stop()
+        self.reconstruction_worker.stop()
         rig, store = self._rig, self._store
         self._rig = self._store = None
+        self._sim_room = None
         if rig is not None:
             errors = rig.close()
             if errors:
@@ -207,6 +270,15 @@ class Service:
             raise StateConflictError("the daemon's store is not open")
         return self._store
 
+    @property
+    def sim_room(self) -> SimRoom | None:
+        """The simulated room the open rig images; None on real hardware (or when closed).
+
+        For people and tests only (:mod:`eyeserver.service.simroom`): the measurement path
+        never sees it.
+        """
+        return self._sim_room
+
     # --- the state machine ------------------------------------------------------------------
 
     @property
@@ -230,23 +302,60 @@ class Service:
             if self._state not in ("idle", "fault"):
                 raise StateConflictError(f"cannot start {what or busy}: the daemon is "
                                          f"{self._state}")
-            self._state = busy
+            previous, self._state = self._state, busy
+            self.events.publish("state", state=busy, previous=previous)
         try:
             yield
         finally:
             with self._lock:
                 self._state = "fault" if self._faults else "idle"
+                self.events.publish("state", state=self._state, previous=busy)
+
+    @contextmanager
+    def idle_moment(self, what: str) -> Iterator[None]:
+        """Run a short block while no operation holds the hardware, keeping one from starting.
+
+        For changes that must not land in the middle of an operation but take no time worth a
+        state of their own (placing a simulated scene). The block holds the state lock: it must
+        be quick and must not call back into the service.
+
+        Raises
+        ------
+        StateConflictError
+            An operation holds the hardware; the message names the daemon's state.
+        """
+        with self._lock:
+            if self._state not in ("idle", "fault"):
+                raise StateConflictError(f"cannot {what}: the daemon is {self._state}")
+            yield
 
     def _mark_fault(self, error: DeviceError) -> None:
         with self._lock:
             self._faults[error.device_id] = str(error.reason)
+            if self._state == "idle":  # outside an operation (a device setting failed)
+                self._state = "fault"
+                self.events.publish("state", state="fault", previous="idle")
         _log.error("device fault", extra={"device_id": error.device_id, "reason": error.reason})
+        self._recovery.poke()  # after releasing the lock: the retry loop takes it
+        self.events.publish("device.fault", device_id=error.device_id,
+                            unit=self._unit_id(error.device_id), reason=str(error.reason))
+
+    def _unit_id(self, device_id: str) -> str | None:
+        """The unit owning a device; None for the trigger (it serves every unit)."""
+        try:
+            return None if self._rig is None else self._rig.unit_of(device_id).id
+        except KeyError:
+            return None
 
     def _mark_ok(self, device_ids: Sequence[str]) -> None:
         with self._lock:
             for device_id in device_ids:
                 if self._faults.pop(device_id, None) is not None:
                     _log.info("device recovered", extra={"device_id": device_id})
+                    self.events.publish("device.recovered", device_id=device_id)
+            if self._state == "fault" and not self._faults:  # recovered outside an operation
+                self._state = "idle"
+                self.events.publish("state", state="idle", previous="fault")
 
     def _recover(self, devices: Sequence[Device]) -> None:
         """Reopen the devices among ``devices`` that are in fault (a device that was unplugged
@@ -263,6 +372,27 @@ class Service:
                 self._mark_fault(exc)
                 raise
         self._mark_ok([d.id for d in faulty])
+
+    def _has_faults(self) -> bool:
+        with self._lock:
+            return bool(self._faults)
+
+    def _retry_faults(self) -> bool:
+        """One attempt of the background recovery: reopen every device in fault, through the
+        acquisition worker so that it never races a capture. True when none is left in fault.
+        """
+        def reopen() -> bool:
+            with self._lock:
+                if self._state in ("calibrating", "tracking"):
+                    return False  # not now: the operation holds the hardware; try again later
+                faulty = set(self._faults)
+            for device in self.rig.devices:
+                if device.id in faulty:
+                    with contextlib.suppress(DeviceError):  # _recover keeps the fault's reason
+                        self._recover([device])
+            return not self._has_faults()
+
+        return self.acquisition_worker.call(reopen)
 
     def _reset_cameras(self, cameras: Sequence[Device], failed_id: str) -> None:
         """Close and reopen the healthy cameras of a failed acquisition.
@@ -301,18 +431,30 @@ class Service:
     def capture(self, unit: str) -> CaptureRecord:
         """Capture one frame set of ``unit`` (or ``"all"``, interleaved) and store it.
 
-        Returns once the bundle and its index row are durable.
+        Runs on the acquisition worker: a capture asked for while others are running or
+        queued waits its turn (a triggered capture is never dropped). Returns once the bundle
+        and its index row are durable.
 
         Raises
         ------
         UnknownUnitError
             For a unit the rig does not have.
         StateConflictError
-            Another operation holds the hardware.
+            The daemon is calibrating or tracking; the message names the state.
+        QueueFullError
+            ``acquisition_queue`` jobs are already waiting (nothing was captured).
         DeviceError
-            A device failed; it and its unit are in fault until an operation succeeds with it.
+            A device failed; it and its unit are in fault until it can be reopened (by the next
+            capture that needs it, or by the background recovery).
         """
         unit_ids = self.unit_ids(unit)
+        with self._lock:
+            if self._state not in ("idle", "fault", "capturing"):
+                raise StateConflictError(f"cannot start a capture: the daemon is {self._state}")
+        return self.acquisition_worker.call(lambda: self._capture_now(unit, unit_ids))
+
+    def _capture_now(self, unit: str, unit_ids: Sequence[str]) -> CaptureRecord:
+        """One capture, on the acquisition worker (see :meth:`capture`)."""
         rig, store = self.rig, self.store
         with self.operation("capturing", "a capture"):
             units = [rig.unit(u) for u in unit_ids]
@@ -331,7 +473,10 @@ class Service:
             record = store.add_capture(
                 "measurement", rig_from_dict(rig.spec(), "<daemon rig>"), frames, unit=unit,
                 calibration_id=None if active is None else active.id,
-                bit_depth=bundle_bit_depth(rig, frames), extra={"simulated": True})
+                bit_depth=bundle_bit_depth(rig, frames),
+                extra={"simulated": self._sim_room is not None})
+            self.events.publish("capture.stored", capture_id=record.id, unit=unit,
+                                calibration_id=record.calibration_id)
         _log.info("capture stored", extra={"capture_id": record.id, "unit": unit})
         return record
 
@@ -358,8 +503,11 @@ class Service:
         with tempfile.TemporaryDirectory(prefix="eyeserver-calibration-") as unpacked:
             unpack_calibration_zip(archive, Path(unpacked), max_unpacked_bytes=limit)
             load_calibration(unpacked, self.rig_spec())
-            record = self.store.import_calibration(unpacked, actor=actor)
+            # The unpack directory is gone by now: say where the calibration came from instead.
+            source = f"upload by {actor}, sha256:{hashlib.sha256(archive).hexdigest()}"
+            record = self.store.import_calibration(unpacked, actor=actor, source=source)
         _log.info("calibration imported", extra={"calibration_id": record.id, "actor": actor})
+        self.events.publish("calibration.imported", calibration_id=record.id, actor=actor)
         return record
 
     def activate_calibration(self, calibration_id: str, *, actor: str) -> CalibrationRecord:
@@ -374,22 +522,32 @@ class Service:
         """
         with self.operation("calibrating", "activating a calibration"):
             record = self.store.activate_calibration(calibration_id, actor=actor)
+            self.events.publish("calibration.activated", calibration_id=record.id, actor=actor)
         _log.info("calibration activated", extra={"calibration_id": record.id, "actor": actor})
         return record
 
     # --- reconstruction ---------------------------------------------------------------------
 
-    def reconstruct(self, capture_id: str) -> dict[str, Any]:
-        """Reconstruct a stored capture with the active calibration; keep its cloud.
+    def reconstruct(self, capture_id: str, options: ReconstructionOptions | None = None
+                    ) -> dict[str, Any]:
+        """Reconstruct a stored capture with the active calibration; keep its cloud and summary.
 
-        The cloud replaces ``cloud.ply`` in the capture's directory atomically. The hardware is
-        not involved, so this does not enter the state machine and may run beside a capture.
+        The cloud replaces ``cloud.ply`` in the capture's directory and the summary
+        ``reconstruction.json`` beside it, each atomically; the old summary goes first, so a
+        summary on disk always describes the cloud beside it, even after a crash in between.
+        The hardware is not involved, so this does not enter the state machine and may run
+        beside a capture. The capture and the calibration are checked at once; the
+        reconstruction itself waits its turn on the reconstruction worker.
+
+        ``options`` (method, depth prior, region, minimum quality) default to those of
+        ``eyeserver reconstruct``.
 
         Returns
         -------
         dict
             The summary of :func:`~eyeserver.service.reconstruction.reconstruct_bundle` with
-            ``capture_id`` and ``calibration_id`` added.
+            ``capture_id``, ``calibration_id``, ``options`` (all of them, defaults filled in),
+            ``reconstructed`` (UTC, ISO 8601) and ``duration_s`` added, as stored.
 
         Raises
         ------
@@ -399,6 +557,8 @@ class Service:
             As for :meth:`Store.get_capture`.
         ReconstructionError, FormatError
             The capture cannot be reconstructed with the active calibration.
+        QueueFullError
+            ``reconstruction_queue`` reconstructions are already waiting.
         """
         store = self.store
         capture = store.get_capture(capture_id)
@@ -407,14 +567,40 @@ class Service:
             raise NoActiveCalibrationError(
                 "no calibration is active: import one (POST /api/v1/calibrations) and activate "
                 "it (POST /api/v1/calibrations/{id}/activate)")
+        chosen = options or ReconstructionOptions()
+        return self.reconstruction_worker.call(
+            lambda: self._reconstruct_now(capture, active, chosen))
+
+    def _reconstruct_now(self, capture: CaptureRecord, active: CalibrationRecord,
+                         options: ReconstructionOptions) -> dict[str, Any]:
+        """The reconstruction itself, on the reconstruction worker (see :meth:`reconstruct`)."""
         started = time.monotonic()
-        cloud, summary = reconstruct_bundle(active.path, capture.path)
-        write_ply(capture.path / CLOUD_FILE, cloud,
-                  comments=[f"capture {capture.id}", f"calibration {active.id}"])
-        summary.update(capture_id=capture.id, calibration_id=active.id)
+        cloud, summary = reconstruct_bundle(
+            active.path, capture.path, method=options.method,
+            depth_prior_mm=options.depth_prior_mm, region=options.region(),
+            min_quality=options.min_quality)
+        summary.update(capture_id=capture.id, calibration_id=active.id,
+                       options=options.to_dict(),
+                       reconstructed=datetime.now(UTC).isoformat(timespec="milliseconds")
+                       .replace("+00:00", "Z"),
+                       duration_s=round(time.monotonic() - started, 3))
+        text = json.dumps(summary, indent=2, default=_json_scalar) + "\n"
+        try:
+            with self._results_lock:
+                (capture.path / SUMMARY_FILE).unlink(missing_ok=True)
+                fsync_dir(capture.path)
+                write_ply(capture.path / CLOUD_FILE, cloud,
+                          comments=[f"capture {capture.id}", f"calibration {active.id}"])
+                atomic_write_text(capture.path / SUMMARY_FILE, text)
+        except FileNotFoundError:
+            self.store.get_capture(capture.id)  # UnknownIdError when it was deleted meanwhile
+            raise
+        summary = dict(json.loads(text))  # exactly what GET .../reconstruction will read
         _log.info("capture reconstructed", extra={
             "capture_id": capture.id, "calibration_id": active.id, "points": summary["points"],
-            "duration_s": round(time.monotonic() - started, 3)})
+            "method": options.method, "duration_s": summary["duration_s"]})
+        self.events.publish("reconstruction.done", capture_id=capture.id,
+                            calibration_id=active.id, points=summary["points"])
         return summary
 
     def cloud_path(self, capture_id: str) -> Path:
@@ -432,6 +618,32 @@ class Service:
             raise NoCloudError(f"capture {capture_id} has not been reconstructed yet "
                                f"(POST /api/v1/captures/{capture_id}/reconstruction)")
         return path
+
+    def reconstruction_summary(self, capture_id: str) -> dict[str, Any]:
+        """The stored summary of a capture's reconstruction (as :meth:`reconstruct` returned).
+
+        Raises
+        ------
+        NoCloudError
+            The capture has not been reconstructed.
+        UnknownIdError, StorageError
+            As for :meth:`Store.get_capture`.
+        """
+        path = self.store.get_capture(capture_id).path / SUMMARY_FILE
+        try:
+            text = path.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise NoCloudError(f"capture {capture_id} has not been reconstructed yet "
+                               f"(POST /api/v1/captures/{capture_id}/reconstruction)") from None
+        summary: dict[str, Any] = json.loads(text)
+        return summary
+
+    def delete_capture(self, capture_id: str, *, actor: str, reason: str) -> None:
+        """Delete a capture with everything kept beside it (audited first; see
+        :meth:`Store.delete_capture`, which raises the errors)."""
+        self.store.delete_capture(capture_id, actor=actor, reason=reason)
+        _log.warning("capture deleted", extra={"capture_id": capture_id, "actor": actor,
+                                                "reason": reason})
 
     def preview_png(self, capture_id: str) -> bytes:
         """A colour-coded height map (PNG) of a capture's stored cloud (errors as for
@@ -465,6 +677,49 @@ class Service:
             if device.id == device_id:
                 return device
         raise KeyError(device_id)
+
+    def configure_device(self, device_id: str, changes: Mapping[str, bool | float], *,
+                         actor: str) -> DeviceStatus:
+        """Change settings of one device on the acquisition worker and audit each change.
+
+        ``changes`` maps settings to new values (:data:`~eyeserver.service.device_control.
+        SETTINGS_BY_KIND`: a projector's ``enabled`` and ``intensity``, a camera's
+        ``exposure_us`` and ``gain_db``); they are applied all or nothing, after the captures
+        queued before, and each is recorded in the audit log under ``actor``. A device in fault
+        is reopened first. Raises ``KeyError`` for an unknown device.
+
+        Raises
+        ------
+        DeviceValueError
+            A setting does not apply to the device's kind, or a value is out of its range.
+        QueueFullError
+            ``acquisition_queue`` jobs are already waiting.
+        DeviceError
+            The device failed; it is put in fault.
+        """
+        device = next((d for d in self.rig.devices if d.id == device_id), None)
+        if device is None:
+            raise KeyError(device_id)
+        check_settings(device, changes)
+        if changes:
+            self.acquisition_worker.call(lambda: self._configure_now(device, changes, actor))
+        return self.device(device_id)
+
+    def _configure_now(self, device: Device, changes: Mapping[str, bool | float],
+                       actor: str) -> None:
+        self._recover([device])
+        try:
+            applied = apply_settings(device, changes)
+        except DeviceValueError:
+            raise
+        except DeviceError as exc:
+            self._mark_fault(exc)
+            raise
+        self.store.add_audit_entries(actor, "configure_device", device.id, [
+            {"setting": c.setting, "old": c.old, "new": c.new} for c in applied])
+        _log.info("device configured", extra={
+            "device_id": device.id, "actor": actor,
+            "changes": {c.setting: c.new for c in applied}})
 
     def status(self) -> ServiceStatus:
         """A snapshot of state, devices, units, active calibration and uptime."""

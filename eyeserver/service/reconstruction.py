@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +34,64 @@ class ReconstructionError(EyeserverError):
 
 def _quiet(_: str) -> None:
     pass
+
+
+@dataclass(frozen=True)
+class ReconstructionOptions:
+    """The choices of a reconstruction, as ``eyeserver reconstruct`` offers them.
+
+    Attributes
+    ----------
+    method : {"multi-view", "spatial"}
+        How fringe orders are fixed (see :mod:`eyeserver.pipeline.reconstruct`).
+    depth_prior_mm : float or None
+        Height (mm) the surface lies near, within half a fringe's depth.
+    roi : tuple of 6 floats or None
+        ``(x0, y0, z0, x1, y1, z1)``: keep only points inside this WCS box (mm).
+    min_quality : float
+        Drop points of quality below this (0 to 1).
+
+    Raises
+    ------
+    ReconstructionError
+        For an unknown method, a value that is not finite, a box with a corner not below the
+        other or a quality outside 0 to 1 (the message names the option).
+    """
+
+    method: str = "multi-view"
+    depth_prior_mm: float | None = None
+    roi: tuple[float, ...] | None = None
+    min_quality: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ReconstructionError(f"method: unknown fringe-order method {self.method!r} "
+                                      f"(one of {', '.join(METHODS)})")
+        if self.depth_prior_mm is not None and not math.isfinite(self.depth_prior_mm):
+            raise ReconstructionError(f"depth_prior_mm must be finite, not {self.depth_prior_mm}")
+        if self.roi is not None:
+            self.region()
+        if not 0.0 <= self.min_quality <= 1.0:
+            raise ReconstructionError(f"min_quality must be between 0 and 1, not "
+                                      f"{self.min_quality}")
+
+    def region(self) -> Region | None:
+        """The ``roi`` as the fusion step's box (None without one)."""
+        if self.roi is None:
+            return None
+        if len(self.roi) != 6:
+            raise ReconstructionError(f"roi must be [x0, y0, z0, x1, y1, z1], got {self.roi!r}")
+        x0, y0, z0, x1, y1, z1 = (float(value) for value in self.roi)
+        try:
+            return Region((x0, y0, z0), (x1, y1, z1))
+        except ValueError as exc:
+            raise ReconstructionError(f"roi: {exc}") from None
+
+    def to_dict(self) -> dict[str, object]:
+        """The options as JSON values (``roi`` a list), for a reconstruction's summary."""
+        return {"method": self.method, "depth_prior_mm": self.depth_prior_mm,
+                "roi": None if self.roi is None else list(self.roi),
+                "min_quality": self.min_quality}
 
 
 def calibrated_cameras(document: dict[str, Any]) -> dict[str, CalibratedCamera]:

@@ -32,7 +32,7 @@ import threading
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from datetime import UTC, datetime
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
@@ -95,6 +95,8 @@ CREATE TABLE captures (
 );
 CREATE INDEX captures_by_unit ON captures (unit, id);
 CREATE INDEX captures_by_created ON captures (created);
+CREATE INDEX captures_by_kind ON captures (kind, id);
+CREATE INDEX captures_by_calibration ON captures (calibration_id, id);
 CREATE TABLE calibrations (
     id TEXT PRIMARY KEY,
     created TEXT NOT NULL,
@@ -114,6 +116,13 @@ CREATE TABLE audit (
     target TEXT NOT NULL,
     detail TEXT NOT NULL
 );
+"""
+
+# Indexes added within schema version 1: created when an older index lacks them. They change
+# no data, so a store that has them still opens with an eyeserver that does not know them.
+_ADDED_INDEXES = """
+CREATE INDEX IF NOT EXISTS captures_by_kind ON captures (kind, id);
+CREATE INDEX IF NOT EXISTS captures_by_calibration ON captures (calibration_id, id);
 """
 
 
@@ -187,7 +196,8 @@ class CalibrationRecord:
     imported : str
         UTC time of the import, ISO 8601 with milliseconds.
     source : str
-        The directory it was imported from.
+        Where it came from: the directory it was imported from, or what the importer said
+        (``upload by <name>, sha256:<hash of the archive>`` for an upload through the API).
     quality : Mapping of str to object
         The ``quality`` figures of its ``calibration.json`` (empty when it has none).
     active : bool
@@ -270,6 +280,11 @@ class _Recovery:
 def _utc_text(moment: datetime) -> str:
     utc = moment.astimezone(UTC)
     return utc.strftime("%Y-%m-%dT%H:%M:%S.") + f"{utc.microsecond // 1000:03d}Z"
+
+
+def _ceil_millis(moment: datetime) -> datetime:
+    partial = moment.microsecond % 1000
+    return moment + timedelta(microseconds=1000 - partial) if partial else moment
 
 
 def _now_text() -> str:
@@ -458,8 +473,12 @@ class Store:
         return self.get_capture(capture_id).path
 
     def list_captures(self, limit: int = 50, offset: int = 0, unit: str | None = None,
-                      since: datetime | None = None) -> tuple[list[CaptureRecord], int]:
+                      since: datetime | None = None, *, until: datetime | None = None,
+                      kind: str | None = None, calibration_id: str | None = None,
+                      ) -> tuple[list[CaptureRecord], int]:
         """Captures newest first, one page at a time.
+
+        Every filter given must hold (each is an indexed column).
 
         Parameters
         ----------
@@ -471,6 +490,13 @@ class Store:
             Only captures of this unit.
         since : datetime, optional
             Only captures created at or after this time zone-aware moment.
+        until : datetime, optional
+            Only captures created before this time zone-aware moment (so consecutive windows
+            ``since=a, until=b`` and ``since=b, until=c`` neither overlap nor leave a gap).
+        kind : str, optional
+            Only captures of this bundle kind.
+        calibration_id : str, optional
+            Only captures taken while this calibration was active.
 
         Returns
         -------
@@ -488,11 +514,20 @@ class Store:
         if unit is not None:
             clauses.append("unit = ?")
             parameters.append(unit)
-        if since is not None:
-            if since.tzinfo is None:
-                raise ValueError("since must be time zone-aware")
-            clauses.append("created >= ?")
-            parameters.append(_utc_text(since))
+        if kind is not None:
+            clauses.append("kind = ?")
+            parameters.append(kind)
+        if calibration_id is not None:
+            clauses.append("calibration_id = ?")
+            parameters.append(calibration_id)
+        # ``created`` holds whole milliseconds; rounding a bound up keeps both comparisons exact.
+        for name, moment, operator in (("since", since, ">="), ("until", until, "<")):
+            if moment is None:
+                continue
+            if moment.tzinfo is None or moment.utcoffset() is None:
+                raise ValueError(f"{name} must be time zone-aware")
+            clauses.append(f"created {operator} ?")
+            parameters.append(_utc_text(_ceil_millis(moment)))
         where = f"WHERE {' AND '.join(clauses)}" if clauses else ""
         with self._lock:
             db = self._db()
@@ -536,9 +571,12 @@ class Store:
 
     # --- calibrations ---------------------------------------------------------------------
 
-    def import_calibration(self, source_dir: str | os.PathLike[str], *, actor: str
-                           ) -> CalibrationRecord:
+    def import_calibration(self, source_dir: str | os.PathLike[str], *, actor: str,
+                           source: str | None = None) -> CalibrationRecord:
         """Validate a calibration directory and copy it into the store under a new id.
+
+        ``source`` is recorded as where the calibration came from (default: ``source_dir``);
+        give it when ``source_dir`` is a temporary directory that means nothing later.
 
         Raises
         ------
@@ -548,8 +586,11 @@ class Store:
             When the copy cannot be written.
         """
         _check_who(actor)
-        source = Path(source_dir)
-        document = load_calibration(source)
+        directory = Path(source_dir)
+        origin = str(directory) if source is None else source
+        if not origin.strip():
+            raise StorageError("source: say where the calibration came from")
+        document = load_calibration(directory)
         calibration_id = self._new_id("cal")
         target = self.calibrations_dir / calibration_id
         staging = self.calibrations_dir / f".{calibration_id}.{secrets.token_hex(6)}.partial"
@@ -557,8 +598,8 @@ class Store:
             staging.mkdir()
             try:
                 for name in (CALIBRATION_FILE, ARRAYS_FILE):
-                    if (source / name).is_file():
-                        write_synced(staging / name, (source / name).read_bytes())
+                    if (directory / name).is_file():
+                        write_synced(staging / name, (directory / name).read_bytes())
                 fsync_dir(staging)
                 os.rename(staging, target)
                 fsync_dir(self.calibrations_dir)
@@ -567,16 +608,16 @@ class Store:
                     shutil.rmtree(staging)
                 raise
         except OSError as exc:
-            raise StorageError(f"{source}: cannot copy the calibration into the store ({exc})"
+            raise StorageError(f"{directory}: cannot copy the calibration into the store ({exc})"
                                ) from exc
         load_calibration(target)  # the copy, as the pipeline will read it
         record = CalibrationRecord(calibration_id, str(document.get("created", "")),
-                                   _now_text(), str(source), _quality_of(document), False, "ok",
+                                   _now_text(), origin, _quality_of(document), False, "ok",
                                    target)
         with self._transaction() as db:
             self._insert_calibration(db, record)
             self._audit(db, actor, "import_calibration", calibration_id,
-                        {"source": str(source)})
+                        {"source": origin})
         return record
 
     def get_calibration(self, calibration_id: str) -> CalibrationRecord:
@@ -628,6 +669,21 @@ class Store:
         return None if row is None else self._calibration_record(row)
 
     # --- audit ----------------------------------------------------------------------------
+
+    def add_audit_entries(self, actor: str, action: str, target: str,
+                          details: Sequence[Mapping[str, object]]) -> None:
+        """Record changes made outside the store (a device's settings), one row per detail,
+        in one durable transaction.
+
+        Raises
+        ------
+        StorageError
+            ``actor`` is empty, or the index cannot be written.
+        """
+        _check_who(actor)
+        with self._transaction() as db:
+            for detail in details:
+                self._audit(db, actor, action, target, detail)
 
     def audit_log(self, limit: int = 100) -> list[AuditEntry]:
         """The newest ``limit`` audit entries, newest first."""
@@ -840,6 +896,8 @@ def _connect(path: Path) -> sqlite3.Connection:
         elif version != SCHEMA_VERSION:
             raise StorageError(f"{path}: index schema version {version}; this eyeserver "
                                f"knows version {SCHEMA_VERSION}")
+        else:
+            db.executescript(f"BEGIN IMMEDIATE; {_ADDED_INDEXES} COMMIT;")
     except sqlite3.DatabaseError as exc:
         db.close()
         raise StorageError(f"{path}: unusable index ({exc})") from exc

@@ -20,7 +20,7 @@ _ZIP_TYPES = ("application/zip", "application/x-zip-compressed")
 
 def _response(record: CalibrationRecord) -> CalibrationResponse:
     return CalibrationResponse(id=record.id, created=record.created, imported=record.imported,
-                               active=record.active, status=record.status,
+                               active=record.active, status=record.status, source=record.source,
                                quality=dict(record.quality))
 
 

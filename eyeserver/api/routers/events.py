@@ -1,0 +1,115 @@
+"""``/api/v1/ws/events``: the daemon's live event stream (a WebSocket of JSON text messages).
+
+Authenticate with ``?token=<token>`` or ``Authorization: Bearer <token>`` (any role); without a
+valid token the socket is closed with 1008 (policy violation) and the reason, before any
+message. The first message describes the daemon as it is; every later one is an event of the
+service's :class:`~eyeserver.service.events.EventBus`, in the order it happened. Messages the
+client sends are ignored.
+
+Every event carries ``type``, ``seq`` (increasing by one per event of the daemon) and ``time``
+(UTC, ISO 8601 with milliseconds, e.g. ``2024-05-06T07:08:09.123Z``), plus:
+
+========================  ==================================================================
+``type``                  fields
+========================  ==================================================================
+``hello`` (first, only)   ``state``, ``units`` (``id``, ``health``, ``reason``),
+                          ``active_calibration_id``, ``version``, ``queue_size``,
+                          ``last_seq`` (the ``seq`` of the event before the stream's first);
+                          ``hello`` has ``time`` but no ``seq``
+``state``                 ``state`` (idle, capturing, calibrating, tracking, fault),
+                          ``previous``
+``device.fault``          ``device_id``, ``unit`` (null for the trigger), ``reason``
+``device.recovered``      ``device_id``
+``capture.stored``        ``capture_id``, ``unit``, ``calibration_id`` (or null)
+``reconstruction.done``   ``capture_id``, ``calibration_id``, ``points``
+``calibration.imported``  ``calibration_id``, ``actor``
+``calibration.activated`` ``calibration_id``, ``actor``
+``dropped``               ``count``: events lost right here (no ``seq``, see below)
+========================  ==================================================================
+
+A client that reads too slowly never holds the daemon or the other clients up: the daemon keeps
+at most ``event_queue_size`` events for it (setting, default 256) and drops the *oldest* when
+more arrive. Before the next event after such a loss it sends ``{"type": "dropped", "count":
+n}``; the ``seq`` of that next event has moved on by ``n + 1``. A client that needs the whole
+picture again reads ``GET /api/v1/status``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from typing import Any
+
+from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from starlette.concurrency import run_in_threadpool
+
+import eyeserver
+from eyeserver.api.auth import websocket_caller
+from eyeserver.config import Settings
+from eyeserver.service.core import Service
+from eyeserver.service.events import Subscription, SubscriptionClosedError, event_time
+
+__all__ = ["router"]
+
+router = APIRouter(tags=["events"])
+
+_WS_GOING_AWAY = 1001
+_WS_TRY_AGAIN_LATER = 1013
+
+
+@router.websocket("/ws/events", name="events")
+async def stream_events(websocket: WebSocket) -> None:
+    """Send a ``hello`` snapshot, then every event of the daemon until the client leaves."""
+    if await websocket_caller(websocket) is None:
+        return  # closed with 1008 and the reason
+    service = getattr(websocket.app.state, "service", None)
+    settings = websocket.app.state.settings
+    if not isinstance(service, Service) or not isinstance(settings, Settings):
+        await websocket.close(code=_WS_TRY_AGAIN_LATER, reason="the daemon is not running")
+        return
+    # Subscribe before the snapshot: an event between the two is sent (again), never missed.
+    with service.events.subscribe(settings.event_queue_size) as subscription:
+        await websocket.accept()
+        hello = await run_in_threadpool(_hello, service, settings, subscription.start_seq)
+        sender = asyncio.create_task(_forward(websocket, subscription, hello))
+        reader = asyncio.create_task(_read_until_disconnect(websocket))
+        try:
+            await asyncio.wait((sender, reader), return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for task in (sender, reader):
+                task.cancel()
+            # The sender fails when the client has gone; that is how streams end.
+            await asyncio.gather(sender, reader, return_exceptions=True)
+        if sender.done() and not sender.cancelled() \
+                and isinstance(sender.exception(), SubscriptionClosedError):
+            with contextlib.suppress(WebSocketDisconnect, OSError, RuntimeError):
+                await websocket.close(code=_WS_GOING_AWAY, reason="the daemon is stopping")
+
+
+def _hello(service: Service, settings: Settings, last_seq: int) -> dict[str, Any]:
+    # Devices describe themselves and the store answers from SQLite: a worker thread's job.
+    status = service.status()
+    return {
+        "type": "hello",
+        "time": event_time(),
+        "state": status.state,
+        "units": [{"id": u.id, "health": u.health, "reason": u.reason} for u in status.units],
+        "active_calibration_id": status.active_calibration_id,
+        "version": eyeserver.__version__,
+        "queue_size": settings.event_queue_size,
+        "last_seq": last_seq,
+    }
+
+
+async def _forward(websocket: WebSocket, subscription: Subscription,
+                   hello: dict[str, Any]) -> None:
+    await websocket.send_json(hello)
+    while True:
+        await websocket.send_json(await subscription.get())
+
+
+async def _read_until_disconnect(websocket: WebSocket) -> None:
+    while True:
+        message = await websocket.receive()
+        if message["type"] == "websocket.disconnect":
+            return

@@ -1,0 +1,149 @@
+"""``/api/v1/sim/…``: the simulated room, for demonstrations and tests.
+
+Place a scene, move the flat plate on the simulated stage, place the calibration chessboard,
+read the scene's ground truth, unplug and replug a simulated device. The routes are always
+there, but a daemon that drives real hardware answers every one of them 404 with the reason.
+Ground truth goes to people and tests only; the measurement path never sees it.
+
+Roles: any token (operator and up) may read the scene and its truth and place scenes, the stage
+and the chessboard, as one would in a demonstration; unplugging a device breaks the rig for
+everyone, so it needs the physicist role. Scene changes answer 409 while the hardware is busy.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Depends, HTTPException, Query
+from pydantic import BaseModel, ConfigDict, Field
+from starlette.concurrency import run_in_threadpool
+
+from eyeserver.api.auth import OperatorDep, PhysicistDep
+from eyeserver.api.deps import ServiceDep
+from eyeserver.api.schemas import ErrorResponse
+from eyeserver.hardware.sim.scenes import SceneSpec
+from eyeserver.service.simroom import STAGE_TRAVEL_MM, SimRoomControl, Vec3
+
+__all__ = ["NO_SIM_ROOM", "router"]
+
+NO_SIM_ROOM = "the daemon drives real hardware: there is no simulated room"
+"""The reason of the 404 every route answers on a daemon without a simulated room."""
+
+_NOT_SIMULATED: dict[int | str, dict[str, Any]] = {
+    404: {"model": ErrorResponse, "description": "The daemon drives real hardware."}}
+_BUSY: dict[int | str, dict[str, Any]] = {
+    409: {"model": ErrorResponse, "description": "The hardware is busy; the reason names the "
+          "daemon's state."}}
+
+router = APIRouter(prefix="/sim", tags=["simulated room"], responses=_NOT_SIMULATED)
+
+
+async def _sim_room(service: ServiceDep) -> SimRoomControl:
+    control = SimRoomControl.of(service)
+    if control is None:
+        raise HTTPException(404, NO_SIM_ROOM)
+    return control
+
+
+SimRoomDep = Annotated[SimRoomControl, Depends(_sim_room)]
+
+
+class StagePosition(BaseModel):
+    """Where the simulated motorised stage puts the flat calibration plate."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    z_mm: float = Field(ge=STAGE_TRAVEL_MM[0], le=STAGE_TRAVEL_MM[1],
+                        description="Z of the plate's surface in the WCS, within the stage's "
+                        f"travel {STAGE_TRAVEL_MM[0]}…{STAGE_TRAVEL_MM[1]} mm; the plate stays "
+                        "normal to Z, centred on the axis.", examples=[10.0])
+
+
+class ChessboardPose(BaseModel):
+    """Where the calibration chessboard stands (the room's default board)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    position_mm: Vec3 = Field((0.0, 0.0, 0.0), description="The board's centre in the WCS, "
+                              "mm; at the origin and unrotated it is the origin board.",
+                              examples=[(0.0, 0.0, 5.0)])
+    rotation_deg: Vec3 = Field((0.0, 0.0, 0.0), description="Rotation about X, Y, Z, degrees "
+                               "(applied Rz·Ry·Rx, board → world).", examples=[(20.0, 0.0, 0.0)])
+
+
+class SimDeviceRequest(BaseModel):
+    """The cable of a simulated device."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    connected: bool = Field(description="false unplugs the device, true plugs it back in.")
+
+
+class SimDeviceResponse(BaseModel):
+    """A simulated device's cable after the change."""
+
+    id: str = Field(examples=["S3"])
+    kind: Literal["camera", "projector", "trigger"]
+    connected: bool = Field(description="Whether it is plugged in. A device plugged back in "
+                            "works again once the next operation has reopened it.")
+
+
+@router.get("/scene", summary="The simulated scene")
+async def get_scene(room: SimRoomDep) -> SceneSpec:
+    """What stands in front of the cameras now (``position_mm`` null: the kind's default)."""
+    return room.scene
+
+
+@router.put("/scene", summary="Place a simulated scene", responses=_BUSY)
+async def put_scene(spec: SceneSpec, room: SimRoomDep, caller: OperatorDep) -> SceneSpec:
+    """Replace the scene: a kind (empty, chessboard, plate, reference, pyramid, wedge,
+    eye_phantom_1, eye_phantom_2, eye), its pose and parameters (the eye's anatomy, gaze and
+    motion). A moving eye's script starts now. 409 while the hardware is busy."""
+    return await run_in_threadpool(lambda: room.place(spec, actor=caller.name))
+
+
+@router.put("/stage", summary="Move the flat plate", responses=_BUSY)
+async def put_stage(position: StagePosition, room: SimRoomDep, caller: OperatorDep,
+                    ) -> SceneSpec:
+    """The simulated motorised stage puts the flat calibration plate at ``z_mm`` (the scene
+    becomes that plate); 422 beyond the stage's travel, 409 while the hardware is busy."""
+    return await run_in_threadpool(lambda: room.move_stage(position.z_mm, actor=caller.name))
+
+
+@router.put("/chessboard", summary="Place the calibration chessboard", responses=_BUSY)
+async def put_chessboard(pose: ChessboardPose, room: SimRoomDep, caller: OperatorDep,
+                         ) -> SceneSpec:
+    """Put the calibration chessboard in the given pose (the scene becomes that board); 409
+    while the hardware is busy."""
+    return await run_in_threadpool(lambda: room.place_chessboard(
+        pose.position_mm, pose.rotation_deg, actor=caller.name))
+
+
+@router.get("/truth", summary="The scene's ground truth")
+async def get_truth(
+    room: SimRoomDep,
+    t_s: Annotated[float | None, Query(description="Clock time in seconds (a frame's t_ns / "
+                                       "1e9) for a moving eye; default: now.")] = None,
+) -> dict[str, Any]:
+    """The ground truth of the current scene, the document ``eyeserver sim render`` writes as
+    ``truth.json``: the scene, fiducial centres, the eye's pose, surfaces and the devices' true
+    optics. For people and tests; the measurement path never sees it."""
+    return await run_in_threadpool(room.truth, t_s)
+
+
+@router.put("/devices/{device_id}", summary="Unplug or replug a simulated device",
+            responses={404: {"model": ErrorResponse, "description": "No such simulated device, "
+                             "or the daemon drives real hardware."}})
+async def put_device(device_id: str, cable: SimDeviceRequest, room: SimRoomDep,
+                     caller: PhysicistDep) -> SimDeviceResponse:
+    """Fault injection for demonstrations: an unplugged device makes the next operation that
+    needs it fail (503) and its unit go into fault; plugged back in, the next operation reopens
+    it and the daemon recovers. Allowed at any time, as pulling a real cable is. Physicists
+    only."""
+    try:
+        kind = await run_in_threadpool(lambda: room.set_connected(
+            device_id, cable.connected, actor=caller.name))
+    except KeyError:
+        raise HTTPException(404, f"no simulated device with id {device_id!r}") from None
+    return SimDeviceResponse.model_validate(
+        {"id": device_id, "kind": kind, "connected": cable.connected})
