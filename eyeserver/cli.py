@@ -77,11 +77,13 @@ def _serve(args: argparse.Namespace) -> int:
     from eyeserver.api import create_app
     from eyeserver.config import Settings
     from eyeserver.log import configure_logging
+    from eyeserver.tls import uvicorn_ssl_options
 
     settings = Settings.load(args.config, host=args.host, port=args.port)
     configure_logging(settings.log_level, json=settings.log_json)
     # Fail here with a one-line message rather than inside uvicorn's lifespan with a traceback.
     settings.ensure_data_dir()
+    ssl_options = uvicorn_ssl_options(settings)  # {} for plain HTTP
     uvicorn.run(
         create_app(settings),
         host=settings.host,
@@ -91,6 +93,7 @@ def _serve(args: argparse.Namespace) -> int:
         log_level=settings.log_level,
         # A client that never reads (an event stream) must not hold the shut-down up forever.
         timeout_graceful_shutdown=SHUTDOWN_GRACE_S,
+        **ssl_options,
     )
     return 0
 

@@ -45,7 +45,8 @@ from pydantic_settings import (
 
 from eyeserver.errors import ConfigError
 
-__all__ = ["ENV_PREFIX", "MIN_TOKEN_LENGTH", "ROLES", "LogLevel", "Role", "Settings", "TokenConfig"]
+__all__ = ["ENV_PREFIX", "MIN_TOKEN_LENGTH", "ROLES", "ClientCertMode", "LogLevel", "Role",
+           "Settings", "TokenConfig"]
 
 #: Prefix of the environment variables that override settings.
 ENV_PREFIX = "EYESERVER_"
@@ -56,6 +57,8 @@ Role = Literal["operator", "physicist"]
 ROLES: tuple[Role, ...] = ("operator", "physicist")
 """The roles, each allowed what the ones before it are: an ``operator`` measures and reads, a
 ``physicist`` also calibrates, deletes and configures."""
+
+ClientCertMode = Literal["none", "optional", "required"]
 
 MIN_TOKEN_LENGTH = 16
 """Shortest bearer token accepted: a guessable token protects nothing."""
@@ -83,7 +86,8 @@ class TokenConfig(BaseModel):
 _config_file: ContextVar[Path | None] = ContextVar("eyeserver_config_file", default=None)
 
 # Keys holding paths; relative values in the TOML file are resolved against the file's directory.
-_PATH_KEYS = ("data_dir", "room_file")
+_PATH_KEYS = ("data_dir", "room_file", "tls_certfile", "tls_keyfile", "tls_ca_certs",
+              "audit_log")
 # Keys whose values are never repeated in an error message.
 _SECRET_KEYS = ("tokens",)
 
@@ -141,11 +145,27 @@ class Settings(BaseSettings):
     ``reconstruction_queue``
         Reconstructions that may wait while one runs; one more is refused with HTTP 503.
         Default ``4``.
+    ``job_queue``
+        Long jobs (batch reconstructions, calibration solves) that may wait while one runs;
+        one more is refused with HTTP 503. Default ``8``.
     ``tokens``
         The bearer tokens the API accepts. In the file, named tokens as an array of tables
         (``[[tokens]]`` with ``name``, ``role``, ``token``); in ``EYESERVER_TOKENS``,
         comma-separated ``role:token`` pairs, the role doubling as the name. Empty (default):
         the daemon generates one token per role in ``DATA_DIR/tokens.toml`` at its first start.
+    ``tls_certfile``, ``tls_keyfile``
+        PEM certificate (chain) and private key: the API is served over HTTPS. Unset (default):
+        plain HTTP, for loopback only. Checked by :func:`eyeserver.tls.uvicorn_ssl_options`.
+    ``tls_ca_certs``
+        PEM file of the CA(s) that sign client certificates.
+    ``tls_client_cert``
+        ``none`` (default), ``optional`` or ``required``: whether clients must present a
+        certificate signed by ``tls_ca_certs`` (mutual TLS); the bearer token is needed anyway.
+    ``audit_log``
+        The append-only JSON-lines audit file. Default ``DATA_DIR/audit.jsonl``.
+    ``retention_days``
+        Captures older than this many days are deleted (audited as ``retention``) by an hourly
+        task. Unset (default): captures are kept forever.
 
     Build it with :meth:`load`; constructing ``Settings()`` directly reads only the defaults and
     the environment.
@@ -215,11 +235,43 @@ class Settings(BaseSettings):
         description="Reconstructions that may wait while one runs; one more is refused with "
         "HTTP 503.",
     )
+    job_queue: int = Field(
+        default=8,
+        ge=1,
+        description="Long jobs (batch reconstructions, calibration solves) that may wait while "
+        "one runs; one more is refused with HTTP 503.",
+    )
 
     tokens: Annotated[tuple[TokenConfig, ...], NoDecode] = Field(
         default=(),
         description="Bearer tokens with their holder's name and role; empty: generated in "
         "DATA_DIR/tokens.toml at the first start.",
+    )
+
+    tls_certfile: Path | None = Field(
+        default=None,
+        description="PEM certificate (chain) for HTTPS; unset: plain HTTP.",
+    )
+    tls_keyfile: Path | None = Field(
+        default=None,
+        description="PEM private key of tls_certfile.",
+    )
+    tls_ca_certs: Path | None = Field(
+        default=None,
+        description="PEM file of the CAs that sign client certificates.",
+    )
+    tls_client_cert: ClientCertMode = Field(
+        default="none",
+        description="Client certificates (signed by tls_ca_certs): none, optional or required.",
+    )
+    audit_log: Path | None = Field(
+        default=None,
+        description="Append-only JSON-lines audit file; unset: DATA_DIR/audit.jsonl.",
+    )
+    retention_days: float | None = Field(
+        default=None,
+        gt=0,
+        description="Delete captures older than this many days (audited); unset: keep forever.",
     )
 
     @field_validator("tokens", mode="before")
@@ -246,7 +298,8 @@ class Settings(BaseSettings):
             raise ValueError("the same token is given twice (each holder needs their own)")
         return value
 
-    @field_validator("data_dir", "room_file", mode="after")
+    @field_validator("data_dir", "room_file", "tls_certfile", "tls_keyfile", "tls_ca_certs",
+                     "audit_log", mode="after")
     @classmethod
     def _expand_user(cls, value: Path | None) -> Path | None:
         return None if value is None else value.expanduser()

@@ -16,9 +16,23 @@ from starlette.concurrency import run_in_threadpool
 import eyeserver
 from eyeserver.api.auth import TokenTable, require
 from eyeserver.api.errors import AUTH_RESPONSES, install_error_handlers
-from eyeserver.api.routers import calibrations, captures, devices, events, health, sim, status
+from eyeserver.api.routers import (
+    audit,
+    calibration_sessions,
+    calibrations,
+    captures,
+    devices,
+    events,
+    health,
+    jobs,
+    metrics,
+    sim,
+    status,
+)
 from eyeserver.config import Settings
+from eyeserver.service.calibration_session import CalibrationSessions
 from eyeserver.service.core import Service
+from eyeserver.service.operations import operations
 
 __all__ = ["API_PREFIX", "create_app"]
 
@@ -43,12 +57,18 @@ def _lifespan(settings: Settings) -> Callable[[FastAPI], AbstractAsyncContextMan
         app.state.tokens = await run_in_threadpool(TokenTable.for_settings, settings)
         # Opening devices and the store blocks; it runs on a worker thread, as does closing.
         service = Service(settings)
+        service.audit.set_roles(app.state.tokens.roles())
         await run_in_threadpool(service.open)
         app.state.service = service
+        app.state.calibration_sessions = CalibrationSessions(service)
         try:
-            yield
+            # systemd: READY=1 now, WATCHDOG=1 while healthy, STOPPING=1 on leaving; retention.
+            async with operations(service, settings):
+                yield
         finally:
             del app.state.service
+            await run_in_threadpool(app.state.calibration_sessions.close_all)
+            del app.state.calibration_sessions
             await run_in_threadpool(service.close)
             _log.info("eyeserver stopped")
 
@@ -81,7 +101,9 @@ def create_app(settings: Settings) -> FastAPI:
     # Everything else needs a token; routes that need more than an operator say so themselves.
     authenticated = [Depends(require("operator"))]
     for router in (status.router, devices.router, captures.router, calibrations.router,
-                   sim.router):
+                   sim.router, audit.router, jobs.router, calibration_sessions.router):
         app.include_router(router, prefix=API_PREFIX, dependencies=authenticated,
                            responses=AUTH_RESPONSES)
+    # Where Prometheus looks by default, outside the versioned API; a token all the same.
+    app.include_router(metrics.router, dependencies=authenticated, responses=AUTH_RESPONSES)
     return app

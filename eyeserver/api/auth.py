@@ -85,6 +85,14 @@ class TokenTable:
             return cls(settings.tokens)
         return cls(_generated_tokens(settings.ensure_data_dir() / GENERATED_TOKENS_FILE))
 
+    def roles(self) -> dict[str, str]:
+        """Each token holder's role by name, for the audit file; a name that holds tokens of
+        several roles maps to them joined by ``|`` (the lowest first)."""
+        found: dict[str, set[Role]] = {}
+        for _, caller in self._tokens:
+            found.setdefault(caller.name, set()).add(caller.role)
+        return {name: "|".join(r for r in ROLES if r in roles) for name, roles in found.items()}
+
     def caller(self, token: str | None) -> Caller | None:
         """The holder of ``token``, or None for a missing or unknown one."""
         if not token:

@@ -167,6 +167,16 @@ class CalibrationResponse(BaseModel):
         description="The quality figures of its calibration.json (reprojection errors, "
         "phase-to-height residuals); empty when it has none.",
         examples=[{"stereo": {"left": {"rms_px": 0.12}}}])
+    version: int | None = Field(
+        None, description="Its place in the order of creation in this store (1 for the "
+        "first); calibrations are immutable, so a version always means the same data.",
+        examples=[3])
+    parent_id: str | None = Field(
+        None, description="The calibration whose geometry a phase-to-height calibration "
+        "extends (lineage.parent_id of its calibration.json); null for a stereo calibration "
+        "or an upload without one.")
+    session_id: str | None = Field(
+        None, description="The guided calibration session that made it, if any.")
 
 
 class CalibrationList(BaseModel):

@@ -16,6 +16,7 @@ import os
 import secrets
 import signal
 import socket
+import ssl
 import subprocess
 import sys
 import time
@@ -66,8 +67,11 @@ class DaemonProcess:
     log : Path
         File that receives the daemon's stdout and stderr (JSON log lines), appended.
     env : dict, optional
-        Further ``EYESERVER_*`` settings. The caller's own ``EYESERVER_*`` variables are not
-        passed on.
+        Further ``EYESERVER_*`` settings (and other variables, such as ``NOTIFY_SOCKET``). The
+        caller's own ``EYESERVER_*`` variables are not passed on.
+    tls : ssl.SSLContext, optional
+        For a daemon configured for HTTPS (``EYESERVER_TLS_*`` in ``env``): the client context
+        (trusted CA, client certificate) of the health check and of :attr:`client`.
 
     Notes
     -----
@@ -77,12 +81,14 @@ class DaemonProcess:
     SIGTERM (a graceful shut-down). :meth:`start` may be called again after either.
     """
 
-    def __init__(self, data_dir: Path, *, log: Path, env: dict[str, str] | None = None) -> None:
+    def __init__(self, data_dir: Path, *, log: Path, env: dict[str, str] | None = None,
+                 tls: ssl.SSLContext | None = None) -> None:
         self.data_dir = data_dir
         self.log = log
         self.operator_token = secrets.token_urlsafe(24)
         self.physicist_token = secrets.token_urlsafe(24)
         self._env = dict(env or {})
+        self._tls = tls
         self._process: subprocess.Popen[bytes] | None = None
         self._client: httpx.Client | None = None
         self._log_stream: IO[bytes] | None = None
@@ -111,7 +117,9 @@ class DaemonProcess:
             It exited or did not answer within :data:`STARTUP_S`; the message holds its log.
         """
         port = free_port()
-        env = {k: v for k, v in os.environ.items() if not k.upper().startswith("EYESERVER_")}
+        # Nor systemd's variables: a daemon under test must not notify the tests' own manager.
+        env = {k: v for k, v in os.environ.items() if not k.upper().startswith("EYESERVER_")
+               and k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID")}
         env.update({"EYESERVER_DATA_DIR": str(self.data_dir),
                     "EYESERVER_TOKENS": f"operator:{self.operator_token},"
                                         f"physicist:{self.physicist_token}",
@@ -121,7 +129,8 @@ class DaemonProcess:
             [sys.executable, "-m", "eyeserver", "serve", "--host", "127.0.0.1",
              "--port", str(port)],
             stdin=subprocess.DEVNULL, stdout=self._log_stream, stderr=subprocess.STDOUT, env=env)
-        self.url = f"http://127.0.0.1:{port}"
+        self.url = f"{'http' if self._tls is None else 'https'}://127.0.0.1:{port}"
+        verify: ssl.SSLContext | bool = True if self._tls is None else self._tls
         deadline = time.monotonic() + STARTUP_S
         while time.monotonic() < deadline:
             if self._process.poll() is not None:
@@ -129,7 +138,8 @@ class DaemonProcess:
                 raise DaemonError(f"eyeserver serve exited with {self._process.returncode} "
                                   f"before answering:\n{self._log_text()}")
             try:
-                if httpx.get(f"{self.url}/api/v1/health", timeout=1.0).status_code == 200:
+                if httpx.get(f"{self.url}/api/v1/health", timeout=1.0,
+                             verify=verify).status_code == 200:
                     break
             except httpx.TransportError:
                 pass
@@ -139,7 +149,7 @@ class DaemonProcess:
             raise DaemonError(f"eyeserver serve did not answer within {STARTUP_S:.0f} s:\n"
                               f"{self._log_text()}")
         self._client = httpx.Client(
-            base_url=self.url, timeout=120.0,
+            base_url=self.url, timeout=120.0, verify=verify,
             headers={"Authorization": f"Bearer {self.physicist_token}"})
         return self
 

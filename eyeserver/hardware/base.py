@@ -302,3 +302,40 @@ class Trigger(Device):
         return {**super().describe(), "rate_hz": self.rate_hz,
                 "sequence": [{"projectors": list(s.projectors), "cameras": list(s.cameras)}
                              for s in self.sequence]}
+
+
+class Stage(Device):
+    """A motorised linear stage that carries the flat calibration plate along the WCS Z axis.
+
+    Phase-to-height calibration images the plate at known heights (DESIGN §5); a stage puts it
+    there instead of a person. Positions are the plate surface's Z in the WCS, millimetres;
+    :meth:`move_to` returns once the stage has settled. Subclasses set ``travel_mm`` and
+    implement :meth:`_move_to`.
+    """
+
+    kind = "stage"
+    travel_mm: tuple[float, float] = (-15.0, 30.0)
+
+    def __init__(self, device_id: str) -> None:
+        super().__init__(device_id)
+        self._position_mm: float | None = None
+
+    @property
+    def position_mm(self) -> float | None:
+        """Where the last move put the plate (mm); None before the first move."""
+        return self._position_mm
+
+    def move_to(self, z_mm: float) -> None:
+        """Move the plate's surface to ``z_mm`` (within :attr:`travel_mm`) and wait until it
+        has settled."""
+        self._require_open()
+        z_mm = _check_range(self.id, "z_mm", z_mm, *self.travel_mm)
+        self._move_to(z_mm)
+        self._position_mm = z_mm
+
+    @abc.abstractmethod
+    def _move_to(self, z_mm: float) -> None: ...
+
+    def describe(self) -> dict[str, object]:
+        return {**super().describe(), "position_mm": self.position_mm,
+                "travel_mm": list(self.travel_mm)}

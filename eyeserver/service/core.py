@@ -40,14 +40,16 @@ import eyeserver
 from eyeserver.calibration.artefact import load_calibration
 from eyeserver.config import Settings
 from eyeserver.errors import DeviceError, DeviceValueError, EyeserverError, StateConflictError
-from eyeserver.hardware.base import Device
+from eyeserver.hardware.base import Device, Stage
 from eyeserver.hardware.bundling import bundle_bit_depth, bundle_frames
 from eyeserver.hardware.rig import Rig
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.drivers import build_sim_rig
 from eyeserver.hardware.sim.room import SimRoom
 from eyeserver.hardware.sim.scenes import SceneSpec
+from eyeserver.hardware.sim.stage import SimStage
 from eyeserver.io import (
+    BundleFrameData,
     RigSpec,
     atomic_write_text,
     fsync_dir,
@@ -55,8 +57,11 @@ from eyeserver.io import (
     rig_from_dict,
     write_ply,
 )
+from eyeserver.service.audit import SALT_FILE, AuditTrail, audit_log_path
 from eyeserver.service.device_control import apply_settings, check_settings
 from eyeserver.service.events import EventBus
+from eyeserver.service.jobs import Jobs
+from eyeserver.service.metrics import ServiceMetrics
 from eyeserver.service.preview import height_map_png
 from eyeserver.service.reconstruction import ReconstructionOptions, reconstruct_bundle
 from eyeserver.service.storage import CalibrationRecord, CaptureRecord, Store
@@ -179,6 +184,9 @@ class Service:
     What happens (state changes, device faults and recoveries, captures, reconstructions,
     calibrations) is published on :attr:`events`, an :class:`~eyeserver.service.events.EventBus`
     that the live stream (``/api/v1/ws/events``) reads; publishing never waits for a reader.
+    Every audit row of the store also becomes a line of :attr:`audit`'s file, as does every
+    failed audited action (:mod:`eyeserver.service.audit`); :attr:`metrics` counts captures,
+    frames and reconstruction times for ``GET /metrics``.
     """
 
     def __init__(self, settings: Settings, rig: Rig | None = None, *,
@@ -200,6 +208,14 @@ class Service:
         self._rig: Rig | None = None
         self._started = time.monotonic()
         self.events = EventBus()  # what happens, for the live stream (/api/v1/ws/events)
+        # Who did what: every store audit row is copied to the audit file, failures go there too.
+        self.audit = AuditTrail(audit_log_path(settings), settings.data_dir / SALT_FILE)
+        self.metrics = ServiceMetrics(self)  # GET /metrics
+        self.jobs = Jobs(self.events, settings.job_queue)  # long operations (service/jobs.py)
+        self._stage: Stage | None = None
+        # A calibration session holds "calibrating" between its acquisitions (see hold_session).
+        self._session: str | None = None
+        self._session_acquiring = False
 
     # --- lifecycle --------------------------------------------------------------------------
 
@@ -213,7 +229,13 @@ class Service:
         DeviceError, ConfigError, FormatError
             The rig cannot be built or opened (the store is closed again).
         """
-        store = Store.open(self._settings.ensure_data_dir())
+        data_dir = self._settings.ensure_data_dir()
+        self.audit.open()
+        try:
+            store = Store.open(data_dir, audit_sink=self.audit.record_stored)
+        except BaseException:
+            self.audit.close()
+            raise
         room: SimRoom | None = None
         try:
             if self._given_rig is not None:
@@ -225,11 +247,16 @@ class Service:
             rig.open()
         except BaseException:
             store.close()
+            self.audit.close()
             raise
         self._store, self._rig, self._sim_room = store, rig, room
+        if room is not None:  # the simulated room has a motorised stage under its plate
+            self._stage = SimStage("Z1", room)
+            self._stage.open()
         self._started = time.monotonic()
         self.acquisition_worker.start()
         self.reconstruction_worker.start()
+        self.jobs.start()
         self._recovery.start()
         _log.info("service open", extra={"units": [u.id for u in rig.units]})
 
@@ -237,17 +264,22 @@ class Service:
         """Stop the background recovery and the workers (jobs already queued finish), then
         close the rig and the store (the reverse of :meth:`open`). Idempotent."""
         self._recovery.stop()
+        self.jobs.stop()
         self.acquisition_worker.stop()
         self.reconstruction_worker.stop()
         rig, store = self._rig, self._store
         self._rig = self._store = None
         self._sim_room = None
+        if self._stage is not None:
+            self._stage.close()
+            self._stage = None
         if rig is not None:
             errors = rig.close()
             if errors:
                 _log.warning("devices failed to close", extra={"devices": sorted(errors)})
         if store is not None:
             store.close()
+        self.audit.close()
 
     def __enter__(self) -> Service:
         self.open()
@@ -269,6 +301,12 @@ class Service:
         if self._store is None:
             raise StateConflictError("the daemon's store is not open")
         return self._store
+
+    @property
+    def stage(self) -> Stage | None:
+        """The motorised stage that carries the calibration plate; None when the daemon has
+        none (it is not part of the rig: calibrations do not depend on it)."""
+        return self._stage
 
     @property
     def sim_room(self) -> SimRoom | None:
@@ -325,7 +363,11 @@ class Service:
             An operation holds the hardware; the message names the daemon's state.
         """
         with self._lock:
-            if self._state not in ("idle", "fault"):
+            # A calibration session holds "calibrating" while a person moves the board or the
+            # plate between its acquisitions; that is the moment for a scene to change.
+            between_views = (self._state == "calibrating" and self._session is not None
+                             and not self._session_acquiring)
+            if self._state not in ("idle", "fault") and not between_views:
                 raise StateConflictError(f"cannot {what}: the daemon is {self._state}")
             yield
 
@@ -475,10 +517,110 @@ class Service:
                 calibration_id=None if active is None else active.id,
                 bit_depth=bundle_bit_depth(rig, frames),
                 extra={"simulated": self._sim_room is not None})
+            self.metrics.capture_stored(unit, steps)
             self.events.publish("capture.stored", capture_id=record.id, unit=unit,
                                 calibration_id=record.calibration_id)
         _log.info("capture stored", extra={"capture_id": record.id, "unit": unit})
         return record
+
+    # --- calibration sessions ---------------------------------------------------------------
+
+    def hold_session(self, session_id: str) -> None:
+        """Put the daemon in ``calibrating`` for a calibration session until
+        :meth:`release_session`.
+
+        Captures and other operations answer 409 meanwhile; scenes (the board, the plate) may
+        change between the session's acquisitions (:meth:`idle_moment`).
+
+        Raises
+        ------
+        StateConflictError
+            Another operation or session holds the hardware.
+        """
+        with self._lock:
+            if self._state not in ("idle", "fault"):
+                raise StateConflictError(f"cannot start a calibration session: the daemon is "
+                                         f"{self._state}")
+            previous, self._state, self._session = self._state, "calibrating", session_id
+            self.events.publish("state", state="calibrating", previous=previous,
+                                session_id=session_id)
+
+    def release_session(self, session_id: str) -> None:
+        """End what :meth:`hold_session` started (idle, or fault while a device is in fault).
+        Idempotent; does nothing for a session that does not hold the daemon."""
+        with self._lock:
+            if self._session != session_id:
+                return
+            self._session = None
+            self._state = "fault" if self._faults else "idle"
+            self.events.publish("state", state=self._state, previous="calibrating",
+                                session_id=session_id)
+
+    def acquire_for_session(self, session_id: str, *, lit: bool, z_mm: float | None = None,
+                            move_stage: bool = False,
+                            ) -> tuple[list[BundleFrameData], int | None]:
+        """Acquire one set of frames for the calibration session holding the daemon.
+
+        On the acquisition worker: with ``move_stage`` the stage first moves the plate to
+        ``z_mm``, the nominal Z the frames record (plate and reference only); ``lit`` lights
+        every unit in turn (one frame each, FORMATS.md), otherwise one frame of every camera
+        with all projectors dark, under the room lights (a chessboard). Returns the bundle
+        frames and their ``bit_depth``.
+
+        Raises
+        ------
+        StateConflictError
+            The session does not hold the daemon; or a stage move was asked for and the daemon
+            has no stage.
+        DeviceError
+            A device failed; it is put in fault.
+        """
+        return self.acquisition_worker.call(
+            lambda: self._acquire_for_session_now(session_id, lit, z_mm, move_stage))
+
+    def _acquire_for_session_now(self, session_id: str, lit: bool, z_mm: float | None,
+                                 move_stage: bool) -> tuple[list[BundleFrameData], int | None]:
+        rig = self.rig
+        with self._lock:
+            if self._session != session_id:
+                raise StateConflictError(f"calibration session {session_id} does not hold the "
+                                         f"daemon (it is {self._state})")
+            self._session_acquiring = True
+        try:
+            devices: list[Device] = [rig.trigger, *rig.projectors, *rig.cameras]
+            self._recover(devices)
+            if move_stage and z_mm is not None:
+                if self._stage is None:
+                    raise StateConflictError("the daemon has no motorised stage: put the plate "
+                                             "at the height by hand and give only z_mm")
+                try:
+                    self._stage.move_to(z_mm)
+                except DeviceValueError:
+                    raise
+                except DeviceError as exc:
+                    self._mark_fault(exc)
+                    raise
+            room = self._sim_room
+            try:
+                if lit:
+                    steps = rig.acquire([u.id for u in rig.units])
+                else:
+                    if room is not None:  # a real room is simply lit for the board
+                        room.set_room_lights(True)
+                    try:
+                        steps = [rig.acquire_unlit()]
+                    finally:
+                        if room is not None:
+                            room.set_room_lights(False)
+            except DeviceError as exc:
+                self._mark_fault(exc)
+                self._reset_cameras(rig.cameras, exc.device_id)
+                raise
+            frames = bundle_frames(steps, z_mm)
+            return frames, bundle_bit_depth(rig, frames)
+        finally:
+            with self._lock:
+                self._session_acquiring = False
 
     def rig_spec(self) -> RigSpec:
         """The open rig as its rig file would describe it (what calibrations must match)."""
@@ -500,7 +642,8 @@ class Service:
         limit = self._settings.max_upload_mb * 2**20
         if len(archive) > limit:
             raise UploadTooLargeError(f"the upload exceeds {self._settings.max_upload_mb} MiB")
-        with tempfile.TemporaryDirectory(prefix="eyeserver-calibration-") as unpacked:
+        with self.audit.failures(actor, "import_calibration", "upload"), \
+                tempfile.TemporaryDirectory(prefix="eyeserver-calibration-") as unpacked:
             unpack_calibration_zip(archive, Path(unpacked), max_unpacked_bytes=limit)
             load_calibration(unpacked, self.rig_spec())
             # The unpack directory is gone by now: say where the calibration came from instead.
@@ -520,7 +663,8 @@ class Service:
         UnknownIdError, StorageError
             As for :meth:`Store.activate_calibration`.
         """
-        with self.operation("calibrating", "activating a calibration"):
+        with self.audit.failures(actor, "activate_calibration", calibration_id), \
+                self.operation("calibrating", "activating a calibration"):
             record = self.store.activate_calibration(calibration_id, actor=actor)
             self.events.publish("calibration.activated", calibration_id=record.id, actor=actor)
         _log.info("calibration activated", extra={"calibration_id": record.id, "actor": actor})
@@ -595,6 +739,7 @@ class Service:
         except FileNotFoundError:
             self.store.get_capture(capture.id)  # UnknownIdError when it was deleted meanwhile
             raise
+        self.metrics.reconstruction_done(time.monotonic() - started)
         summary = dict(json.loads(text))  # exactly what GET .../reconstruction will read
         _log.info("capture reconstructed", extra={
             "capture_id": capture.id, "calibration_id": active.id, "points": summary["points"],
@@ -641,7 +786,8 @@ class Service:
     def delete_capture(self, capture_id: str, *, actor: str, reason: str) -> None:
         """Delete a capture with everything kept beside it (audited first; see
         :meth:`Store.delete_capture`, which raises the errors)."""
-        self.store.delete_capture(capture_id, actor=actor, reason=reason)
+        with self.audit.failures(actor, "delete_capture", capture_id):
+            self.store.delete_capture(capture_id, actor=actor, reason=reason)
         _log.warning("capture deleted", extra={"capture_id": capture_id, "actor": actor,
                                                 "reason": reason})
 
@@ -700,9 +846,10 @@ class Service:
         device = next((d for d in self.rig.devices if d.id == device_id), None)
         if device is None:
             raise KeyError(device_id)
-        check_settings(device, changes)
-        if changes:
-            self.acquisition_worker.call(lambda: self._configure_now(device, changes, actor))
+        with self.audit.failures(actor, "configure_device", device_id):
+            check_settings(device, changes)
+            if changes:
+                self.acquisition_worker.call(lambda: self._configure_now(device, changes, actor))
         return self.device(device_id)
 
     def _configure_now(self, device: Device, changes: Mapping[str, bool | float],

@@ -19,6 +19,7 @@ from typing import Any, Final
 from eyeserver.hardware.sim.drivers import SimCamera, SimProjector, SimTrigger
 from eyeserver.hardware.sim.room import SimRoom
 from eyeserver.hardware.sim.scenes import SceneSpec
+from eyeserver.hardware.sim.stage import SIM_STAGE_TRAVEL_MM
 from eyeserver.hardware.sim.truth import room_truth
 from eyeserver.service.core import Service
 
@@ -26,7 +27,7 @@ __all__ = ["STAGE_TRAVEL_MM", "SimRoomControl", "Vec3"]
 
 Vec3 = tuple[float, float, float]
 
-STAGE_TRAVEL_MM: Final = (-15.0, 30.0)
+STAGE_TRAVEL_MM: Final = SIM_STAGE_TRAVEL_MM
 """Travel of the simulated motorised stage that carries the flat plate along Z, mm (inclusive).
 
 It covers the phase-to-height calibration's −10…+25 mm (DESIGN §5) with 5 mm to spare each way.
@@ -92,8 +93,14 @@ class SimRoomControl:
         low, high = STAGE_TRAVEL_MM
         if not low <= z_mm <= high:
             raise ValueError(f"z_mm {z_mm} is outside the stage's travel {low}…{high} mm")
-        return self.place(SceneSpec(kind="plate", position_mm=(0.0, 0.0, float(z_mm))),
-                          actor=actor)
+        stage = self._service.stage
+        if stage is None:
+            return self.place(SceneSpec(kind="plate", position_mm=(0.0, 0.0, float(z_mm))),
+                              actor=actor)
+        with self._service.idle_moment("place a scene"):
+            stage.move_to(float(z_mm))  # the simulated stage places the plate at once
+        _log.info("simulated stage moved", extra={"z_mm": z_mm, "actor": actor})
+        return self._room.scene
 
     def place_chessboard(self, position_mm: Vec3, rotation_deg: Vec3, *,
                          actor: str | None = None) -> SceneSpec:

@@ -30,7 +30,7 @@ import shutil
 import sqlite3
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -42,6 +42,7 @@ from eyeserver.errors import EyeserverError, StateConflictError
 from eyeserver.io import (
     BundleFrameData,
     BundleKind,
+    ChessboardSpec,
     RigSpec,
     fsync_dir,
     makedirs_synced,
@@ -330,12 +331,19 @@ class Store:
         self._lock = threading.RLock()
         self._last_millis = 0
         self.recovery = RecoveryReport()
+        self.audit_sink: Callable[[AuditEntry], None] | None = None
+        self._audit_pending: list[AuditEntry] = []
 
     # --- lifecycle ------------------------------------------------------------------------
 
     @classmethod
-    def open(cls, data_dir: str | os.PathLike[str]) -> Store:
+    def open(cls, data_dir: str | os.PathLike[str], *,
+             audit_sink: Callable[[AuditEntry], None] | None = None) -> Store:
         """Open (creating it if need be) the store in ``data_dir`` and run start-up recovery.
+
+        ``audit_sink``, when given, is called with every audit row once its transaction has
+        committed (the daemon copies them to its audit file, :mod:`eyeserver.service.audit`),
+        under the store's lock, so in the order of ``seq``.
 
         Raises
         ------
@@ -359,6 +367,7 @@ class Store:
             raise
         fsync_dir(root)  # the index file and its WAL are directory entries too
         store = cls(root, connection, lock_fd)
+        store.audit_sink = audit_sink  # before recovery, which may audit too
         try:
             store.recovery = store._recover()
             store._last_millis = store._newest_millis()  # after recovery re-indexed orphans
@@ -403,12 +412,13 @@ class Store:
 
     def add_capture(self, kind: BundleKind, rig: RigSpec, frames: Sequence[BundleFrameData], *,
                     unit: str, calibration_id: str | None, bit_depth: int | None = None,
-                    extra: Mapping[str, object] | None = None) -> CaptureRecord:
+                    extra: Mapping[str, object] | None = None,
+                    chessboard: ChessboardSpec | None = None) -> CaptureRecord:
         """Write a capture bundle and index it; returns once both are durable.
 
         Parameters
         ----------
-        kind, rig, frames, bit_depth, extra
+        kind, rig, frames, bit_depth, extra, chessboard
             As for :func:`eyeserver.io.write_bundle`; ``extra`` must not use the key
             ``"capture"``, which the store fills with the id, unit and calibration.
         unit : str
@@ -435,7 +445,7 @@ class Store:
             try:
                 bundle = write_bundle(self.captures_dir / capture_id, kind, rig, frames,
                                       bit_depth=bit_depth, created=_id_time(capture_id),
-                                      extra=extra)
+                                      extra=extra, chessboard=chessboard)
             except FileExistsError:
                 continue  # an id left by an earlier run with a clock set back: draw again
             except OSError as exc:
@@ -713,8 +723,13 @@ class Store:
                 yield db
             except BaseException:
                 db.execute("ROLLBACK")
+                self._audit_pending.clear()
                 raise
             db.execute("COMMIT")
+            committed, self._audit_pending = self._audit_pending, []
+            if self.audit_sink is not None:
+                for entry in committed:
+                    self.audit_sink(entry)
 
     def _new_id(self, prefix: str) -> str:
         # Strictly increasing milliseconds within the store, so ids sort in creation order even
@@ -763,12 +778,15 @@ class Store:
                    (record.id, record.created, record.imported, record.source,
                     json.dumps(dict(record.quality)), int(record.active), record.status))
 
-    @staticmethod
-    def _audit(db: sqlite3.Connection, actor: str, action: str, target: str,
+    def _audit(self, db: sqlite3.Connection, actor: str, action: str, target: str,
                detail: Mapping[str, object]) -> None:
-        db.execute("INSERT INTO audit (time, actor, action, target, detail) "
-                   "VALUES (?, ?, ?, ?, ?)",
-                   (_now_text(), actor, action, target, json.dumps(dict(detail))))
+        # Inside a _transaction: the row is handed to audit_sink once that commits.
+        when = _now_text()
+        cursor = db.execute("INSERT INTO audit (time, actor, action, target, detail) "
+                            "VALUES (?, ?, ?, ?, ?)",
+                            (when, actor, action, target, json.dumps(dict(detail))))
+        self._audit_pending.append(AuditEntry(int(cursor.lastrowid or 0), when, actor, action,
+                                              target, dict(detail)))
 
     # --- start-up recovery ----------------------------------------------------------------
 

@@ -1,0 +1,174 @@
+"""The daemon's figures in the Prometheus text format (``GET /metrics``).
+
+=============================================  =======  =========================================
+metric                                         type     labels / meaning
+=============================================  =======  =========================================
+``eyeserver_info``                             gauge    ``version``; always 1
+``eyeserver_state``                            gauge    ``state``: 1 for the daemon's state, 0 for
+                                                        the others (idle, capturing, …, fault)
+``eyeserver_device_up``                        gauge    ``device``, ``kind``, ``unit``: 1 ok,
+                                                        0 in fault
+``eyeserver_frames_acquired_total``            counter  ``camera``: frames read in captures
+``eyeserver_frames_dropped_total``             counter  ``camera``: exposures the camera lost
+                                                        (since it was last opened: a reopen after
+                                                        a fault resets it, which Prometheus reads
+                                                        as a counter reset)
+``eyeserver_captures_total``                   counter  ``unit``: captures stored
+``eyeserver_reconstruction_seconds``           histo.   time of one reconstruction (worker only,
+                                                        not the wait in its queue)
+``eyeserver_queue_waiting``                    gauge    ``queue`` (acquisition, reconstruction):
+                                                        jobs waiting
+``eyeserver_queue_capacity``                   gauge    ``queue``: jobs that may wait
+``eyeserver_events_dropped_total``             counter  events lost by slow stream clients
+``eyeserver_event_subscribers``                gauge    open live-stream subscriptions
+``process_*``                                  …        prometheus_client's process figures
+                                                        (start time, CPU, memory, files)
+=============================================  =======  =========================================
+
+Counts the service keeps are plain numbers here, read at scrape time together with the live
+figures (state, devices, queues), so that every camera and unit of the rig is listed from the
+start with 0 rather than appearing at its first frame. Each service has a registry of its own
+(never the library's global one): tests run several daemons in one process.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter
+from collections.abc import Iterable, Iterator, Sequence
+from typing import TYPE_CHECKING
+
+from prometheus_client import CollectorRegistry, Histogram, ProcessCollector, generate_latest
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+
+import eyeserver
+from eyeserver.errors import EyeserverError
+from eyeserver.hardware.rig import AcquiredStep
+
+if TYPE_CHECKING:
+    from eyeserver.service.core import Service
+
+__all__ = ["CONTENT_TYPE", "RECONSTRUCTION_BUCKETS_S", "SERVICE_STATES", "ServiceMetrics"]
+
+CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
+"""The media type of :meth:`ServiceMetrics.render`: the classic text format, which every
+Prometheus reads (all names here are plain ``[a-z_]``, so nothing needs the 1.0 format's
+escaping)."""
+
+RECONSTRUCTION_BUCKETS_S = (0.1, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 30.0, 60.0)
+"""Upper bounds of the reconstruction-time buckets, seconds (one fused cloud takes ~1 s)."""
+
+SERVICE_STATES = ("idle", "capturing", "calibrating", "tracking", "fault")
+
+
+class ServiceMetrics:
+    """The counters of one :class:`~eyeserver.service.core.Service` and their exposition.
+
+    The service calls :meth:`capture_stored` and :meth:`reconstruction_done`; :meth:`render`
+    reads everything else from the service at scrape time. Thread-safe.
+    """
+
+    def __init__(self, service: Service) -> None:
+        self._service = service
+        self._lock = threading.Lock()
+        self._frames: Counter[str] = Counter()
+        self._captures: Counter[str] = Counter()
+        self.registry = CollectorRegistry(auto_describe=False)
+        self._reconstruction = Histogram(
+            "eyeserver_reconstruction_seconds", "Time of one reconstruction on its worker.",
+            buckets=RECONSTRUCTION_BUCKETS_S, registry=self.registry)
+        self.registry.register(_LiveCollector(self))
+        ProcessCollector(registry=self.registry)
+
+    def capture_stored(self, unit: str, steps: Sequence[AcquiredStep]) -> None:
+        """Count a stored capture of ``unit`` and the frames each camera gave for it."""
+        with self._lock:
+            self._captures[unit] += 1
+            for step in steps:
+                self._frames.update(step.frames.keys())
+
+    def reconstruction_done(self, duration_s: float) -> None:
+        """Count one reconstruction that took ``duration_s`` seconds."""
+        self._reconstruction.observe(duration_s)
+
+    def render(self) -> bytes:
+        """Every metric in the Prometheus text format (:data:`CONTENT_TYPE`)."""
+        return generate_latest(self.registry)
+
+    def _counts(self) -> tuple[dict[str, int], dict[str, int]]:
+        with self._lock:
+            return dict(self._frames), dict(self._captures)
+
+
+class _LiveCollector:
+    """Reads the service at each scrape (a custom collector of prometheus_client)."""
+
+    def __init__(self, metrics: ServiceMetrics) -> None:
+        self._metrics = metrics
+
+    def collect(self) -> Iterator[Metric]:
+        service = self._metrics._service
+        frames, captures = self._metrics._counts()
+        info = GaugeMetricFamily("eyeserver_info", "The daemon's version.", labels=["version"])
+        info.add_metric([eyeserver.__version__], 1)
+        yield info
+        state = GaugeMetricFamily("eyeserver_state", "1 for the daemon's current state.",
+                                  labels=["state"])
+        current = service.state
+        for name in SERVICE_STATES:
+            state.add_metric([name], 1 if name == current else 0)
+        yield state
+        yield from _queues(service)
+        events_dropped = CounterMetricFamily(
+            "eyeserver_events_dropped", "Events lost to full queues of slow stream clients.")
+        events_dropped.add_metric([], service.events.dropped_total)
+        yield events_dropped
+        subscribers = GaugeMetricFamily("eyeserver_event_subscribers",
+                                        "Open subscriptions of the live event stream.")
+        subscribers.add_metric([], service.events.subscriber_count)
+        yield subscribers
+        try:
+            devices = service.devices()
+            units = [u.id for u in service.rig.units]
+        except EyeserverError:  # not open (starting or stopping): no device figures
+            devices, units = [], []
+        up = GaugeMetricFamily("eyeserver_device_up", "1 while the device is ok, 0 in fault.",
+                               labels=["device", "kind", "unit"])
+        acquired = CounterMetricFamily("eyeserver_frames_acquired",
+                                       "Frames read from the camera in captures.",
+                                       labels=["camera"])
+        dropped = CounterMetricFamily("eyeserver_frames_dropped",
+                                      "Exposures the camera lost since it was last opened.",
+                                      labels=["camera"])
+        for device in devices:
+            up.add_metric([device.id, device.kind, device.unit or ""],
+                          1 if device.health == "ok" else 0)
+            if device.kind == "camera":
+                acquired.add_metric([device.id], frames.get(device.id, 0))
+                lost = device.details.get("dropped_frames")
+                if isinstance(lost, int | float) and not isinstance(lost, bool):
+                    dropped.add_metric([device.id], lost)
+        yield from (up, acquired, dropped)
+        stored = CounterMetricFamily("eyeserver_captures", "Captures stored.", labels=["unit"])
+        for unit in _union(units, ["all"], captures):
+            stored.add_metric([unit], captures.get(unit, 0))
+        yield stored
+
+
+def _queues(service: Service) -> Iterator[Metric]:
+    waiting = GaugeMetricFamily("eyeserver_queue_waiting", "Jobs waiting in the worker's "
+                                "queue.", labels=["queue"])
+    capacity = GaugeMetricFamily("eyeserver_queue_capacity", "Jobs that may wait in the "
+                                 "worker's queue.", labels=["queue"])
+    for worker in (service.acquisition_worker, service.reconstruction_worker):
+        waiting.add_metric([worker.name], worker.waiting)
+        capacity.add_metric([worker.name], worker.capacity)
+    yield waiting
+    yield capacity
+
+
+def _union(*groups: Iterable[str]) -> list[str]:
+    seen: dict[str, None] = {}
+    for group in groups:
+        seen.update(dict.fromkeys(group))
+    return list(seen)
