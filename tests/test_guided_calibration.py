@@ -270,6 +270,12 @@ def test_guided_calibration_end_to_end(client: Client, tmp_path: Path) -> None:
     assert len(inputs) == len(PLATE_HEIGHTS) + 1 + len(answers)
     assert client.get(f"{API}/calibrations/compare",
                       params={"a": p2h_id, "b": "cal-nope"}).status_code == 404
+    # The inputs are the calibration's evidence: they cannot be deleted.
+    evidence = sorted(inputs)[0]
+    refused = client.delete(f"{API}/captures/{evidence}", params={"reason": "tidy up"})
+    assert refused.status_code == 409
+    assert "is an input of calibration" in refused.json()["detail"]
+    assert client.get(f"{API}/captures/{evidence}").status_code == 200
 
 
 def _ok_bytes(client: Client, path: str) -> bytes:

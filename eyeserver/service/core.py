@@ -58,6 +58,7 @@ from eyeserver.io import (
     write_ply,
 )
 from eyeserver.service.audit import SALT_FILE, AuditTrail, audit_log_path
+from eyeserver.service.calibration_files import input_capture_ids
 from eyeserver.service.device_control import apply_settings, check_settings
 from eyeserver.service.events import EventBus
 from eyeserver.service.jobs import Jobs
@@ -787,7 +788,14 @@ class Service:
         """Delete a capture with everything kept beside it (audited first; see
         :meth:`Store.delete_capture`, which raises the errors)."""
         with self.audit.failures(actor, "delete_capture", capture_id):
-            self.store.delete_capture(capture_id, actor=actor, reason=reason)
+            store = self.store
+            # A calibration's input bundles are its evidence: they go only with it (never).
+            for calibration in store.list_calibrations():
+                if capture_id in input_capture_ids(calibration):
+                    raise StateConflictError(
+                        f"capture {capture_id} is an input of calibration {calibration.id} "
+                        "(its evidence) and cannot be deleted")
+            store.delete_capture(capture_id, actor=actor, reason=reason)
         _log.warning("capture deleted", extra={"capture_id": capture_id, "actor": actor,
                                                 "reason": reason})
 
