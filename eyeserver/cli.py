@@ -27,6 +27,7 @@ import eyeserver
 from eyeserver.commands import Subparsers
 from eyeserver.commands import bench as bench_commands
 from eyeserver.commands import calibrate as calibrate_commands
+from eyeserver.commands import pose as pose_commands
 from eyeserver.commands import sim as sim_commands
 from eyeserver.errors import EyeserverError
 
@@ -102,6 +103,7 @@ def _serve(args: argparse.Namespace) -> int:
 REGISTRARS: list[Registrar] = [add_serve_parser, sim_commands.add_parser,
                                calibrate_commands.add_parser,
                                calibrate_commands.add_reconstruct_parser,
+                               pose_commands.add_parser,
                                bench_commands.add_parser]
 
 

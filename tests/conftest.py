@@ -1,12 +1,18 @@
-"""Shared fixtures: simulated rigs calibrated once per test session (they take ~40 s each)."""
+"""Shared fixtures: simulated rigs calibrated once per test session (they take ~40 s each), and
+the daemon's app in process, one per module."""
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from fastapi import FastAPI
 
+from eyeserver.api import create_app
 from eyeserver.cli import main
+from eyeserver.service.core import Service
+from tests.apiclient import Client, serving, test_settings
 
 ROOT = Path(__file__).resolve().parents[1]
 ROOMS: dict[str, Path | None] = {
@@ -39,3 +45,33 @@ def calibrated_rooms(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[
             _CACHE[name] = calibrate_room(name, tmp_path_factory.mktemp(name))
         return _CACHE[name]
     return get
+
+
+# --- the daemon's app in process, one per test module (a module may define its own) ----------
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest) -> Path:
+    """A fresh data directory for the module's daemon."""
+    return tmp_path_factory.mktemp(request.module.__name__.rsplit(".", 1)[-1]) / "data"
+
+
+@pytest.fixture(scope="module")
+def app(data_dir: Path) -> FastAPI:
+    """The daemon's app with the test tokens (tests/apiclient.py), not started."""
+    return create_app(test_settings(data_dir))
+
+
+@pytest.fixture(scope="module")
+def client(app: FastAPI) -> Iterator[Client]:
+    """The app running with its lifespan (simulated room, store), and a client of it."""
+    with serving(app) as running:
+        yield running
+
+
+@pytest.fixture
+def service(app: FastAPI, client: Client) -> Service:
+    """The running app's service."""
+    running = app.state.service
+    assert isinstance(running, Service)
+    return running

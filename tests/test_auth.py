@@ -5,13 +5,10 @@ from __future__ import annotations
 import os
 import stat
 import tomllib
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from fastapi import FastAPI
 
-from eyeserver.api import create_app
 from eyeserver.api.auth import GENERATED_TOKENS_FILE, TokenTable
 from eyeserver.config import Settings
 from eyeserver.errors import ConfigError
@@ -21,20 +18,7 @@ from tests.apiclient import (
     PHYSICIST_TOKEN,
     Client,
     auth,
-    serving,
-    test_settings,
 )
-
-
-@pytest.fixture(scope="module")
-def app(tmp_path_factory: pytest.TempPathFactory) -> FastAPI:
-    return create_app(test_settings(tmp_path_factory.mktemp("auth") / "data"))
-
-
-@pytest.fixture(scope="module")
-def client(app: FastAPI) -> Iterator[Client]:
-    with serving(app) as running:
-        yield running
 
 
 @pytest.fixture

@@ -23,11 +23,10 @@ import numpy as np
 import pytest
 from fastapi import FastAPI
 
-from eyeserver.api import create_app
 from eyeserver.io import BUNDLE_FILE, BundleFrameData, read_bundle, read_ply, rig_from_dict
 from eyeserver.service.core import CLOUD_FILE, SUMMARY_FILE, Service
 from eyeserver.service.storage import Store
-from tests.apiclient import API, OPERATOR_TOKEN, Client, auth, serving, test_settings
+from tests.apiclient import API, OPERATOR_TOKEN, Client, auth
 from tests.test_service_calibration_api import ZIP, _calibration_members, _zip
 from tests.test_storage import RIG_DOCUMENT, calibration_dir, frames
 
@@ -37,17 +36,6 @@ _NO_CAPTURE = "cap-20000101T000000000Z-0000"
 @pytest.fixture(scope="module")
 def caldir(calibrated_rooms: Callable[[str], tuple[Path, Path]]) -> Path:
     return calibrated_rooms("default")[1]
-
-
-@pytest.fixture(scope="module")
-def app(tmp_path_factory: pytest.TempPathFactory) -> FastAPI:
-    return create_app(test_settings(tmp_path_factory.mktemp("captures-api") / "data"))
-
-
-@pytest.fixture(scope="module")
-def client(app: FastAPI) -> Iterator[Client]:
-    with serving(app) as running:
-        yield running
 
 
 @pytest.fixture(scope="module")

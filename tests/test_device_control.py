@@ -5,36 +5,15 @@ One app serves the module (the simulated default room); each test sets back what
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import pytest
-from fastapi import FastAPI
 
-from eyeserver.api import create_app
 from eyeserver.hardware.sim.drivers import SimCamera
 from eyeserver.io import read_bundle
 from eyeserver.service.core import Service
-from tests.apiclient import API, OPERATOR_TOKEN, Client, auth, serving, test_settings
-
-
-@pytest.fixture(scope="module")
-def app(tmp_path_factory: pytest.TempPathFactory) -> FastAPI:
-    return create_app(test_settings(tmp_path_factory.mktemp("device-control") / "data"))
-
-
-@pytest.fixture(scope="module")
-def client(app: FastAPI) -> Iterator[Client]:
-    with serving(app) as running:
-        yield running
-
-
-@pytest.fixture
-def service(app: FastAPI, client: Client) -> Service:
-    running = app.state.service
-    assert isinstance(running, Service)
-    return running
+from tests.apiclient import API, OPERATOR_TOKEN, Client, auth
 
 
 def _patch(client: Client, device_id: str, body: dict[str, Any], **kwargs: Any) -> Any:

@@ -17,14 +17,11 @@ import io
 import threading
 import time
 import zipfile
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
-from fastapi import FastAPI
 
-from eyeserver.api import create_app
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.scoring import score_cloud
 from eyeserver.hardware.sim.sessions import calibration_poses
@@ -32,26 +29,10 @@ from eyeserver.io import read_ply
 from eyeserver.service.events import EventBus
 from eyeserver.service.jobs import JobContext, Jobs
 from eyeserver.service.workers import QueueFullError
-from tests.apiclient import API, OPERATOR_TOKEN, Client, auth, serving, test_settings
+from tests.apiclient import API, OPERATOR_TOKEN, Client, auth
 
 PLATE_HEIGHTS = [float(z) for z in range(-8, 11, 2)]
 REFERENCE_Z = 10.0
-
-
-@pytest.fixture(scope="module")
-def data_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return tmp_path_factory.mktemp("guided") / "data"
-
-
-@pytest.fixture(scope="module")
-def app(data_dir: Path) -> FastAPI:
-    return create_app(test_settings(data_dir))
-
-
-@pytest.fixture(scope="module")
-def client(app: FastAPI) -> Iterator[Client]:
-    with serving(app) as running:
-        yield running
 
 
 def _ok(response: Any, status: int = 200) -> Any:

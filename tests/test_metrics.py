@@ -26,13 +26,6 @@ def client(app: FastAPI) -> Iterator[Client]:
         yield running
 
 
-@pytest.fixture
-def service(app: FastAPI, client: Client) -> Service:
-    running = app.state.service
-    assert isinstance(running, Service)
-    return running
-
-
 def _scrape(client: Client) -> tuple[dict[str, str], Samples]:
     response = client.get("/metrics", headers=auth(OPERATOR_TOKEN))
     assert response.status_code == 200, response.text

@@ -10,13 +10,12 @@ from __future__ import annotations
 import functools
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from fastapi import FastAPI
 
 import eyeserver
 import eyeserver.api.app as app_module
@@ -25,29 +24,6 @@ from eyeserver.hardware.sim.drivers import SimCamera
 from eyeserver.io import read_bundle
 from eyeserver.service.core import Service
 from tests.apiclient import API, Client, serving, test_settings
-
-
-@pytest.fixture(scope="module")
-def data_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return tmp_path_factory.mktemp("service") / "data"
-
-
-@pytest.fixture(scope="module")
-def app(data_dir: Path) -> FastAPI:
-    return create_app(test_settings(data_dir))
-
-
-@pytest.fixture(scope="module")
-def client(app: FastAPI) -> Iterator[Client]:
-    with serving(app) as running:
-        yield running
-
-
-@pytest.fixture
-def service(app: FastAPI, client: Client) -> Service:
-    running = app.state.service
-    assert isinstance(running, Service)
-    return running
 
 
 def _camera(service: Service, camera_id: str) -> SimCamera:

@@ -11,7 +11,7 @@ import io
 import json
 import stat
 import zipfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,12 +20,11 @@ import numpy as np
 import pytest
 from fastapi import FastAPI
 
-from eyeserver.api import create_app
 from eyeserver.calibration.artefact import ARRAYS_FILE, CALIBRATION_FILE
 from eyeserver.io import read_ply
 from eyeserver.service.core import Service
 from eyeserver.service.uploads import UploadTooLargeError, unpack_calibration_zip
-from tests.apiclient import API, Client, serving, test_settings
+from tests.apiclient import API, Client
 
 ZIP = {"content-type": "application/zip"}
 
@@ -49,17 +48,6 @@ def _calibration_members(caldir: Path, folder: str = "") -> dict[str, bytes]:
 @pytest.fixture(scope="module")
 def caldir(calibrated_rooms: Callable[[str], tuple[Path, Path]]) -> Path:
     return calibrated_rooms("default")[1]
-
-
-@pytest.fixture(scope="module")
-def app(tmp_path_factory: pytest.TempPathFactory) -> FastAPI:
-    return create_app(test_settings(tmp_path_factory.mktemp("calibration-api") / "data"))
-
-
-@pytest.fixture(scope="module")
-def client(app: FastAPI) -> Iterator[Client]:
-    with serving(app) as running:
-        yield running
 
 
 @pytest.fixture(scope="module")

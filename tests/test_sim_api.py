@@ -16,7 +16,6 @@ import httpx
 import numpy as np
 import pytest
 from anyio.from_thread import start_blocking_portal
-from fastapi import FastAPI
 
 from eyeserver.api import create_app
 from eyeserver.api.auth import TokenTable
@@ -27,7 +26,7 @@ from eyeserver.hardware.sim.scenes import SceneSpec, scene_truth
 from eyeserver.io import read_bundle
 from eyeserver.service.core import Service
 from eyeserver.service.simroom import STAGE_TRAVEL_MM
-from tests.apiclient import API, OPERATOR_TOKEN, Client, auth, serving, test_settings
+from tests.apiclient import API, OPERATOR_TOKEN, Client, auth, test_settings
 
 SIM_ROUTES: list[tuple[str, str, dict[str, Any] | None]] = [
     ("GET", "/sim/scene", None),
@@ -37,29 +36,6 @@ SIM_ROUTES: list[tuple[str, str, dict[str, Any] | None]] = [
     ("GET", "/sim/truth", None),
     ("PUT", "/sim/devices/S1", {"connected": True}),
 ]
-
-
-@pytest.fixture(scope="module")
-def data_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return tmp_path_factory.mktemp("sim-api") / "data"
-
-
-@pytest.fixture(scope="module")
-def app(data_dir: Path) -> FastAPI:
-    return create_app(test_settings(data_dir))
-
-
-@pytest.fixture(scope="module")
-def client(app: FastAPI) -> Iterator[Client]:
-    with serving(app) as running:
-        yield running
-
-
-@pytest.fixture
-def service(app: FastAPI, client: Client) -> Service:
-    running = app.state.service
-    assert isinstance(running, Service)
-    return running
 
 
 def _capture_images(client: Client, data_dir: Path, unit: str) -> dict[str, np.ndarray]:

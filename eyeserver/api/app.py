@@ -26,6 +26,8 @@ from eyeserver.api.routers import (
     health,
     jobs,
     metrics,
+    patients,
+    pose,
     sim,
     status,
 )
@@ -33,6 +35,8 @@ from eyeserver.config import Settings
 from eyeserver.service.calibration_session import CalibrationSessions
 from eyeserver.service.core import Service
 from eyeserver.service.operations import operations
+from eyeserver.service.patients import Patients
+from eyeserver.service.verification import PoseVerification
 
 __all__ = ["API_PREFIX", "create_app"]
 
@@ -61,12 +65,15 @@ def _lifespan(settings: Settings) -> Callable[[FastAPI], AbstractAsyncContextMan
         await run_in_threadpool(service.open)
         app.state.service = service
         app.state.calibration_sessions = CalibrationSessions(service)
+        app.state.patients = Patients(service.store, service.audit)
+        app.state.verification = PoseVerification(service, app.state.patients)
         try:
             # systemd: READY=1 now, WATCHDOG=1 while healthy, STOPPING=1 on leaving; retention.
             async with operations(service, settings):
                 yield
         finally:
             del app.state.service
+            del app.state.verification, app.state.patients
             await run_in_threadpool(app.state.calibration_sessions.close_all)
             del app.state.calibration_sessions
             await run_in_threadpool(service.close)
@@ -101,7 +108,8 @@ def create_app(settings: Settings) -> FastAPI:
     # Everything else needs a token; routes that need more than an operator say so themselves.
     authenticated = [Depends(require("operator"))]
     for router in (status.router, devices.router, captures.router, calibrations.router,
-                   sim.router, audit.router, jobs.router, calibration_sessions.router):
+                   sim.router, audit.router, jobs.router, calibration_sessions.router,
+                   patients.router, pose.router):
         app.include_router(router, prefix=API_PREFIX, dependencies=authenticated,
                            responses=AUTH_RESPONSES)
     # Where Prometheus looks by default, outside the versioned API; a token all the same.

@@ -6,6 +6,9 @@ error                         status
 ``StateConflictError``        409
 ``UnknownIdError``            404
 ``NoCloudError``              404
+``UnknownPatientError``       404
+``NoReferenceError``          404
+``PoseError``                 422
 ``CaptureDataNotFoundError``  404
 ``UploadTooLargeError``       413
 ``ReconstructionError``       422
@@ -45,8 +48,10 @@ from eyeserver.errors import (
     NotBuiltError,
     StateConflictError,
 )
+from eyeserver.pipeline.eyepose import PoseError
 from eyeserver.service.capture_files import CaptureDataNotFoundError
 from eyeserver.service.core import NoCloudError, UnknownUnitError
+from eyeserver.service.patients import NoReferenceError, UnknownPatientError
 from eyeserver.service.reconstruction import ReconstructionError
 from eyeserver.service.storage import UnknownIdError
 from eyeserver.service.uploads import UploadTooLargeError
@@ -67,6 +72,9 @@ _STATUS_BY_ERROR: tuple[tuple[type[EyeserverError], int], ...] = (
     (StateConflictError, 409),
     (UnknownIdError, 404),
     (NoCloudError, 404),
+    (UnknownPatientError, 404),
+    (NoReferenceError, 404),
+    (PoseError, 422),
     (CaptureDataNotFoundError, 404),
     (UploadTooLargeError, 413),
     (ReconstructionError, 422),

@@ -14,11 +14,15 @@ would mix them. Unplugging a device is allowed at any time: that is the fault be
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from typing import Any, Final
 
+from pydantic import ValidationError
+
+from eyeserver.errors import StateConflictError
 from eyeserver.hardware.sim.drivers import SimCamera, SimProjector, SimTrigger
 from eyeserver.hardware.sim.room import SimRoom
-from eyeserver.hardware.sim.scenes import SceneSpec
+from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 from eyeserver.hardware.sim.stage import SIM_STAGE_TRAVEL_MM
 from eyeserver.hardware.sim.truth import room_truth
 from eyeserver.service.core import Service
@@ -114,6 +118,51 @@ class SimRoomControl:
         """
         return self.place(SceneSpec(kind="chessboard", position_mm=position_mm,
                                     rotation_deg=rotation_deg), actor=actor)
+
+    def place_eye(self, *, position_mm: Vec3 | None = None, rotation_deg: Vec3 | None = None,
+                  eye: Mapping[str, Any] | None = None, actor: str | None = None) -> SceneSpec:
+        """Put the patient eye in front of the cameras, changing only what is given.
+
+        ``eye`` holds :class:`~eyeserver.hardware.sim.scenes.EyeSpec` fields (``gaze_deg``,
+        ``globe_radius_mm``, ``cornea_radius_mm``, ``limbus_diameter_mm``, ``motion``…); what
+        is left out keeps its current value when the scene is an eye already (else the
+        default eye's). ``motion`` None stops a script; any change restarts the script's clock.
+
+        Raises
+        ------
+        ValueError
+            The resulting eye is invalid (e.g. a limbus wider than the cornea).
+        StateConflictError
+            An operation holds the hardware.
+        """
+        current = self._room.scene
+        base = current if current.kind == "eye" else SceneSpec(kind="eye")
+        try:
+            new_eye = EyeSpec.model_validate({**base.eye.model_dump(), **dict(eye or {})})
+            spec = SceneSpec.model_validate({
+                **base.model_dump(), "kind": "eye", "eye": new_eye,
+                "position_mm": base.position_mm if position_mm is None else position_mm,
+                "rotation_deg": base.rotation_deg if rotation_deg is None else rotation_deg})
+        except ValidationError as exc:
+            raise ValueError("; ".join(f"{'.'.join(str(p) for p in e['loc']) or 'eye'}: "
+                                       f"{e['msg']}" for e in exc.errors())) from None
+        return self.place(spec, actor=actor)
+
+    def eye_truth(self, t_s: float | None = None) -> dict[str, Any]:
+        """The eye scene and the eye's true pose at clock time ``t_s`` (default: now):
+        ``scene``, ``t_s`` (seconds since the scene was placed) and ``eye`` (``centre_mm``,
+        ``gaze``, ``limbus_centre_mm``, ``globe_radius_mm``, ``openness``…).
+
+        Raises
+        ------
+        StateConflictError
+            The scene is not the patient eye.
+        """
+        truth = room_truth(self._room, t_s)
+        if self._room.scene.kind != "eye" or truth.get("eye") is None:
+            raise StateConflictError(f"the simulated scene is {self._room.scene.kind}, not the "
+                                     "patient eye (PUT /api/v1/sim/eye places it)")
+        return {"scene": truth["scene"], "t_s": truth["t_s"], "eye": truth["eye"]}
 
     def truth(self, t_s: float | None = None) -> dict[str, Any]:
         """The current scene's ground truth at clock time ``t_s`` (default: now) with the

@@ -8,6 +8,7 @@
       captures/<id>/      one capture bundle each (FORMATS.md), written by io.write_bundle
       calibrations/<id>/  one calibration directory each (calibration/artefact.py)
       quarantine/         leftovers of interrupted writes, moved here at start-up, never deleted
+      patients/<key>/     eye models, reference poses and pose measurements (JSON), never deleted
 
 Every write is atomic and durable before it is acknowledged: the files go to a hidden sibling
 directory, are fsynced, the directory is renamed into place and its parent fsynced, and only then
@@ -44,6 +45,7 @@ from eyeserver.io import (
     BundleKind,
     ChessboardSpec,
     RigSpec,
+    atomic_write_text,
     fsync_dir,
     makedirs_synced,
     read_bundle,
@@ -124,6 +126,52 @@ CREATE TABLE audit (
 _ADDED_INDEXES = """
 CREATE INDEX IF NOT EXISTS captures_by_kind ON captures (kind, id);
 CREATE INDEX IF NOT EXISTS captures_by_calibration ON captures (calibration_id, id);
+"""
+
+# Tables added within schema version 1 for patients, their eye models, reference poses and pose
+# measurements (eyeserver.service.patients and .verification keep them through the public
+# hooks below: transaction, audit_in, query, write_document). Created when missing, like the
+# indexes above; an older eyeserver ignores them. Their documents are JSON files under
+# ``patients/``, written before their rows, so a row never lacks its file.
+_ADDED_TABLES = """
+CREATE TABLE IF NOT EXISTS patients (
+    patient_id TEXT PRIMARY KEY,
+    key TEXT NOT NULL UNIQUE,
+    eye TEXT NOT NULL CHECK (eye IN ('right', 'left')),
+    unit TEXT NOT NULL,
+    settings TEXT NOT NULL,
+    created TEXT NOT NULL,
+    updated TEXT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS eye_models (
+    patient_id TEXT NOT NULL REFERENCES patients (patient_id),
+    version INTEGER NOT NULL,
+    created TEXT NOT NULL,
+    actor TEXT NOT NULL,
+    file TEXT NOT NULL,
+    PRIMARY KEY (patient_id, version)
+);
+CREATE TABLE IF NOT EXISTS pose_references (
+    patient_id TEXT NOT NULL REFERENCES patients (patient_id),
+    fraction INTEGER NOT NULL,
+    version INTEGER NOT NULL,
+    created TEXT NOT NULL,
+    actor TEXT NOT NULL,
+    source TEXT NOT NULL,
+    file TEXT NOT NULL,
+    PRIMARY KEY (patient_id, fraction, version)
+);
+CREATE TABLE IF NOT EXISTS pose_measurements (
+    id TEXT PRIMARY KEY,
+    patient_id TEXT NOT NULL REFERENCES patients (patient_id),
+    fraction INTEGER NOT NULL,
+    created TEXT NOT NULL,
+    passed INTEGER NOT NULL CHECK (passed IN (0, 1)),
+    capture_id TEXT NOT NULL,
+    file TEXT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS pose_measurements_by_patient
+    ON pose_measurements (patient_id, fraction, id);
 """
 
 
@@ -706,6 +754,64 @@ class Store:
         return [AuditEntry(int(seq), when, actor, action, target, json.loads(detail))
                 for seq, when, actor, action, target, detail in rows]
 
+    # --- hooks for the tables of other modules (patients, pose verification) --------------
+
+    @contextlib.contextmanager
+    def transaction(self) -> Iterator[sqlite3.Connection]:
+        """One durable write transaction (``BEGIN IMMEDIATE`` … ``COMMIT``) on the index, for
+        the tables of :data:`_ADDED_TABLES`; audit rows go in it with :meth:`audit_in`."""
+        with self._transaction() as db:
+            yield db
+
+    def audit_in(self, db: sqlite3.Connection, actor: str, action: str, target: str,
+                 detail: Mapping[str, object]) -> None:
+        """Add an audit row inside a :meth:`transaction` (it reaches ``audit_sink`` once that
+        commits). Raises :class:`StorageError` for an empty ``actor``."""
+        _check_who(actor)
+        self._audit(db, actor, action, target, detail)
+
+    def query(self, sql: str, parameters: Sequence[object] = ()) -> list[tuple[Any, ...]]:
+        """The rows of one read-only statement on the index."""
+        with self._lock:
+            return list(self._db().execute(sql, tuple(parameters)).fetchall())
+
+    def new_id(self, prefix: str) -> str:
+        """A new ``<prefix>-<UTC time to the millisecond>-<4 hex digits>`` id, strictly later
+        than every id this store handed out before (they sort in creation order)."""
+        return self._new_id(prefix)
+
+    def write_document(self, relative: str, text: str) -> Path:
+        """Write ``text`` to ``DATA_DIR/<relative>`` atomically and durably (directories made
+        and fsynced as needed); returns the path. Write it before the row that names it.
+
+        Raises
+        ------
+        StorageError
+            ``relative`` leaves the data directory, or the file cannot be written.
+        """
+        path = (self.data_dir / relative).resolve()
+        if not path.is_relative_to(self.data_dir.resolve()) or path == self.data_dir.resolve():
+            raise StorageError(f"{relative!r} is not a path inside the data directory")
+        try:
+            makedirs_synced(path.parent)
+            atomic_write_text(path, text)
+        except OSError as exc:
+            raise StorageError(f"{relative}: cannot write ({exc})") from exc
+        return path
+
+    def read_document(self, relative: str) -> str:
+        """The text of a document written by :meth:`write_document`.
+
+        Raises
+        ------
+        StorageError
+            The file is missing or unreadable (the message names it).
+        """
+        try:
+            return (self.data_dir / relative).read_text(encoding="utf-8")
+        except OSError as exc:
+            raise StorageError(f"{relative}: cannot read ({exc})") from exc
+
     # --- internals ------------------------------------------------------------------------
 
     def _db(self) -> sqlite3.Connection:
@@ -909,13 +1015,13 @@ def _connect(path: Path) -> sqlite3.Connection:
         version = db.execute("PRAGMA user_version").fetchone()[0]
         if version == 0:
             # One transaction: a crash leaves either no schema or the whole versioned one.
-            db.executescript(f"BEGIN IMMEDIATE; {_SCHEMA} "
+            db.executescript(f"BEGIN IMMEDIATE; {_SCHEMA} {_ADDED_TABLES} "
                              f"PRAGMA user_version={SCHEMA_VERSION}; COMMIT;")
         elif version != SCHEMA_VERSION:
             raise StorageError(f"{path}: index schema version {version}; this eyeserver "
                                f"knows version {SCHEMA_VERSION}")
         else:
-            db.executescript(f"BEGIN IMMEDIATE; {_ADDED_INDEXES} COMMIT;")
+            db.executescript(f"BEGIN IMMEDIATE; {_ADDED_INDEXES} {_ADDED_TABLES} COMMIT;")
     except sqlite3.DatabaseError as exc:
         db.close()
         raise StorageError(f"{path}: unusable index ({exc})") from exc

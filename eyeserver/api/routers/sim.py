@@ -21,6 +21,7 @@ from starlette.concurrency import run_in_threadpool
 from eyeserver.api.auth import OperatorDep, PhysicistDep
 from eyeserver.api.deps import ServiceDep
 from eyeserver.api.schemas import ErrorResponse
+from eyeserver.hardware.sim.motion import MotionSpec
 from eyeserver.hardware.sim.scenes import SceneSpec
 from eyeserver.service.simroom import STAGE_TRAVEL_MM, SimRoomControl, Vec3
 
@@ -117,6 +118,68 @@ async def put_chessboard(pose: ChessboardPose, room: SimRoomDep, caller: Operato
     while the hardware is busy."""
     return await run_in_threadpool(lambda: room.place_chessboard(
         pose.position_mm, pose.rotation_deg, actor=caller.name))
+
+
+class SimEyeRequest(BaseModel):
+    """The patient eye's pose, anatomy or motion; fields left out keep their current values."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    position_mm: Vec3 | None = Field(None, description="The globe centre at rest, WCS, mm "
+                                     "(default eye: (0, 0, -10)).", examples=[(0.5, 0.0, -10.0)])
+    rotation_deg: Vec3 | None = Field(None, description="The head's rotation about X, Y, Z, "
+                                      "degrees (Rz·Ry·Rx).")
+    gaze_deg: tuple[float, float] | None = Field(None, description="(yaw towards +X, pitch "
+                                                 "towards +Y) of the gaze, degrees.",
+                                                 examples=[(2.0, -1.0)])
+    globe_radius_mm: float | None = Field(None, gt=5, lt=20)
+    cornea_radius_mm: float | None = Field(None, gt=4, lt=15)
+    limbus_diameter_mm: float | None = Field(None, gt=6, lt=16)
+    motion: MotionSpec | None = Field(None, description="Drift, saccades, blinks and scripted "
+                                      "events (saccade, blink, shift) from now; null stops the "
+                                      "motion, leaving it out keeps the current one.")
+
+
+class SimEyeResponse(BaseModel):
+    """The eye scene and the eye's true pose now (ground truth: for people and tests)."""
+
+    scene: SceneSpec
+    t_s: float = Field(description="Seconds since the scene was placed (a script's clock).")
+    eye: dict[str, Any] = Field(description="centre_mm, gaze, limbus_centre_mm, "
+                                "globe_radius_mm, cornea_radius_mm, openness (WCS, mm).")
+
+
+@router.get("/eye", summary="The simulated patient eye",
+            responses={409: {"model": ErrorResponse, "description": "The scene is not the "
+                             "patient eye."}})
+async def get_eye(room: SimRoomDep) -> SimEyeResponse:
+    """The eye scene and where the eye is and looks now (its motion evaluated at this time)."""
+    return SimEyeResponse.model_validate(await run_in_threadpool(room.eye_truth))
+
+
+@router.put("/eye", summary="Pose or move the simulated patient eye", responses=_BUSY)
+async def put_eye(request: SimEyeRequest, room: SimRoomDep, caller: OperatorDep,
+                  ) -> SimEyeResponse:
+    """Place the patient eye (the scene becomes the eye if it was not): its position, gaze and
+    globe parameters, or a motion script (MotionSpec) that starts now. Fields left out keep
+    their current values; ``"motion": null`` stops the motion. 422 for an impossible eye, 409
+    while the hardware is busy."""
+    given = request.model_fields_set
+    eye = {name: getattr(request, name) for name in
+           ("gaze_deg", "globe_radius_mm", "cornea_radius_mm", "limbus_diameter_mm")
+           if getattr(request, name) is not None}
+    if "motion" in given:
+        eye["motion"] = request.motion
+
+    def place() -> dict[str, Any]:
+        try:
+            room.place_eye(position_mm=request.position_mm, rotation_deg=request.rotation_deg,
+                           eye=eye, actor=caller.name)
+        except ValueError as exc:
+            raise HTTPException(422, str(exc)) from None
+        return room.eye_truth()
+
+    return SimEyeResponse.model_validate(await run_in_threadpool(place))
 
 
 @router.get("/truth", summary="The scene's ground truth")

@@ -1,0 +1,556 @@
+"""The eye's pose from a reconstructed surface: globe centre, limbus centre and gaze.
+
+The fused cloud holds the skin around the orbit, the lids (or retractors), the sclera seen
+through the palpebral opening and, where it carries fringe signal, the cornea. The globe is the
+one convex sphere of radius ≈ 12 mm bulging towards the cameras (+Z) *behind* everything else
+that is spherical: the lids are shells in front of it. So:
+
+1. **Segmentation by sphere consensus.** Voxel means (0.5 mm) cut noise and work; the dominant
+   plane is removed by MSAC; sequential LO-MSAC (4-point algebraic spheres sampled within 6 mm,
+   scored by the points within 0.25 mm, the best re-fitted to their inliers) finds up to three
+   convex shells of a globe's size facing +Z; of those sharing a centre (± 4 mm) the innermost
+   is taken as the globe (lids and retractors lie in front of it).
+   Known limit: on the simulated room the search can still merge lids and sclera into one
+   larger sphere (radius and depth errors of several mm); see the pose bench.
+2. **Globe.** ``scipy.optimize.least_squares`` on the geometric residual ``|p − c| − R`` with a
+   soft-L1 loss and the points' quality as weights; radius free unless the model fixes it.
+   Covariance from the Jacobian and a robust residual scale (1.4826·MAD).
+3. **Limbus and gaze.** The sclera ends at the limbus (the cornea carries little or no fringe
+   signal): seen from the globe centre the sclera points ring a hole. Per 10° sector around the
+   current axis the innermost points are the boundary; a circle on the sphere (a cone
+   ``u·g = cos β`` about the centre) is fitted to them robustly, and the axis re-centred on it a
+   few times. Gaze = the unit vector from the globe centre through the limbus centre (+Z when the
+   eye looks at the beam source, DESIGN §2). The boundary of the valid fringe region lies about
+   a period outside the true limbus, so the boundary's radius is not the limbus's: the limbus
+   centre reported lies on the fitted axis at the model's limbus depth √(R² − (D/2)²).
+   Where a corneal cap is reconstructed (a sphere of radius 6–10 mm in front of the globe,
+   within the hole), the axis through the two centres is a second gaze cue, combined with the
+   limbus by inverse variance.
+
+Torsion is invisible to the surface of a sphere with a round limbus (DESIGN §4): reported as None.
+
+References
+----------
+Via R. et al., "Feasibility of a light-based eye position verification for ocular proton
+therapy", Physics and Imaging in Radiation Oncology (2023), doi:10.1016/j.phro.2023.100517.
+Chum O., Matas J., Kittler J., "Locally optimized RANSAC", DAGM 2003.
+Torr P., Zisserman A., "MLESAC", CVIU 78 (2000) (the truncated-quadratic MSAC score).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+import numpy.typing as npt
+from scipy.optimize import least_squares
+from scipy.spatial import cKDTree
+
+from eyeserver.errors import EyeserverError
+
+__all__ = ["CloudLike", "EyeModel", "EyePose", "PoseError", "fit_eye", "fit_sphere"]
+
+
+class CloudLike(Protocol):
+    """What :func:`fit_eye` reads of a cloud (:class:`eyeserver.io.PointCloud` qualifies)."""
+
+    @property
+    def points(self) -> npt.NDArray[Any]: ...
+
+    @property
+    def quality(self) -> npt.NDArray[Any] | None: ...
+
+
+class PoseError(EyeserverError):
+    """No eye could be fitted to the cloud; ``reason`` says why in words a user can act on."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class EyeModel:
+    """A patient's eye model (MRI-derived or population defaults), mm.
+
+    Attributes
+    ----------
+    globe_semi_axes_mm : (a, b, c) or None
+        Semi-axes of the anterior-segment ellipsoid along ``orientation``'s columns; None with
+        ``globe_radius_mm`` None fits a sphere whose radius is free.
+    globe_radius_mm : float or None
+        A spherical globe's radius; None fits it.
+    orientation : 3×3 tuple or None
+        Rotation from the model's axes to the WCS (columns: the semi-axes' directions).
+    cornea_radius_mm, limbus_diameter_mm : float
+        Anterior corneal radius and limbus diameter.
+    """
+
+    globe_radius_mm: float | None = None
+    globe_semi_axes_mm: tuple[float, float, float] | None = None
+    orientation: tuple[tuple[float, float, float], ...] | None = None
+    cornea_radius_mm: float = 7.8
+    limbus_diameter_mm: float = 11.7
+
+    @classmethod
+    def population(cls) -> EyeModel:
+        """Textbook defaults: globe ≈ 12 mm (fitted, not imposed), cornea 7.8 mm, limbus 11.7 mm."""
+        return cls(globe_radius_mm=None, cornea_radius_mm=7.8, limbus_diameter_mm=11.7)
+
+    @property
+    def prior_radius_mm(self) -> float:
+        """The radius used to seed the search: the given one, the semi-axes' mean, or 12 mm."""
+        if self.globe_radius_mm is not None:
+            return self.globe_radius_mm
+        if self.globe_semi_axes_mm is not None:
+            return float(np.mean(self.globe_semi_axes_mm))
+        return 12.0
+
+
+@dataclass(frozen=True)
+class EyePose:
+    """A fitted eye pose in the WCS (mm; gaze a unit vector, angles in degrees for humans)."""
+
+    centre_mm: tuple[float, float, float]
+    centre_sd_mm: tuple[float, float, float]
+    globe_radius_mm: float
+    limbus_centre_mm: tuple[float, float, float] | None
+    limbus_sd_mm: float | None
+    gaze: tuple[float, float, float]
+    gaze_sd_deg: float
+    torsion_deg: float | None
+    surface_mad_mm: float
+    sclera_points: int
+    confidence: float
+    gaze_source: str = "limbus"
+    """Where the gaze came from: "limbus", "limbus+cornea", "cornea" or "none" (not found)."""
+    boundary_radius_mm: float | None = None
+    """Radius of the sclera's inner boundary (the valid region's edge, ≥ the true limbus)."""
+    cornea_points: int = 0
+    fit_ms: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able dictionary (lists for vectors)."""
+        def vec(v: tuple[float, ...] | None) -> list[float] | None:
+            return None if v is None else [float(x) for x in v]
+
+        return {
+            "centre_mm": vec(self.centre_mm),
+            "centre_sd_mm": vec(self.centre_sd_mm),
+            "globe_radius_mm": float(self.globe_radius_mm),
+            "limbus_centre_mm": vec(self.limbus_centre_mm),
+            "limbus_sd_mm": None if self.limbus_sd_mm is None else float(self.limbus_sd_mm),
+            "gaze": vec(self.gaze),
+            "gaze_sd_deg": float(self.gaze_sd_deg),
+            "torsion_deg": None if self.torsion_deg is None else float(self.torsion_deg),
+            "surface_mad_mm": float(self.surface_mad_mm),
+            "sclera_points": int(self.sclera_points),
+            "confidence": float(self.confidence),
+            "gaze_source": self.gaze_source,
+            "boundary_radius_mm": None if self.boundary_radius_mm is None
+            else float(self.boundary_radius_mm),
+            "cornea_points": int(self.cornea_points),
+            "fit_ms": float(self.fit_ms),
+        }
+
+
+
+F64 = npt.NDArray[np.float64]
+
+MIN_SCLERA_POINTS = 30
+"""Fewest points a globe fit is attempted on (fewer: :class:`PoseError`)."""
+
+WELL_SEEN_POINTS = 300
+"""Sclera points at which the confidence's point term reaches 1 − 1/e."""
+
+_VOXEL_MM = 0.5
+_LOCAL_MM = 6.0
+_HYPOTHESES = 400
+_BAND_MM = 0.25
+_SECTORS = 36
+
+
+def fit_sphere(points: npt.ArrayLike) -> tuple[F64, float]:
+    """Algebraic (Kåsa) least-squares sphere through ``points`` (N ≥ 4, mm): ``(centre, radius)``.
+
+    Linear in ``(c, R² − |c|²)``; about a millisecond for 50 k points. Biased towards small
+    radii on a small noisy cap, so :func:`fit_eye` only seeds the geometric fit with it.
+
+    >>> import numpy as np
+    >>> u = np.random.default_rng(0).normal(size=(100, 3))
+    >>> c, r = fit_sphere(5.0 * u / np.linalg.norm(u, axis=1, keepdims=True) + [1, 2, 3])
+    >>> np.round(c, 6).tolist(), round(r, 6)
+    ([1.0, 2.0, 3.0], 5.0)
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 4:
+        raise ValueError(f"points must have shape (N >= 4, 3), got {p.shape}")
+    mean = p.mean(axis=0)
+    q = p - mean  # centred: the normal equations stay well conditioned far from the origin
+    a = np.column_stack([2.0 * q, np.ones(len(q))])
+    b = np.einsum("ij,ij->i", q, q)
+    sol, *_ = np.linalg.lstsq(a, b, rcond=None)
+    centre = sol[:3]
+    radius = math.sqrt(max(float(sol[3] + centre @ centre), 0.0))
+    return centre + mean, radius
+
+
+def _batch_spheres(groups: F64, valid: npt.NDArray[np.bool_]) -> tuple[F64, F64]:
+    """Algebraic sphere fits of many small point groups at once: ``groups`` (H, K, 3) with
+    ``valid`` (H, K) marking real members; centres (H, 3) and radii (H,) (NaN when degenerate)."""
+    w = valid.astype(np.float64)
+    count = np.maximum(w.sum(axis=1), 1.0)
+    mean = (groups * w[..., None]).sum(axis=1) / count[:, None]
+    q = (groups - mean[:, None, :]) * w[..., None]
+    a = np.concatenate([2.0 * q, w[..., None]], axis=2)
+    b = np.einsum("hkj,hkj->hk", q, q)
+    ata = np.einsum("hki,hkj->hij", a, a)
+    atb = np.einsum("hki,hk->hi", a, b)
+    good = np.abs(np.linalg.det(ata)) > 1e-9
+    ata[~good] = np.eye(4)
+    sol = np.linalg.solve(ata, atb[..., None])[..., 0]
+    centre = sol[:, :3] + mean
+    r2 = sol[:, 3] + np.einsum("hi,hi->h", sol[:, :3], sol[:, :3])
+    radius = np.sqrt(np.where(good & (r2 > 0), r2, np.nan))
+    return centre, radius
+
+
+def _voxel_means(points: F64, size: float) -> tuple[F64, F64]:
+    """Mean point and count of every occupied ``size`` mm voxel: averaging ~50 points per voxel
+    cuts the noise enough for curvature at a millimetre's scale."""
+    key = np.floor(points / size).astype(np.int64)
+    key -= key.min(axis=0)
+    span = key.max(axis=0) + 1
+    flat = (key[:, 0] * span[1] + key[:, 1]) * span[2] + key[:, 2]
+    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    means = np.stack([np.bincount(inverse, points[:, k]) for k in range(3)], axis=1)
+    return means / counts[:, None], counts.astype(np.float64)
+
+
+def _shell_score(voxels: F64, counts: F64, centres: F64, radii: F64) -> F64:
+    """Points (voxel counts) within the consensus band of each sphere hypothesis."""
+    score = np.zeros(len(centres))
+    for start in range(0, len(centres), 64):
+        dist = np.abs(np.linalg.norm(voxels[None] - centres[start:start + 64, None], axis=2)
+                      - radii[start:start + 64, None])
+        score[start:start + 64] = (dist < _BAND_MM) @ counts
+    return score
+
+
+def _globe_candidates(points: F64, r_bounds: tuple[float, float], fixed: float | None,
+                      ) -> list[tuple[F64, float, float]]:
+    """``(centre, radius, support)`` of convex sphere shells facing +Z, innermost first.
+
+    Voxel means (0.5 mm) cut the noise and the work; the dominant plane (the face, a table, a
+    headrest) is removed by MSAC first, then sequential LO-MSAC finds up to three shells from
+    4-point samples drawn within 6 mm of each other. Shells sharing a centre (± 4 mm) with the
+    best one are returned innermost first: lids and retractors lie in front of the globe.
+    """
+    rng = np.random.default_rng(0)  # a fixed seed: the same cloud always gives the same pose
+    voxels, counts = _voxel_means(points, _VOXEL_MM)
+    if len(voxels) < 4:
+        return []
+    keep = np.ones(len(voxels), dtype=bool)
+    for _ in range(2):
+        idx = np.flatnonzero(keep)
+        if len(idx) < 3:
+            break
+        trip = voxels[idx[rng.integers(0, len(idx), size=(200, 3))]]
+        normal = np.cross(trip[:, 1] - trip[:, 0], trip[:, 2] - trip[:, 0])
+        norm = np.linalg.norm(normal, axis=1)
+        good = norm > 1e-6
+        normal = normal[good] / norm[good, None]
+        offset = np.einsum("ij,ij->i", normal, trip[good, 0])
+        dist = np.abs(voxels[idx] @ normal.T - offset)
+        support = (dist < 0.3).T @ counts[idx]
+        best = int(np.argmax(support))
+        if support[best] < 0.25 * counts[idx].sum():
+            break
+        keep[idx[dist[:, best] < 0.6]] = False
+    shells: list[tuple[F64, float, float]] = []
+    for _ in range(3):
+        idx = np.flatnonzero(keep)
+        if counts[idx].sum() < MIN_SCLERA_POINTS or len(idx) < 8:
+            break
+        sub = voxels[idx]
+        tree = cKDTree(sub)
+        seeds = rng.integers(0, len(sub), size=_HYPOTHESES)
+        near = tree.query_ball_point(sub[seeds], _LOCAL_MM)
+        groups = np.zeros((_HYPOTHESES, 4, 3))
+        valid = np.zeros((_HYPOTHESES, 4), dtype=bool)
+        for h, members in enumerate(near):
+            if len(members) >= 4:
+                groups[h] = sub[rng.choice(members, 4, replace=False)]
+                valid[h] = True
+        centres, radii = _batch_spheres(groups, valid)
+        if fixed is not None:
+            radii = np.where(np.isfinite(radii), fixed, np.nan)
+        ok = (np.isfinite(radii) & (radii > r_bounds[0]) & (radii < r_bounds[1])
+              & (sub[seeds, 2] - centres[:, 2] > 0.2 * np.nan_to_num(radii, nan=1.0)))
+        if not ok.any():
+            break
+        centres, radii = centres[ok], radii[ok]
+        score = _shell_score(sub, counts[idx], centres, radii)
+        found = None
+        for h in np.argsort(score)[::-1][:5]:
+            centre, radius = centres[h], float(radii[h])
+            for band in (0.6, 0.4, _BAND_MM):  # local optimisation on the hypothesis' inliers
+                inl = np.abs(np.linalg.norm(sub - centre, axis=1) - radius) < band
+                if inl.sum() < 4:
+                    break
+                centre, radius = fit_sphere(sub[inl])
+                if fixed is not None:
+                    radius = fixed
+            inl = np.abs(np.linalg.norm(sub - centre, axis=1) - radius) < _BAND_MM
+            support = float(counts[idx][inl].sum())
+            if (r_bounds[0] <= radius <= r_bounds[1] and support >= MIN_SCLERA_POINTS
+                    and np.median(sub[inl, 2]) > centre[2] + 0.2 * radius
+                    and (found is None or support > found[2])):
+                found = (centre, radius, support)
+        if found is None:
+            break
+        shells.append(found)
+        dist = np.abs(np.linalg.norm(voxels - found[0], axis=1) - found[1])
+        keep &= dist > 2 * _BAND_MM
+        keep &= np.linalg.norm(voxels - found[0], axis=1) < found[1] + 8.0
+    if not shells:
+        return []
+    same = [s for s in shells if np.linalg.norm(s[0] - shells[0][0]) < 4.0]
+    return sorted(same, key=lambda s: s[1])
+
+
+def _refine_globe(points: F64, weights: F64, centre: F64, radius: float,
+                  fixed_radius: float | None) -> tuple[F64, float, F64, F64, npt.NDArray[np.bool_]]:
+    """Geometric robust sphere fit: centre, radius, covariance (4×4 or 3×3), residuals, inliers."""
+    sw = np.sqrt(weights)
+    scale = 0.05
+
+    def residuals(x: F64) -> F64:
+        r = fixed_radius if fixed_radius is not None else x[3]
+        return np.asarray(sw * (np.linalg.norm(points - x[:3], axis=1) - r), dtype=np.float64)
+
+    x0 = np.append(centre, radius) if fixed_radius is None else centre.copy()
+    fit = least_squares(residuals, x0, loss="soft_l1", f_scale=scale, x_scale=1.0)
+    x = fit.x
+    r_fit = float(fixed_radius if fixed_radius is not None else x[3])
+    resid = np.linalg.norm(points - x[:3], axis=1) - r_fit
+    sigma = max(1.4826 * float(np.median(np.abs(resid))), 1e-4)
+    inliers = np.abs(resid) < max(3.0 * sigma, 0.1)
+    jac = fit.jac[inliers] / np.maximum(sw[inliers, None], 1e-12)
+    jtj = jac.T @ (jac * weights[inliers, None])
+    try:
+        cov = np.linalg.inv(jtj) * sigma**2 * weights[inliers].sum() / max(inliers.sum(), 1)
+    except np.linalg.LinAlgError:
+        cov = np.full((len(x), len(x)), np.inf)
+    return x[:3], r_fit, cov, resid, inliers
+
+
+def _frame(axis: F64) -> tuple[F64, F64]:
+    """Two unit vectors completing ``axis`` to an orthonormal frame."""
+    helper = np.array([0.0, 1.0, 0.0]) if abs(axis[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = np.cross(helper, axis)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(axis, e1)
+
+
+def _limbus(directions: F64) -> tuple[F64, float, F64, int] | None:
+    """Axis ``g`` and cos of the half-angle of the hole the sclera directions ring.
+
+    Returns ``(g, cos_beta, covariance of the two tilt angles (rad²), boundary points)`` or
+    None when the boundary is not seen on enough sides to fix a circle.
+    """
+    axis = directions.mean(axis=0)
+    axis /= np.linalg.norm(axis)
+    result = None
+    for _ in range(5):
+        e1, e2 = _frame(axis)
+        azimuth = np.arctan2(directions @ e2, directions @ e1)
+        sector = ((azimuth + math.pi) / (2 * math.pi) * _SECTORS).astype(int) % _SECTORS
+        height = directions @ axis
+        boundary = []
+        for k in range(_SECTORS):
+            members = np.flatnonzero(sector == k)
+            if len(members) < 3:
+                continue
+            top = members[np.argsort(height[members])[-2:]]  # the innermost two of the sector
+            boundary.extend(top.tolist())
+        sides = {int(sector[b] * 4 // _SECTORS) for b in boundary}
+        if len(boundary) < 8 or len(sides) < 2:
+            return None
+        b = directions[np.asarray(boundary)]
+        angle = np.arccos(np.clip(b @ axis, -1.0, 1.0))
+        if (np.ptp(azimuth[np.asarray(boundary)]) < math.pi / 2):
+            return None
+        start = np.array([0.0, 0.0, math.cos(float(np.median(angle)))])
+
+        def residuals(x: F64, b: F64 = b, e1: F64 = e1, e2: F64 = e2, axis: F64 = axis) -> F64:
+            g = axis + x[0] * e1 + x[1] * e2
+            return np.asarray(b @ (g / np.linalg.norm(g)) - x[2], dtype=np.float64)
+
+        fit = least_squares(residuals, start, loss="soft_l1", f_scale=0.01)
+        g = axis + fit.x[0] * e1 + fit.x[1] * e2
+        g /= np.linalg.norm(g)
+        resid = fit.fun
+        sigma = max(1.4826 * float(np.median(np.abs(resid))), 1e-5)
+        try:
+            cov = np.linalg.inv(fit.jac.T @ fit.jac)[:2, :2] * sigma**2
+        except np.linalg.LinAlgError:
+            cov = np.full((2, 2), np.inf)
+        moved = float(np.linalg.norm(g - axis))
+        axis = g
+        result = (g, float(fit.x[2]), cov, len(boundary))
+        if moved < 1e-5:
+            break
+    return result
+
+
+def _cornea(points: F64, centre: F64, radius: float, gaze: F64, cos_beta: float,
+            ) -> tuple[F64, int, float] | None:
+    """Centre of a corneal cap in front of the hole, its point count and centre SD, if seen."""
+    rel = points - centre
+    dist = np.linalg.norm(rel, axis=1)
+    inside = (rel @ gaze) > dist * (cos_beta - 0.05)
+    candidates = points[inside & (dist > radius + 0.15) & (dist < radius + 3.5)]
+    if len(candidates) < 60:
+        return None
+    c0, r0 = fit_sphere(candidates)
+    if not 5.5 < r0 < 10.5:
+        return None
+
+    def residuals(x: F64) -> F64:
+        return np.asarray(np.linalg.norm(candidates - x[:3], axis=1) - x[3], dtype=np.float64)
+
+    fit = least_squares(residuals, np.append(c0, r0), loss="soft_l1", f_scale=0.05)
+    resid = fit.fun
+    sigma = max(1.4826 * float(np.median(np.abs(resid))), 1e-4)
+    good = np.abs(resid) < 3 * sigma
+    if good.sum() < 60 or not 5.5 < fit.x[3] < 10.5 or sigma > 0.2:
+        return None
+    try:
+        cov = np.linalg.inv(fit.jac[good].T @ fit.jac[good]) * sigma**2
+    except np.linalg.LinAlgError:
+        return None
+    return fit.x[:3], int(good.sum()), float(math.sqrt(np.trace(cov[:3, :3])))
+
+
+def fit_eye(cloud: CloudLike, model: EyeModel) -> EyePose:
+    """Fit the eye model to a fused cloud: globe centre and radius, limbus, gaze, confidence.
+
+    Parameters
+    ----------
+    cloud : CloudLike
+        Points (N, 3) in WCS mm, with optional per-point quality in [0, 1] used as weights.
+    model : EyeModel
+        The patient's model; a fixed ``globe_radius_mm`` is imposed, None fits the radius.
+
+    Returns
+    -------
+    EyePose
+
+    Raises
+    ------
+    PoseError
+        No convex sphere of a globe's size is found, or too few points lie on it.
+    ValueError
+        ``cloud.points`` is not (N, 3) or holds non-finite values.
+    """
+    started = time.perf_counter()
+    points = np.asarray(cloud.points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"cloud.points must have shape (N, 3), got {points.shape}")
+    if not np.isfinite(points).all():
+        raise ValueError("cloud.points must be finite")
+    quality = cloud.quality
+    weights = (np.ones(len(points)) if quality is None
+               else np.clip(np.asarray(quality, dtype=np.float64), 0.05, 1.0))
+    if len(points) < MIN_SCLERA_POINTS:
+        raise PoseError(f"no eye found: the cloud holds {len(points)} points")
+    fixed = model.globe_radius_mm
+    prior = model.prior_radius_mm
+    r_bounds = (0.7 * prior, 1.45 * prior) if fixed is None else (0.95 * fixed, 1.05 * fixed)
+    candidates = _globe_candidates(points, r_bounds, fixed)
+    if not candidates:
+        raise PoseError("no eye found: no convex sphere of a globe's size (radius "
+                        f"{r_bounds[0]:.1f}–{r_bounds[1]:.1f} mm) facing the cameras in "
+                        f"{len(points)} points")
+    # Lids and retractors lie in front of the globe: the innermost shell is the sclera.
+    centre, radius, _ = candidates[0]
+    if fixed is not None:
+        radius = fixed
+    near = np.abs(np.linalg.norm(points - centre, axis=1) - radius) < _BAND_MM
+    if near.sum() < MIN_SCLERA_POINTS:
+        raise PoseError(f"no eye found: only {int(near.sum())} points on the best globe")
+    centre, radius, cov, resid, inliers = _refine_globe(points[near], weights[near], centre,
+                                                        radius, fixed)
+    for band in (_BAND_MM, 0.2):  # the band follows the refined sphere
+        near = np.abs(np.linalg.norm(points - centre, axis=1) - radius) < band
+        centre, radius, cov, resid, inliers = _refine_globe(points[near], weights[near], centre,
+                                                            radius, fixed)
+    sclera = points[near][inliers]
+    if len(sclera) < MIN_SCLERA_POINTS:
+        raise PoseError(f"no eye found: only {len(sclera)} sclera points fit a globe")
+    surface_mad = float(np.median(np.abs(resid)))
+    centre_sd = np.sqrt(np.clip(np.diag(cov)[:3], 0.0, None))
+
+    directions = sclera - centre
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    limbus = _limbus(directions)
+    half = model.limbus_diameter_mm / 2
+    depth = math.sqrt(max(radius**2 - half**2, 0.0))
+    gaze_source = "none"
+    gaze = directions.mean(axis=0)
+    gaze /= np.linalg.norm(gaze)
+    gaze_sd = 90.0
+    limbus_centre: tuple[float, float, float] | None = None
+    limbus_sd: float | None = None
+    boundary_radius: float | None = None
+    cornea_points = 0
+    if limbus is not None:
+        g, cos_beta, tilt_cov, _ = limbus
+        if g[2] < 0:  # the hole faces the cameras; a flip means the ring was misread
+            g = -g
+        lateral = float(np.sqrt(np.sum(centre_sd**2 * (1.0 - g**2))))
+        # Tilt of the fitted circle plus the globe centre's own lateral uncertainty seen from
+        # the limbus plane.
+        tilt_var = float(np.trace(tilt_cov)) + (lateral / max(depth, 1.0)) ** 2
+        gaze, gaze_sd = g, math.degrees(math.sqrt(tilt_var))
+        gaze_source = "limbus"
+        boundary_radius = radius * math.sqrt(max(1.0 - cos_beta**2, 0.0))
+        cornea = _cornea(points, centre, radius, g, cos_beta)
+        if cornea is not None:
+            c_centre, cornea_points, c_sd = cornea
+            axis = c_centre - centre
+            if np.linalg.norm(axis) > 1.0:
+                axis /= np.linalg.norm(axis)
+                var_c = (c_sd / max(float(np.linalg.norm(c_centre - centre)), 1.0)) ** 2
+                var_l = math.radians(gaze_sd) ** 2
+                blend = gaze / var_l + axis / var_c
+                gaze = blend / np.linalg.norm(blend)
+                gaze_sd = math.degrees(math.sqrt(1.0 / (1.0 / var_l + 1.0 / var_c)))
+                gaze_source = "limbus+cornea"
+        limbus_point = centre + depth * gaze
+        limbus_centre = (float(limbus_point[0]), float(limbus_point[1]), float(limbus_point[2]))
+        limbus_sd = float(math.sqrt(float(centre_sd @ centre_sd)
+                                    + (depth * math.radians(gaze_sd)) ** 2))
+
+    # Confidence: enough sclera, a surface that fits the model, a gaze that is found and sharp.
+    seen = 1.0 - math.exp(-len(sclera) / WELL_SEEN_POINTS)
+    fits = 1.0 / (1.0 + (surface_mad / 0.15) ** 2)
+    sharp = 0.0 if gaze_source == "none" else 1.0 / (1.0 + (gaze_sd / 1.0) ** 2)
+    radius_plausible = 1.0 if r_bounds[0] <= radius <= r_bounds[1] else 0.3
+    confidence = seen * fits * (0.25 + 0.75 * sharp) * radius_plausible
+    return EyePose(
+        centre_mm=(float(centre[0]), float(centre[1]), float(centre[2])),
+        centre_sd_mm=(float(centre_sd[0]), float(centre_sd[1]), float(centre_sd[2])),
+        globe_radius_mm=float(radius),
+        limbus_centre_mm=limbus_centre, limbus_sd_mm=limbus_sd,
+        gaze=(float(gaze[0]), float(gaze[1]), float(gaze[2])),
+        gaze_sd_deg=float(gaze_sd), torsion_deg=None,
+        surface_mad_mm=surface_mad, sclera_points=len(sclera),
+        confidence=float(min(max(confidence, 0.0), 1.0)),
+        gaze_source=gaze_source, boundary_radius_mm=boundary_radius,
+        cornea_points=cornea_points, fit_ms=1000.0 * (time.perf_counter() - started))

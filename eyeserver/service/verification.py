@@ -1,0 +1,317 @@
+"""Position verification: is the patient's eye where the plan wants it?
+
+``measure(patient, fraction)`` captures the patient's unit (:attr:`Patient.unit`), reconstructs
+the capture with the active calibration, fits the patient's newest eye model (population
+defaults without one) and compares the pose with the fraction's newest reference:
+
+* ``delta_mm = measured centre − reference centre`` (ΔX, ΔY, ΔZ in the WCS, mm) and its length;
+* ``gaze_deg``: the angle between measured and reference gaze;
+* it passes when ``|Δ| ≤ translation_mm``, ``gaze_deg ≤ gaze_deg`` tolerance and the fit's
+  confidence is at least ``min_confidence``; ``reasons`` says what failed.
+
+The result is stored with its evidence (capture id — its bundle and ``cloud.ply`` stay with the
+capture —, the reconstruction's calibration id, the eye-model version and the fit) as
+``patients/<key>/measurements/<pose id>.json`` and a row, in one audited transaction. A fit that
+fails raises :class:`~eyeserver.pipeline.eyepose.PoseError` (HTTP 422); the failure is written
+to the audit file with the capture it was tried on.
+
+The deviation arithmetic (:func:`deviation`, :func:`judge`) is pure and kept apart for tests.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Any, Literal
+
+from eyeserver.errors import EyeserverError
+from eyeserver.io import read_ply
+from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, fit_eye
+from eyeserver.service.core import NoActiveCalibrationError, Service
+from eyeserver.service.patients import (
+    Patient,
+    Patients,
+    ReferencePose,
+    Tolerances,
+)
+from eyeserver.service.storage import UnknownIdError
+
+__all__ = ["Deviation", "FitFunction", "PoseVerification", "Verdict", "deviation",
+           "gaze_angle_deg", "judge"]
+
+FitFunction = Callable[[CloudLike, EyeModel], EyePose]
+"""What fits an eye model to a cloud (:func:`~eyeserver.pipeline.eyepose.fit_eye`)."""
+
+Vector = Sequence[float]
+
+_log = logging.getLogger(__name__)
+
+
+def _now_text() -> str:
+    return datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+def gaze_angle_deg(a: Vector, b: Vector) -> float:
+    """The angle between two directions, degrees (0…180; they need not be unit vectors).
+
+    ``atan2(|a×b|, a·b)`` rather than ``acos`` of the dot product: it stays accurate for the
+    small angles that matter here (acos loses half the digits near 0).
+
+    >>> round(gaze_angle_deg((0, 0, 1), (0, math.sin(0.01), math.cos(0.01))), 6)
+    0.572958
+    """
+    cross = (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+    dot = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+    return math.degrees(math.atan2(math.hypot(*cross), dot))
+
+
+@dataclass(frozen=True)
+class Deviation:
+    """Measured minus reference, in the WCS.
+
+    Attributes
+    ----------
+    delta_mm : (ΔX, ΔY, ΔZ)
+        Globe centre, measured − reference, mm.
+    length_mm : float
+        ``|delta_mm|``.
+    gaze_deg : float
+        Angle between the measured and the reference gaze, degrees.
+    limbus_delta_mm : (ΔX, ΔY, ΔZ) or None
+        Limbus centre, measured − reference, when both are known.
+    """
+
+    delta_mm: tuple[float, float, float]
+    length_mm: float
+    gaze_deg: float
+    limbus_delta_mm: tuple[float, float, float] | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """As stored and answered."""
+        return {"delta_mm": list(self.delta_mm), "length_mm": self.length_mm,
+                "gaze_deg": self.gaze_deg,
+                "limbus_delta_mm": None if self.limbus_delta_mm is None
+                else list(self.limbus_delta_mm)}
+
+
+def _difference(a: Vector, b: Vector) -> tuple[float, float, float]:
+    return (float(a[0]) - float(b[0]), float(a[1]) - float(b[1]), float(a[2]) - float(b[2]))
+
+
+def deviation(measured_centre: Vector, measured_gaze: Vector, reference_centre: Vector,
+              reference_gaze: Vector, measured_limbus: Vector | None = None,
+              reference_limbus: Vector | None = None) -> Deviation:
+    """Measured − reference pose (see :class:`Deviation`).
+
+    >>> d = deviation((0.1, 0.0, -9.8), (0, 0, 1), (0.0, 0.0, -10.0), (0, 0, 1))
+    >>> [round(v, 6) for v in d.delta_mm], round(d.length_mm, 6), d.gaze_deg
+    ([0.1, 0.0, 0.2], 0.223607, 0.0)
+    """
+    delta = _difference(measured_centre, reference_centre)
+    limbus = (None if measured_limbus is None or reference_limbus is None
+              else _difference(measured_limbus, reference_limbus))
+    return Deviation(delta, math.hypot(*delta), gaze_angle_deg(measured_gaze, reference_gaze),
+                     limbus)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Pass or fail, with the reasons of a fail (empty when it passes)."""
+
+    passed: bool
+    in_tolerance: bool
+    reasons: tuple[str, ...]
+
+
+def judge(found: Deviation, tolerances: Tolerances, confidence: float) -> Verdict:
+    """Compare a deviation with the tolerances; a fit less confident than ``min_confidence``
+    fails too (``in_tolerance`` then still tells whether the numbers were within)."""
+    reasons = []
+    if not found.length_mm <= tolerances.translation_mm:  # NaN fails
+        reasons.append(f"translation {found.length_mm:.3f} mm exceeds "
+                       f"{tolerances.translation_mm:g} mm")
+    if not found.gaze_deg <= tolerances.gaze_deg:
+        reasons.append(f"gaze deviation {found.gaze_deg:.2f}° exceeds {tolerances.gaze_deg:g}°")
+    in_tolerance = not reasons
+    if not confidence >= tolerances.min_confidence:
+        reasons.append(f"fit confidence {confidence:.2f} is below "
+                       f"{tolerances.min_confidence:g}")
+    return Verdict(not reasons, in_tolerance, tuple(reasons))
+
+
+@dataclass(frozen=True)
+class _Observation:
+    capture_id: str
+    unit: str
+    calibration_id: str
+    eye_model_version: int | None
+    eye_model: dict[str, Any] | None
+    cloud_points: int
+    pose: EyePose
+
+    def evidence(self) -> dict[str, Any]:
+        return {"capture_id": self.capture_id, "unit": self.unit,
+                "calibration_id": self.calibration_id,
+                "eye_model_version": self.eye_model_version, "eye_model": self.eye_model,
+                "cloud_points": self.cloud_points, "fit": self.pose.to_dict()}
+
+
+class PoseVerification:
+    """Pose measurements of the patients of one daemon.
+
+    Parameters
+    ----------
+    service : Service
+        The open daemon (capture, reconstruction, store, audit, events).
+    patients : Patients
+        Its patients.
+    fit : FitFunction, optional
+        The eye fit (default :func:`~eyeserver.pipeline.eyepose.fit_eye`); tests give their
+        own for determinism. A public attribute.
+
+    All methods block (hardware, disk, CPU) and are thread-safe.
+    """
+
+    def __init__(self, service: Service, patients: Patients, fit: FitFunction = fit_eye
+                 ) -> None:
+        self.service = service
+        self.patients = patients
+        self.fit = fit
+
+    # --- measuring --------------------------------------------------------------------------
+
+    def _observe(self, patient: Patient, actor: str, action: str, fraction: int
+                 ) -> _Observation:
+        """Capture, reconstruct and fit; a failure after the capture is audited with it."""
+        service = self.service
+        if service.store.active_calibration() is None:  # before moving any hardware
+            raise NoActiveCalibrationError(
+                "no calibration is active: import one (POST /api/v1/calibrations) and activate "
+                "it (POST /api/v1/calibrations/{id}/activate)")
+        stored_model = self.patients.eye_model(patient.patient_id)
+        model = EyeModel.population() if stored_model is None else \
+            stored_model.model.to_eye_model()
+        capture = service.capture(patient.unit)
+        try:
+            summary = service.reconstruct(capture.id)
+            cloud = read_ply(service.cloud_path(capture.id))
+            pose = self.fit(cloud, model)
+        except EyeserverError as exc:
+            service.audit.record(actor, action, patient.key, {
+                "patient_id": patient.patient_id, "fraction": fraction,
+                "capture_id": capture.id, "error": str(exc) or type(exc).__name__}, "error")
+            raise
+        return _Observation(
+            capture.id, patient.unit, str(summary["calibration_id"]),
+            None if stored_model is None else stored_model.version,
+            None if stored_model is None else stored_model.model.model_dump(mode="json"),
+            int(summary["points"]), pose)
+
+    def measure(self, patient_id: str, fraction: int, *, actor: str) -> dict[str, Any]:
+        """Measure the pose of a patient's eye and compare it with the fraction's reference.
+
+        Returns
+        -------
+        dict
+            The stored measurement (see the module docstring and ``GET
+            /api/v1/pose/measurements/{id}``).
+
+        Raises
+        ------
+        UnknownPatientError, NoReferenceError
+            No such patient, or no reference for the fraction (HTTP 404).
+        NoActiveCalibrationError
+            No calibration is active (HTTP 409); nothing was captured.
+        PoseError
+            No eye could be fitted (HTTP 422; the reason says why).
+        StateConflictError, DeviceError, QueueFullError, ReconstructionError
+            As for :meth:`Service.capture` and :meth:`Service.reconstruct`.
+        """
+        patient = self.patients.get(patient_id)
+        reference = self.patients.reference(patient_id, fraction)
+        seen = self._observe(patient, actor, "measure_pose", fraction)
+        pose = seen.pose
+        ref = reference.pose
+        found = deviation(pose.centre_mm, pose.gaze, ref["centre_mm"], ref["gaze"],
+                          pose.limbus_centre_mm, ref.get("limbus_centre_mm"))
+        verdict = judge(found, patient.tolerances, pose.confidence)
+        store = self.service.store
+        measurement_id = store.new_id("pose")
+        relative = f"patients/{patient.key}/measurements/{measurement_id}.json"
+        document: dict[str, Any] = {
+            "format": "eyeserver.pose-measurement/1", "id": measurement_id,
+            "patient_id": patient_id, "fraction": fraction, "eye": patient.eye,
+            "created": _now_text(), "actor": actor, "passed": verdict.passed,
+            "in_tolerance": verdict.in_tolerance, "reasons": list(verdict.reasons),
+            "deviation": found.to_dict(), "tolerances": patient.tolerances.to_dict(),
+            "pose": pose.to_dict(),
+            "reference": {"version": reference.version, "source": reference.source,
+                          "pose": reference.pose},
+            "evidence": seen.evidence()}
+        text = json.dumps(document, indent=2) + "\n"
+        with store.transaction() as db:
+            store.write_document(relative, text)
+            db.execute("INSERT INTO pose_measurements (id, patient_id, fraction, created, "
+                       "passed, capture_id, file) VALUES (?, ?, ?, ?, ?, ?, ?)",
+                       (measurement_id, patient_id, fraction, document["created"],
+                        int(verdict.passed), seen.capture_id, relative))
+            store.audit_in(db, actor, "measure_pose", measurement_id, {
+                "patient_id": patient_id, "fraction": fraction, "passed": verdict.passed,
+                "length_mm": found.length_mm, "gaze_deg": found.gaze_deg,
+                "capture_id": seen.capture_id})
+        _log.info("pose measured", extra={"measurement_id": measurement_id,
+                                          "passed": verdict.passed,
+                                          "length_mm": round(found.length_mm, 4),
+                                          "gaze_deg": round(found.gaze_deg, 3)})
+        # No patient id on the event stream: room displays need the verdict, not the name.
+        self.service.events.publish("pose.measured", measurement_id=measurement_id,
+                                    fraction=fraction, passed=verdict.passed,
+                                    length_mm=found.length_mm, gaze_deg=found.gaze_deg)
+        result: dict[str, Any] = json.loads(text)
+        return result
+
+    def capture_reference(self, patient_id: str, fraction: int, *, actor: str
+                          ) -> ReferencePose:
+        """Measure the eye at set-up and store the pose as the fraction's next reference.
+
+        Raises as :meth:`measure`, except that no reference is needed.
+        """
+        patient = self.patients.get(patient_id)
+        seen = self._observe(patient, actor, "set_reference_pose", fraction)
+        pose = seen.pose
+        return self.patients.set_reference(
+            patient_id, fraction, {"centre_mm": list(pose.centre_mm), "gaze": list(pose.gaze),
+                                   "limbus_centre_mm": None if pose.limbus_centre_mm is None
+                                   else list(pose.limbus_centre_mm)},
+            source="capture", actor=actor, evidence=seen.evidence())
+
+    # --- reading ----------------------------------------------------------------------------
+
+    def get(self, measurement_id: str) -> dict[str, Any]:
+        """One stored measurement; :class:`UnknownIdError` for an unknown id."""
+        rows = self.service.store.query("SELECT file FROM pose_measurements WHERE id = ?",
+                                        (measurement_id,))
+        if not rows:
+            raise UnknownIdError(measurement_id, "pose measurement")
+        document: dict[str, Any] = json.loads(self.service.store.read_document(rows[0][0]))
+        return document
+
+    def find(self, patient_id: str, fraction: int | None = None, *, limit: int = 50,
+             offset: int = 0, order: Literal["newest", "oldest"] = "newest",
+             ) -> tuple[list[dict[str, Any]], int]:
+        """A patient's measurements (of one fraction, if given), newest first, one page, and
+        how many there are in all; :class:`UnknownPatientError` for an unknown patient."""
+        self.patients.get(patient_id)
+        where = "WHERE patient_id = ?" + ("" if fraction is None else " AND fraction = ?")
+        parameters: list[object] = [patient_id] + ([] if fraction is None else [fraction])
+        store = self.service.store
+        total = int(store.query(f"SELECT COUNT(*) FROM pose_measurements {where}",
+                                parameters)[0][0])
+        direction = "DESC" if order == "newest" else "ASC"
+        rows = store.query(f"SELECT file FROM pose_measurements {where} ORDER BY id "
+                           f"{direction} LIMIT ? OFFSET ?", [*parameters, limit, offset])
+        return [json.loads(store.read_document(file)) for (file,) in rows], total

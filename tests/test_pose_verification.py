@@ -1,0 +1,352 @@
+"""Position verification (``POST /api/v1/pose/measure``) and the simulated eye (``/sim/eye``).
+
+The deviation arithmetic is checked on its own; through the API, the mechanisms (capture,
+reconstruction, storage, evidence, verdicts, errors) run with an injected fit for determinism,
+then once end to end through the real fit on the simulated room. One app serves the module; the
+tests run in file order (the first need a daemon without an active calibration).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import zipfile
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from anyio.from_thread import start_blocking_portal
+from fastapi import FastAPI
+
+from eyeserver.api import create_app
+from eyeserver.api.auth import TokenTable
+from eyeserver.api.routers.sim import NO_SIM_ROOM
+from eyeserver.calibration.artefact import ARRAYS_FILE, CALIBRATION_FILE
+from eyeserver.hardware.sim.drivers import build_sim_rig
+from eyeserver.hardware.sim.room import SimRoom
+from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError, fit_eye
+from eyeserver.service.core import Service
+from eyeserver.service.patients import Tolerances
+from eyeserver.service.verification import PoseVerification, deviation, gaze_angle_deg, judge
+from tests.apiclient import API, OPERATOR_TOKEN, Client, auth, test_settings
+
+OPERATOR = auth(OPERATOR_TOKEN)
+REFERENCE = {"centre_mm": [0.0, 0.0, -10.0], "gaze": [0.0, 0.0, 1.0]}
+
+
+# --- the arithmetic ---------------------------------------------------------------------------
+
+
+def test_the_deviation_is_measured_minus_reference() -> None:
+    found = deviation((0.3, -0.1, -9.5), (0, 0, 1), (0.1, 0.1, -10.0), (0, 0, 1),
+                      (0.3, 0.0, 2.0), (0.0, 0.0, 2.5))
+
+    assert found.delta_mm == pytest.approx((0.2, -0.2, 0.5))
+    assert found.length_mm == pytest.approx(math.sqrt(0.04 + 0.04 + 0.25))
+    assert found.gaze_deg == 0.0
+    assert found.limbus_delta_mm == pytest.approx((0.3, 0.0, -0.5))
+
+
+@pytest.mark.parametrize("angle_deg", [0.01, 0.5, 1.0, 10.0, 90.0, 179.0])
+def test_the_gaze_deviation_is_the_angle_between_the_gazes(angle_deg: float) -> None:
+    a = math.radians(angle_deg)
+    tilted = (math.sin(a) * 3.0, 0.0, math.cos(a) * 3.0)  # need not be a unit vector
+
+    assert gaze_angle_deg((0, 0, 1), tilted) == pytest.approx(angle_deg, abs=1e-9)
+
+
+@pytest.mark.parametrize(("delta", "gaze_deg", "confidence", "passed", "in_tolerance", "words"), [
+    ((0.1, 0.1, 0.1), 0.5, 0.9, True, True, []),
+    ((0.2, 0.0, 0.0), 1.0, 0.5, True, True, []),  # on the limits passes
+    ((0.15, 0.15, 0.0), 0.0, 0.9, False, False, ["translation 0.212 mm exceeds 0.2 mm"]),
+    ((0.0, 0.0, 0.0), 1.01, 0.9, False, False, ["gaze deviation 1.01° exceeds 1°"]),
+    ((0.0, 0.0, 0.0), 0.0, 0.49, False, True, ["fit confidence 0.49 is below 0.5"]),
+    ((math.nan, 0.0, 0.0), 0.0, 0.9, False, False, ["translation nan mm exceeds 0.2 mm"]),
+])
+def test_the_verdict_follows_the_tolerances(delta: tuple[float, float, float], gaze_deg: float,
+                                            confidence: float, passed: bool,
+                                            in_tolerance: bool, words: list[str]) -> None:
+    found = deviation(delta, (0, 0, 1), (0, 0, 0), (0, 0, 1))
+    found = type(found)(found.delta_mm, found.length_mm, gaze_deg)
+
+    verdict = judge(found, Tolerances(), confidence)
+
+    assert (verdict.passed, verdict.in_tolerance, list(verdict.reasons)) == \
+        (passed, in_tolerance, words)
+
+
+# --- through the API --------------------------------------------------------------------------
+
+
+class FakeFit:
+    """A fit that answers a set pose (or raises), and remembers what it was given."""
+
+    def __init__(self) -> None:
+        self.centre = (0.0, 0.0, -10.0)
+        self.gaze = (0.0, 0.0, 1.0)
+        self.confidence = 0.9
+        self.error: str | None = None
+        self.calls: list[tuple[int, EyeModel]] = []
+
+    def __call__(self, cloud: CloudLike, model: EyeModel) -> EyePose:
+        self.calls.append((len(cloud.points), model))
+        if self.error is not None:
+            raise PoseError(self.error)
+        return EyePose(centre_mm=self.centre, centre_sd_mm=(0.01, 0.01, 0.01),
+                       globe_radius_mm=12.0, limbus_centre_mm=None, limbus_sd_mm=None,
+                       gaze=self.gaze, gaze_sd_deg=0.1, torsion_deg=None, surface_mad_mm=0.05,
+                       sclera_points=1000, confidence=self.confidence)
+
+
+@pytest.fixture(scope="module")
+def fake_fit(app: FastAPI, client: Client) -> Iterator[FakeFit]:
+    verification = app.state.verification
+    assert isinstance(verification, PoseVerification)
+    fake = FakeFit()
+    verification.fit = fake
+    yield fake
+    verification.fit = fit_eye
+
+
+@pytest.fixture(scope="module")
+def patient(client: Client) -> str:
+    assert client.put(f"{API}/patients/P-100", json={"eye": "right"}).status_code == 201
+    assert client.put(f"{API}/patients/P-100/fractions/1/reference",
+                      json=REFERENCE).status_code == 201
+    return "P-100"
+
+
+@pytest.fixture(scope="module")
+def calibration_id(client: Client,
+                   calibrated_rooms: Callable[[str], tuple[Path, Path]]) -> str:
+    caldir = calibrated_rooms("default")[1]
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for name in (CALIBRATION_FILE, ARRAYS_FILE):
+            archive.writestr(name, (caldir / name).read_bytes())
+    imported = client.post(f"{API}/calibrations", content=buffer.getvalue(),
+                           headers={"content-type": "application/zip"})
+    assert imported.status_code == 201, imported.text
+    calibration = imported.json()["id"]
+    assert client.post(f"{API}/calibrations/{calibration}/activate").status_code == 200
+    return str(calibration)
+
+
+def _measure(client: Client, patient_id: str = "P-100", fraction: int = 1,
+             expected: int = 201) -> Any:
+    response = client.post(f"{API}/pose/measure", json={"patient_id": patient_id,
+                                                        "fraction": fraction}, headers=OPERATOR)
+    assert response.status_code == expected, response.text
+    return response.json()
+
+
+def test_without_an_active_calibration_nothing_is_captured_409(
+        client: Client, patient: str, fake_fit: FakeFit) -> None:
+    body = _measure(client, patient, expected=409)
+
+    assert "no calibration is active" in body["detail"]
+    assert client.get(f"{API}/captures").json()["total"] == 0
+
+
+def test_unknown_patients_and_missing_references_are_404(client: Client, patient: str) -> None:
+    unknown = _measure(client, "P-nobody", expected=404)
+    no_reference = _measure(client, patient, fraction=7, expected=404)
+    bad = client.post(f"{API}/pose/measure", json={"patient_id": patient, "fraction": 0})
+
+    assert "no patient" in unknown["detail"]
+    assert "fraction 7 has no reference pose" in no_reference["detail"]
+    assert bad.status_code == 422
+
+
+def test_a_pose_at_the_reference_passes_with_its_evidence(
+        client: Client, patient: str, fake_fit: FakeFit, calibration_id: str,
+        data_dir: Path) -> None:
+    fake_fit.centre, fake_fit.gaze = (0.05, -0.05, -9.95), (0.0, 0.0, 1.0)
+
+    body = _measure(client, patient)
+
+    assert body["passed"] is True and body["in_tolerance"] is True and body["reasons"] == []
+    assert body["deviation"]["delta_mm"] == pytest.approx([0.05, -0.05, 0.05])
+    assert body["deviation"]["length_mm"] == pytest.approx(math.sqrt(3) * 0.05)
+    assert body["deviation"]["gaze_deg"] == 0.0
+    assert body["tolerances"] == {"translation_mm": 0.2, "gaze_deg": 1.0, "min_confidence": 0.5}
+    assert (body["patient_id"], body["fraction"], body["eye"]) == ("P-100", 1, "right")
+    assert body["pose"]["centre_mm"] == [0.05, -0.05, -9.95]
+    assert body["reference"] == {"version": 1, "source": "plan",
+                                 "pose": {**REFERENCE, "limbus_centre_mm": None}}
+    evidence = body["evidence"]
+    assert evidence["calibration_id"] == calibration_id
+    assert evidence["unit"] == "all"
+    assert evidence["eye_model_version"] is None  # population defaults
+    assert evidence["fit"] == body["pose"]
+    assert evidence["cloud_points"] > 1000
+    assert client.get(f"{API}/captures/{evidence['capture_id']}").status_code == 200
+    assert client.get(f"{API}/captures/{evidence['capture_id']}/cloud.ply").status_code == 200
+    assert fake_fit.calls[-1] == (evidence["cloud_points"], EyeModel.population())
+    assert body["id"].startswith("pose-")
+
+
+def test_a_1_mm_shift_gaze_shift_or_poor_fit_fails(
+        client: Client, patient: str, fake_fit: FakeFit, calibration_id: str) -> None:
+    model = client.post(f"{API}/patients/{patient}/eye-models",
+                        json={"globe_radius_mm": 12.2}).json()
+    fake_fit.centre, fake_fit.gaze = (1.0, 0.0, -10.0), (0.0, 0.0, 1.0)
+    shifted = _measure(client, patient)
+    tilt = math.radians(2.0)
+    fake_fit.centre, fake_fit.gaze = (0.0, 0.0, -10.0), (0.0, math.sin(tilt), math.cos(tilt))
+    fake_fit.confidence = 0.3
+    tilted = _measure(client, patient)
+    fake_fit.gaze, fake_fit.confidence = (0.0, 0.0, 1.0), 0.9
+
+    assert shifted["passed"] is False
+    assert shifted["deviation"]["delta_mm"] == pytest.approx([1.0, 0.0, 0.0])
+    assert shifted["reasons"] == ["translation 1.000 mm exceeds 0.2 mm"]
+    assert shifted["evidence"]["eye_model_version"] == model["version"]
+    assert shifted["evidence"]["eye_model"]["globe_radius_mm"] == 12.2
+    assert fake_fit.calls[-2][1].globe_radius_mm == 12.2
+    assert tilted["passed"] is False and tilted["in_tolerance"] is False
+    assert tilted["deviation"]["gaze_deg"] == pytest.approx(2.0)
+    assert tilted["reasons"] == ["gaze deviation 2.00° exceeds 1°",
+                                 "fit confidence 0.30 is below 0.5"]
+
+
+def test_a_failed_fit_is_422_with_its_reason_and_audited(
+        client: Client, patient: str, fake_fit: FakeFit, calibration_id: str,
+        data_dir: Path) -> None:
+    fake_fit.error = "too little sclera is visible (212 points): open the retractors"
+    try:
+        body = _measure(client, patient, expected=422)
+    finally:
+        fake_fit.error = None
+
+    assert body["detail"] == "too little sclera is visible (212 points): open the retractors"
+    last = json.loads((data_dir / "audit.jsonl").read_text().splitlines()[-1])
+    assert (last["action"], last["outcome"]) == ("measure_pose", "error")
+    assert last["detail"]["capture_id"].startswith("cap-")
+    assert last["detail"]["patient_id"].startswith("hmac-sha256:")
+    assert "P-100" not in (data_dir / "audit.jsonl").read_text()
+
+
+def test_measurements_are_found_by_patient_fraction_and_id(
+        client: Client, patient: str, calibration_id: str) -> None:
+    listed = client.get(f"{API}/pose/measurements", params={"patient_id": patient},
+                        headers=OPERATOR).json()
+    by_fraction = client.get(f"{API}/pose/measurements",
+                             params={"patient_id": patient, "fraction": 2}).json()
+    newest = listed["items"][0]
+    again = client.get(f"{API}/pose/measurements/{newest['id']}", headers=OPERATOR)
+    unknown = client.get(f"{API}/pose/measurements/pose-20260101T000000000Z-0000")
+    nobody = client.get(f"{API}/pose/measurements", params={"patient_id": "P-nobody"})
+
+    assert listed["total"] == 3  # the failed fit stored nothing
+    assert [m["passed"] for m in listed["items"]] == [False, False, True]  # newest first
+    assert by_fraction["total"] == 0
+    assert again.status_code == 200 and again.json() == newest
+    assert unknown.status_code == 404
+    assert nobody.status_code == 404
+
+
+# --- the simulated eye --------------------------------------------------------------------------
+
+
+def test_the_simulated_eye_is_posed_and_read_back(client: Client) -> None:
+    placed = client.put(f"{API}/sim/eye", json={"position_mm": [0.5, -0.3, -10.0],
+                                                "gaze_deg": [3.0, 0.0],
+                                                "globe_radius_mm": 12.4}, headers=OPERATOR)
+    kept = client.put(f"{API}/sim/eye", json={"gaze_deg": [0.0, 0.0]})
+    read = client.get(f"{API}/sim/eye", headers=OPERATOR)
+
+    assert placed.status_code == 200, placed.text
+    eye = placed.json()["eye"]
+    assert eye["centre_mm"] == pytest.approx([0.5, -0.3, -10.0])
+    assert gaze_angle_deg(eye["gaze"], (0, 0, 1)) == pytest.approx(3.0)
+    assert eye["globe_radius_mm"] == 12.4
+    assert kept.json()["eye"]["centre_mm"] == pytest.approx([0.5, -0.3, -10.0])  # kept
+    assert kept.json()["scene"]["eye"]["globe_radius_mm"] == 12.4
+    assert read.json()["eye"]["gaze"] == pytest.approx([0.0, 0.0, 1.0])
+
+
+def test_a_motion_script_starts_and_stops(client: Client) -> None:
+    script = {"drift_deg": 0, "saccade_rate_hz": 0,
+              "script": [{"t_s": 0.0, "kind": "saccade", "gaze_deg": [5.0, 0.0],
+                          "duration_s": 0.001}]}
+    moving = client.put(f"{API}/sim/eye", json={"motion": script})
+    after_saccade = client.get(f"{API}/sim/eye").json()["eye"]["gaze"]
+    still = client.put(f"{API}/sim/eye", json={"motion": None})
+
+    assert moving.status_code == 200, moving.text
+    assert moving.json()["scene"]["eye"]["motion"]["script"][0]["kind"] == "saccade"
+    assert gaze_angle_deg(after_saccade, (0, 0, 1)) == pytest.approx(5.0, abs=1e-6)
+    assert still.json()["scene"]["eye"]["motion"] is None
+
+
+@pytest.mark.parametrize("body", [{"limbus_diameter_mm": 15.5, "cornea_radius_mm": 7.0},
+                                  {"globe_radius_mm": 30}, {"motion": {"blink_rate_hz": -1}},
+                                  {"spin": 1}])
+def test_an_impossible_simulated_eye_is_422(client: Client, body: dict[str, Any]) -> None:
+    before = client.get(f"{API}/sim/eye").json()
+
+    response = client.put(f"{API}/sim/eye", json=body)
+
+    assert response.status_code == 422, response.text
+    assert client.get(f"{API}/sim/eye").json()["scene"] == before["scene"]
+
+
+def test_sim_eye_on_another_scene_and_on_real_hardware(client: Client,
+                                                       tmp_path: Path) -> None:
+    client.put(f"{API}/sim/scene", json={"kind": "pyramid"})
+    not_an_eye = client.get(f"{API}/sim/eye")
+    client.put(f"{API}/sim/eye", json={})  # the eye again, for the tests after
+
+    settings = test_settings(tmp_path / "data")
+    app = create_app(settings)
+    with Service(settings, rig=build_sim_rig(SimRoom())) as service:
+        app.state.tokens = TokenTable.for_settings(settings)
+        app.state.service = service
+        with start_blocking_portal() as portal, \
+                portal.wrap_async_context_manager(httpx.AsyncClient(
+                    transport=httpx.ASGITransport(app=app), base_url="http://test")) as http:
+            real = Client(portal, http)
+            answers = [real.get(f"{API}/sim/eye"), real.put(f"{API}/sim/eye", json={})]
+
+    assert not_an_eye.status_code == 409
+    assert "not the patient eye" in not_an_eye.json()["detail"]
+    assert [a.status_code for a in answers] == [404, 404]
+    assert all(a.json() == {"detail": NO_SIM_ROOM} for a in answers)
+
+
+# --- end to end through the real fit --------------------------------------------------------
+
+
+@pytest.mark.xfail(strict=True, reason="issue 7 open: fit_eye takes lids and sclera for one "
+                   "sphere on the rendered eye (eyeserver bench pose: centre ≈ 4 mm off); "
+                   "remove this mark when the fit meets the goals")
+def test_end_to_end_a_captured_reference_then_a_1_mm_shift(
+        app: FastAPI, client: Client, calibration_id: str) -> None:
+    verification = app.state.verification
+    assert isinstance(verification, PoseVerification)
+    verification.fit = fit_eye
+    assert client.put(f"{API}/patients/P-200", json={"eye": "left"}).status_code == 201
+    assert client.put(f"{API}/sim/eye", json={"position_mm": [0.0, 0.0, -10.0],
+                                              "gaze_deg": [0.0, 0.0], "motion": None}
+                      ).status_code == 200
+
+    reference = client.post(f"{API}/patients/P-200/fractions/1/reference/capture")
+    assert reference.status_code == 201, reference.text
+    same = _measure(client, "P-200")
+    client.put(f"{API}/sim/eye", json={"position_mm": [1.0, 0.0, -10.0]})
+    shifted = _measure(client, "P-200")
+
+    ref = reference.json()
+    assert ref["source"] == "capture"
+    assert ref["evidence"]["calibration_id"] == calibration_id
+    assert ref["pose"]["centre_mm"] == pytest.approx([0.0, 0.0, -10.0], abs=0.2)
+    # The same still eye twice agrees within the clinical tolerance (the fit's accuracy is
+    # measured by its own bench, not here); a 1 mm shift is a clear fail.
+    assert same["deviation"]["length_mm"] < 0.2
+    assert same["deviation"]["gaze_deg"] < 1.0
+    assert shifted["passed"] is False
+    assert shifted["deviation"]["delta_mm"] == pytest.approx([1.0, 0.0, 0.0], abs=0.3)
