@@ -11,7 +11,7 @@ import pytest
 
 from eyeserver.bench import speed
 from eyeserver.bench.figures import FIGURES
-from eyeserver.bench.report import render
+from eyeserver.bench.report import render, render_speed
 from eyeserver.cli import main
 from eyeserver.pipeline.demodulate import Carrier, demodulate
 
@@ -117,6 +117,8 @@ def test_speed_bench_times_the_pipeline(calibrated_rooms: Any,
     # the pipeline alone on the same number of cameras.
     assert api["reconstructions"]["all"]["min_ms"] > report["frameset_4cam_ms"] / 2
     assert report["api_capture_all_ms"] == api["captures"]["all"]["median_ms"]
+    page = render_speed(report)
+    assert "| capture → 201 of all |" in page and "| reconstruction of left |" in page
 
     text = speed.format_text(report)
     for expected in ("≤ 10", "≤ 20", "fringe_order_grid", "fusion", "scikit-image unwrap_phase",

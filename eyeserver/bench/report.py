@@ -89,8 +89,13 @@ def render(accuracy: dict[str, Any], speed: dict[str, Any]) -> str:
     if accuracy.get("figures"):
         lines += ["", "Figures (written with `--out DIR`): "
                   + ", ".join(f"`{f}`" for f in accuracy["figures"]) + "."]
-    lines += ["", f"The accuracy run took {accuracy.get('duration_s')} s.", "", "## Speed", "",
-              "| figure | median ms |", "|---|---|"]
+    lines += ["", f"The accuracy run took {accuracy.get('duration_s')} s.", ""]
+    return "\n".join(lines) + "\n" + render_speed(speed)
+
+
+def render_speed(speed: dict[str, Any]) -> str:
+    """The speed section of the page."""
+    lines = ["## Speed", "", "| figure | median ms |", "|---|---|"]
     for key in ("sim_render_2cam_ms", "sim_render_4cam_ms", "frameset_2cam_ms",
                 "frameset_4cam_ms", "frameset_4cam_2threads_ms"):
         if key in speed:
@@ -108,6 +113,16 @@ def render(accuracy: dict[str, Any], speed: dict[str, Any]) -> str:
                          f"{_value(value.get('time_ratio'), 2)}")
         else:
             lines.append(f"- peer `{key}`: unavailable ({value.get('reason')})")
+    api = speed.get("api")
+    if api:
+        lines += ["", f"Through the API ({api['requests']} requests each; {api['what']}):", "",
+                  "| request | median ms | p95 ms |", "|---|---|---|"]
+        for what, table in (("capture → 201", api["captures"]),
+                            ("reconstruction", api["reconstructions"])):
+            for unit, value in table.items():
+                lines.append(f"| {what} of {unit} | {value['median_ms']:.1f} | "
+                             f"{value['p95_ms']:.1f} |")
+        lines.append("")
     for key, why in speed.get("pending", {}).items():
         lines.append(f"- Pending `{key}`: {why}")
     lines += ["", f"The speed run took {speed.get('duration_s')} s.", ""]
