@@ -99,9 +99,10 @@ def test_pose_command_prints_json(calibrated_rooms, tmp_path: Path,  # type: ign
     truth = json.loads((bundle / "truth.json").read_text())["eye"]
     assert len(pose["centre_mm"]) == 3
     assert np.linalg.norm(pose["gaze"]) == pytest.approx(1.0)
-    # Measured on the default rig (see the bench): centre errors of 0.6–10 mm so far, so this
-    # only guards against a fit on the wrong object altogether.
-    assert np.linalg.norm(np.subtract(pose["centre_mm"], truth["centre_mm"])) < 12.0
+    # Measured on the default rig: 23 random poses gave centre errors of median ≈ 0.7 mm, max
+    # ≈ 1.6 mm, but this default pose 3.4 mm (mostly depth): a guard against a fit on the wrong
+    # object, not the 0.1 mm goal.
+    assert np.linalg.norm(np.subtract(pose["centre_mm"], truth["centre_mm"])) < 5.0
 
 
 def test_pose_command_on_flat_plate_fails_clearly(calibrated_rooms, tmp_path: Path,  # type: ignore[no-untyped-def]

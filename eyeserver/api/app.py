@@ -30,12 +30,14 @@ from eyeserver.api.routers import (
     pose,
     sim,
     status,
+    tracking,
 )
 from eyeserver.config import Settings
 from eyeserver.service.calibration_session import CalibrationSessions
 from eyeserver.service.core import Service
 from eyeserver.service.operations import operations
 from eyeserver.service.patients import Patients
+from eyeserver.service.tracking import TrackingControl
 from eyeserver.service.verification import PoseVerification
 
 __all__ = ["API_PREFIX", "create_app"]
@@ -67,11 +69,14 @@ def _lifespan(settings: Settings) -> Callable[[FastAPI], AbstractAsyncContextMan
         app.state.calibration_sessions = CalibrationSessions(service)
         app.state.patients = Patients(service.store, service.audit)
         app.state.verification = PoseVerification(service, app.state.patients)
+        app.state.tracking = TrackingControl(service, app.state.patients)
         try:
             # systemd: READY=1 now, WATCHDOG=1 while healthy, STOPPING=1 on leaving; retention.
             async with operations(service, settings):
                 yield
         finally:
+            await run_in_threadpool(app.state.tracking.close)
+            del app.state.tracking
             del app.state.service
             del app.state.verification, app.state.patients
             await run_in_threadpool(app.state.calibration_sessions.close_all)
@@ -105,11 +110,12 @@ def create_app(settings: Settings) -> FastAPI:
     app.include_router(health.router, prefix=API_PREFIX)
     # WebSocket routes authenticate themselves before accepting (websocket_caller).
     app.include_router(events.router, prefix=API_PREFIX)
+    app.include_router(tracking.ws_router, prefix=API_PREFIX)
     # Everything else needs a token; routes that need more than an operator say so themselves.
     authenticated = [Depends(require("operator"))]
     for router in (status.router, devices.router, captures.router, calibrations.router,
                    sim.router, audit.router, jobs.router, calibration_sessions.router,
-                   patients.router, pose.router):
+                   patients.router, pose.router, tracking.router):
         app.include_router(router, prefix=API_PREFIX, dependencies=authenticated,
                            responses=AUTH_RESPONSES)
     # Where Prometheus looks by default, outside the versioned API; a token all the same.

@@ -30,7 +30,7 @@ def _non_negative_int(text: str) -> int:
 
 
 def add_parser(subparsers: Subparsers) -> None:
-    """Register ``eyeserver bench speed`` and ``eyeserver bench accuracy``."""
+    """Register ``eyeserver bench speed``, ``accuracy``, ``pose`` and ``tracking``."""
     bench = subparsers.add_parser("bench", help="benchmarks (speed, accuracy)",
                                   description="Measure speed and accuracy on the simulated room.")
     commands = bench.add_subparsers(title="benchmarks", dest="bench_command", metavar="COMMAND")
@@ -83,6 +83,19 @@ def add_parser(subparsers: Subparsers) -> None:
                       help="use this calibration of the simulated rig instead of making one")
     pose.add_argument("--room", type=Path, metavar="FILE", help="room file (default room)")
     pose.set_defaults(handler=_pose)
+    tracking = commands.add_parser(
+        "tracking", help="live tracking end to end through a daemon on loopback",
+        description="Track the moving simulated eye (drift and a scripted saccade) for a while "
+        "through a daemon on loopback with 20 WebSocket clients on /api/v1/ws/pose (one never "
+        "reads): frames delivered at 25 Hz, latency frame → client, the beam hold's reaction "
+        "to the saccade (progress on stderr).")
+    tracking.add_argument("--json", action="store_true", help="one JSON document on stdout")
+    tracking.add_argument("--seconds", type=_positive_int, default=60,
+                          help="how long to track (default 60)")
+    tracking.add_argument("--calibration", type=Path, metavar="CALDIR",
+                          help="use this calibration of the simulated rig instead of making one")
+    tracking.add_argument("--room", type=Path, metavar="FILE", help="room file (default room)")
+    tracking.set_defaults(handler=_tracking)
 
 
 def _speed(args: argparse.Namespace) -> int:
@@ -120,4 +133,13 @@ def _pose(args: argparse.Namespace) -> int:
     report = pose.run(load_room(args.room), poses=args.poses, seed=args.seed,
                       calibration=args.calibration, progress=_progress)
     print(json.dumps(report, indent=1) if args.json else pose.format_text(report))
+    return 0
+
+
+def _tracking(args: argparse.Namespace) -> int:
+    from eyeserver.bench import tracking
+
+    report = tracking.run(args.seconds, calibration=args.calibration, room_file=args.room,
+                          progress=_progress)
+    print(json.dumps(report, indent=1) if args.json else tracking.format_text(report))
     return 0

@@ -5,16 +5,20 @@ through the palpebral opening and, where it carries fringe signal, the cornea. T
 one convex sphere of radius ≈ 12 mm bulging towards the cameras (+Z) *behind* everything else
 that is spherical: the lids are shells in front of it. So:
 
-1. **Segmentation by sphere consensus.** Voxel means (0.5 mm) cut noise and work; the dominant
-   plane is removed by MSAC; sequential LO-MSAC (4-point algebraic spheres sampled within 6 mm,
-   scored by the points within 0.25 mm, the best re-fitted to their inliers) finds up to three
-   convex shells of a globe's size facing +Z; of those sharing a centre (± 4 mm) the innermost
-   is taken as the globe (lids and retractors lie in front of it).
-   Known limit: on the simulated room the search can still merge lids and sclera into one
-   larger sphere (radius and depth errors of several mm); see the pose bench.
-2. **Globe.** ``scipy.optimize.least_squares`` on the geometric residual ``|p − c| − R`` with a
-   soft-L1 loss and the points' quality as weights; radius free unless the model fixes it.
-   Covariance from the Jacobian and a robust residual scale (1.4826·MAD).
+1. **Segmentation by shells about a common centre.** Voxel means (0.5 mm) cut noise and work;
+   the face's plane is removed by MSAC (a plane must hold a quarter of the whole cloud). Each
+   voxel's normal (PCA of its 1.6 mm neighbourhood) votes for centres at globe-sized distances
+   behind it; sclera, lids and retractors are near-concentric, so the votes agree (1 mm
+   accumulator, then mean shift). Around that centre the radial histogram shows the sclera and,
+   ≈ 1 mm outside, the lids: the innermost shell of a globe's size is the sclera, the
+   strongest one 0.6–3 mm outside it the lids. Where no centre is voted, sequential LO-MSAC
+   sphere search is the fallback.
+2. **Globe.** ``scipy.optimize.least_squares`` on the geometric residual ``|p − c| − R`` of the
+   sclera, jointly with a concentric lid shell ``|q − c| − R_lid`` (R_lid free), soft-L1 loss,
+   quality weights, bands shrinking 0.45 → 0.2 mm. The sclera alone (two small caps beside the
+   cornea) trades depth for radius; the lids pin the depth. Known limit: this leans on the lids
+   resting concentrically on the globe (exact in the simulated room). Radius free unless the
+   model fixes it. Covariance from the Jacobian and a robust residual scale (1.4826·MAD).
 3. **Limbus and gaze.** The sclera ends at the limbus (the cornea carries little or no fringe
    signal): seen from the globe centre the sclera points ring a hole. Per 10° sector around the
    current axis the innermost points are the boundary; a circle on the sphere (a cone
@@ -171,6 +175,7 @@ _LOCAL_MM = 6.0
 _HYPOTHESES = 400
 _BAND_MM = 0.25
 _SECTORS = 36
+_NORMAL_MM = 1.6
 
 
 def fit_sphere(points: npt.ArrayLike) -> tuple[F64, float]:
@@ -218,7 +223,7 @@ def _batch_spheres(groups: F64, valid: npt.NDArray[np.bool_]) -> tuple[F64, F64]
     return centre, radius
 
 
-def _voxel_means(points: F64, size: float) -> tuple[F64, F64]:
+def _voxel_means(points: F64, size: float) -> tuple[F64, F64, npt.NDArray[np.intp]]:
     """Mean point and count of every occupied ``size`` mm voxel: averaging ~50 points per voxel
     cuts the noise enough for curvature at a millimetre's scale."""
     key = np.floor(points / size).astype(np.int64)
@@ -228,7 +233,7 @@ def _voxel_means(points: F64, size: float) -> tuple[F64, F64]:
     _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
     inverse = inverse.ravel()
     means = np.stack([np.bincount(inverse, points[:, k]) for k in range(3)], axis=1)
-    return means / counts[:, None], counts.astype(np.float64)
+    return means / counts[:, None], counts.astype(np.float64), inverse
 
 
 def _shell_score(voxels: F64, counts: F64, centres: F64, radii: F64) -> F64:
@@ -241,20 +246,95 @@ def _shell_score(voxels: F64, counts: F64, centres: F64, radii: F64) -> F64:
     return score
 
 
-def _globe_candidates(points: F64, r_bounds: tuple[float, float], fixed: float | None,
-                      ) -> list[tuple[F64, float, float]]:
-    """``(centre, radius, support)`` of convex sphere shells facing +Z, innermost first.
+def _normals(voxels: F64) -> tuple[F64, npt.NDArray[np.bool_]]:
+    """Unit normals facing +Z from a PCA of each voxel's 1.6 mm neighbourhood, and where valid."""
+    tree = cKDTree(voxels)
+    normals = np.zeros_like(voxels)
+    valid = np.zeros(len(voxels), dtype=bool)
+    for k, members in enumerate(tree.query_ball_point(voxels, _NORMAL_MM)):
+        if len(members) < 8:
+            continue
+        q = voxels[members] - voxels[members].mean(axis=0)
+        normal = np.linalg.eigh(q.T @ q)[1][:, 0]
+        normals[k] = normal if normal[2] > 0 else -normal
+        valid[k] = True
+    return normals, valid
 
-    Voxel means (0.5 mm) cut the noise and the work; the dominant plane (the face, a table, a
-    headrest) is removed by MSAC first, then sequential LO-MSAC finds up to three shells from
-    4-point samples drawn within 6 mm of each other. Shells sharing a centre (± 4 mm) with the
-    best one are returned innermost first: lids and retractors lie in front of the globe.
+
+def _hough_centre(voxels: F64, counts: F64, normals: F64, r_lo: float, r_hi: float) -> F64 | None:
+    """The point most normals pass through at a globe-sized distance behind the surface.
+
+    Globe, lids and retractors resting on it are all near-concentric shells, so their normals
+    agree on one centre even where their radii differ; a 1 mm accumulator over radius
+    hypotheses finds it without knowing which points are sclera.
     """
+    if len(voxels) < 8:
+        return None
+    radii = np.arange(r_lo, r_hi + 0.25, 0.25)
+    votes = (voxels[:, None, :] - radii[None, :, None] * normals[:, None, :]).reshape(-1, 3)
+    key = np.floor(votes).astype(np.int64)
+    cells, inverse = np.unique(key, axis=0, return_inverse=True)
+    weights = np.repeat(counts, len(radii))
+    acc = np.bincount(inverse.ravel(), weights)
+    centre = np.asarray(cells[int(np.argmax(acc))] + 0.5, dtype=np.float64)
+    for reach in (1.5, 1.0, 0.75, 0.5):  # mean shift: the 1 mm cell alone leaves ±0.5 mm
+        close = np.linalg.norm(votes - centre, axis=1) < reach
+        if not close.any():
+            break
+        centre = np.average(votes[close], axis=0, weights=weights[close])
+    return centre
+
+
+def _radial_shells(voxels: F64, counts: F64, centre: F64, r_bounds: tuple[float, float],
+                   ) -> list[tuple[float, float]]:
+    """``(radius, support)`` of the shells around ``centre``: peaks of the radial histogram."""
+    dist = np.linalg.norm(voxels - centre, axis=1)
+    edges = np.arange(r_bounds[0] - 1.0, r_bounds[1] + 4.0, 0.1)
+    hist, _ = np.histogram(dist, bins=edges, weights=counts)
+    smooth = np.convolve(hist, np.ones(5), mode="same")  # 0.5 mm: a shell's noisy thickness
+    peaks = [k for k in range(1, len(smooth) - 1)
+             if smooth[k] >= smooth[k - 1] and smooth[k] > smooth[k + 1]]
+    return [(float(edges[k] + 0.05), float(smooth[k])) for k in peaks]
+
+
+def _globe_candidates(points: F64, r_bounds: tuple[float, float], fixed: float | None,
+                      ) -> tuple[list[tuple[F64, float, float]], npt.NDArray[np.bool_]]:
+    """``(centre, radius, support)`` of the globe: the innermost shell around the common centre.
+
+    The plane of the face is removed first; normals of what is left vote for a centre
+    (:func:`_hough_centre`); around it the radial histogram shows the sclera and, about a
+    millimetre outside, the lids or retractors (both convex shells). The innermost shell of a
+    globe's size with enough support is the sclera. Falls back to the LO-MSAC shell search.
+    """
+    voxels, counts, off_plane = _without_planes(points)
+    if len(voxels) < 8:
+        return [], off_plane
+    normals, valid = _normals(voxels)
+    centre = _hough_centre(voxels[valid], counts[valid], normals[valid], *r_bounds)
+    if centre is not None:
+        shells = _radial_shells(voxels, counts, centre, r_bounds)
+        strongest = max((s for _, s in shells), default=0.0)
+        for radius, support in shells:
+            if (support >= max(MIN_SCLERA_POINTS, 0.1 * strongest)
+                    and r_bounds[0] <= radius <= r_bounds[1]):
+                # The lids: the strongest shell 0.6–3 mm outside the sclera, if any.
+                outer = [(s, r) for r, s in shells if radius + 0.6 <= r <= radius + 3.0
+                         and s >= MIN_SCLERA_POINTS]
+                lid_radius = max(outer)[1] if outer else math.nan
+                return [(centre, fixed if fixed is not None else radius, lid_radius)], off_plane
+    return [(c, r, math.nan) for c, r, _ in _shell_search(voxels, counts, r_bounds, fixed)], \
+        off_plane
+
+
+def _without_planes(points: F64) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
+    """Voxel means and counts of ``points`` without the dominant plane(s) (MSAC), and which
+    points are kept."""
     rng = np.random.default_rng(0)  # a fixed seed: the same cloud always gives the same pose
-    voxels, counts = _voxel_means(points, _VOXEL_MM)
+    voxels, counts, inverse = _voxel_means(points, _VOXEL_MM)
     if len(voxels) < 4:
-        return []
+        return voxels, counts, np.ones(len(points), dtype=bool)
     keep = np.ones(len(voxels), dtype=bool)
+    total = counts.sum()
     for _ in range(2):
         idx = np.flatnonzero(keep)
         if len(idx) < 3:
@@ -268,9 +348,17 @@ def _globe_candidates(points: F64, r_bounds: tuple[float, float], fixed: float |
         dist = np.abs(voxels[idx] @ normal.T - offset)
         support = (dist < 0.3).T @ counts[idx]
         best = int(np.argmax(support))
-        if support[best] < 0.25 * counts[idx].sum():
+        if support[best] < 0.25 * total:
             break
         keep[idx[dist[:, best] < 0.6]] = False
+    return voxels[keep], counts[keep], keep[inverse]
+
+
+def _shell_search(voxels: F64, counts: F64, r_bounds: tuple[float, float], fixed: float | None,
+                  ) -> list[tuple[F64, float, float]]:
+    """Sequential LO-MSAC for up to three convex shells facing +Z, innermost first."""
+    rng = np.random.default_rng(0)
+    keep = np.ones(len(voxels), dtype=bool)
     shells: list[tuple[F64, float, float]] = []
     for _ in range(3):
         idx = np.flatnonzero(keep)
@@ -324,29 +412,53 @@ def _globe_candidates(points: F64, r_bounds: tuple[float, float], fixed: float |
 
 
 def _refine_globe(points: F64, weights: F64, centre: F64, radius: float,
-                  fixed_radius: float | None) -> tuple[F64, float, F64, F64, npt.NDArray[np.bool_]]:
-    """Geometric robust sphere fit: centre, radius, covariance (4×4 or 3×3), residuals, inliers."""
+                  fixed_radius: float | None, lid_points: F64, lid_weights: F64,
+                  lid_radius: float,
+                  ) -> tuple[F64, float, float, F64, F64, npt.NDArray[np.bool_]]:
+    """Geometric robust sphere fit of the sclera, jointly with a concentric lid shell when
+    ``lid_points`` are given: centre, radius, lid radius, covariance (of centre and radius),
+    the sclera's residuals and inliers.
+
+    A few square millimetres of sclera on either side of the cornea are a small cap: alone
+    they fix the centre across the line of sight but trade its depth against the radius
+    (measured: 1.2 mm deeper and 1.2 mm larger on a clean 12 mm cap). The lids and retractors
+    rest on the globe and cover a far wider angle, so a shell concentric with the sclera
+    (its own radius free) pins the depth; the radius comes from the sclera alone.
+    """
     sw = np.sqrt(weights)
-    scale = 0.05
+    lw = np.sqrt(lid_weights)
+    use_lids = len(lid_points) >= MIN_SCLERA_POINTS and math.isfinite(lid_radius)
+    n_free = 3 if fixed_radius is not None else 4
 
     def residuals(x: F64) -> F64:
         r = fixed_radius if fixed_radius is not None else x[3]
-        return np.asarray(sw * (np.linalg.norm(points - x[:3], axis=1) - r), dtype=np.float64)
+        sclera = sw * (np.linalg.norm(points - x[:3], axis=1) - r)
+        if not use_lids:
+            return np.asarray(sclera, dtype=np.float64)
+        lids = lw * (np.linalg.norm(lid_points - x[:3], axis=1) - x[n_free])
+        return np.asarray(np.concatenate([sclera, lids]), dtype=np.float64)
 
     x0 = np.append(centre, radius) if fixed_radius is None else centre.copy()
-    fit = least_squares(residuals, x0, loss="soft_l1", f_scale=scale, x_scale=1.0)
+    if use_lids:
+        x0 = np.append(x0, lid_radius)
+    fit = least_squares(residuals, x0, loss="soft_l1", f_scale=0.05, x_scale=1.0)
     x = fit.x
     r_fit = float(fixed_radius if fixed_radius is not None else x[3])
+    lid_fit = float(x[n_free]) if use_lids else lid_radius
     resid = np.linalg.norm(points - x[:3], axis=1) - r_fit
     sigma = max(1.4826 * float(np.median(np.abs(resid))), 1e-4)
     inliers = np.abs(resid) < max(3.0 * sigma, 0.1)
-    jac = fit.jac[inliers] / np.maximum(sw[inliers, None], 1e-12)
-    jtj = jac.T @ (jac * weights[inliers, None])
+    all_weights = np.concatenate([weights, lid_weights]) if use_lids else weights
+    all_sw = np.sqrt(all_weights)
+    keep = np.abs(fit.fun / np.maximum(all_sw, 1e-12)) < max(3.0 * sigma, 0.1)
+    jac = fit.jac[keep] / np.maximum(all_sw[keep, None], 1e-12)
+    jtj = jac.T @ (jac * all_weights[keep, None])
     try:
-        cov = np.linalg.inv(jtj) * sigma**2 * weights[inliers].sum() / max(inliers.sum(), 1)
+        cov = (np.linalg.inv(jtj) * sigma**2 * all_weights[keep].sum()
+               / max(int(keep.sum()), 1))[:n_free, :n_free]
     except np.linalg.LinAlgError:
-        cov = np.full((len(x), len(x)), np.inf)
-    return x[:3], r_fit, cov, resid, inliers
+        cov = np.full((n_free, n_free), np.inf)
+    return x[:3], r_fit, lid_fit, cov, resid, inliers
 
 
 def _frame(axis: F64) -> tuple[F64, F64]:
@@ -357,13 +469,13 @@ def _frame(axis: F64) -> tuple[F64, F64]:
     return e1, np.cross(axis, e1)
 
 
-def _limbus(directions: F64) -> tuple[F64, float, F64, int] | None:
+def _limbus(directions: F64, start: F64 | None = None) -> tuple[F64, float, F64, int] | None:
     """Axis ``g`` and cos of the half-angle of the hole the sclera directions ring.
 
     Returns ``(g, cos_beta, covariance of the two tilt angles (rad²), boundary points)`` or
     None when the boundary is not seen on enough sides to fix a circle.
     """
-    axis = directions.mean(axis=0)
+    axis = directions.mean(axis=0) if start is None else start.copy()
     axis /= np.linalg.norm(axis)
     result = None
     for _ in range(5):
@@ -472,24 +584,31 @@ def fit_eye(cloud: CloudLike, model: EyeModel) -> EyePose:
     fixed = model.globe_radius_mm
     prior = model.prior_radius_mm
     r_bounds = (0.7 * prior, 1.45 * prior) if fixed is None else (0.95 * fixed, 1.05 * fixed)
-    candidates = _globe_candidates(points, r_bounds, fixed)
+    candidates, off_plane = _globe_candidates(points, r_bounds, fixed)
+    # The face's plane crosses every sphere about the eye in a ring of many points: its points
+    # never take part in the globe's fit.
+    points, weights = points[off_plane], weights[off_plane]
     if not candidates:
         raise PoseError("no eye found: no convex sphere of a globe's size (radius "
                         f"{r_bounds[0]:.1f}–{r_bounds[1]:.1f} mm) facing the cameras in "
                         f"{len(points)} points")
     # Lids and retractors lie in front of the globe: the innermost shell is the sclera.
-    centre, radius, _ = candidates[0]
+    centre, radius, lid_radius = candidates[0]
     if fixed is not None:
         radius = fixed
-    near = np.abs(np.linalg.norm(points - centre, axis=1) - radius) < _BAND_MM
-    if near.sum() < MIN_SCLERA_POINTS:
-        raise PoseError(f"no eye found: only {int(near.sum())} points on the best globe")
-    centre, radius, cov, resid, inliers = _refine_globe(points[near], weights[near], centre,
-                                                        radius, fixed)
-    for band in (_BAND_MM, 0.2):  # the band follows the refined sphere
-        near = np.abs(np.linalg.norm(points - centre, axis=1) - radius) < band
-        centre, radius, cov, resid, inliers = _refine_globe(points[near], weights[near], centre,
-                                                            radius, fixed)
+    # The seed centre is good to ≈ 0.5 mm and the lids lie ≈ 1 mm outside: a band half that.
+    band = 0.45
+    for next_band in (0.3, _BAND_MM, 0.2):
+        dist = np.linalg.norm(points - centre, axis=1)
+        near = np.abs(dist - radius) < band
+        on_lids = (np.abs(dist - lid_radius) < band if math.isfinite(lid_radius)
+                   else np.zeros(len(points), dtype=bool))
+        if near.sum() < MIN_SCLERA_POINTS:
+            raise PoseError(f"no eye found: only {int(near.sum())} points on the best globe")
+        centre, radius, lid_radius, cov, resid, inliers = _refine_globe(
+            points[near], weights[near], centre, radius, fixed, points[on_lids],
+            weights[on_lids], lid_radius)
+        band = next_band
     sclera = points[near][inliers]
     if len(sclera) < MIN_SCLERA_POINTS:
         raise PoseError(f"no eye found: only {len(sclera)} sclera points fit a globe")
@@ -498,7 +617,11 @@ def fit_eye(cloud: CloudLike, model: EyeModel) -> EyePose:
 
     directions = sclera - centre
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    limbus = _limbus(directions)
+    # The opening (sclera and the lids' inner rim together) is centred near the cornea; the
+    # sclera alone, often more on one side, is not.
+    around = np.abs(np.linalg.norm(points - centre, axis=1) - radius) < 3.0
+    start = (points[around] - centre).mean(axis=0) if around.any() else None
+    limbus = _limbus(directions, start)
     half = model.limbus_diameter_mm / 2
     depth = math.sqrt(max(radius**2 - half**2, 0.0))
     gaze_source = "none"

@@ -314,7 +314,7 @@ class Patients:
             self.store.audit_in(db, actor, "create_patient" if created else "update_patient",
                                 key, {"patient_id": patient_id, "eye": eye, "unit": unit,
                                       "tolerances": chosen.to_dict()})
-        _log.info("patient stored", extra={"patient_key": key, "created": created,
+        _log.info("patient stored", extra={"patient_key": key, "new_patient": created,
                                            "actor": actor})
         return self.get(patient_id), created
 

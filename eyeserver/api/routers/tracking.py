@@ -1,0 +1,165 @@
+"""``/api/v1/tracking`` and ``/api/v1/ws/pose``: live tracking of the patient's eye.
+
+``POST /tracking/start`` starts tracking a patient's eye for a fraction (operator): the rig
+streams the patient's unit at the camera rate and every frame the pipeline keeps up with is
+reconstructed, fitted and compared with the fraction's reference
+(:mod:`eyeserver.service.tracking`); the daemon is ``tracking`` meanwhile (captures get 409).
+``POST /tracking/stop`` ends it; ``GET /tracking`` counts frames acquired, processed, dropped
+(newest frame wins) and missed, and holds the last message.
+
+``/ws/pose`` sends every processed frame's message as JSON text; authenticate as for
+``/ws/events`` (``?token=`` or ``Authorization: Bearer``; otherwise closed with 1008 before any
+message). Each message is ``{"type": "pose", "seq", "time", "t", "t_ns", "frame", "pose",
+"deviation", "in_tolerance", "beam_hold", "latency_ms", "confidence", "eye", "reasons",
+"dropped_frames", "missed_frames", "processing_ms"}``: ``t`` is the frame's mid-exposure time
+(seconds on the rig's monotonic clock), ``latency_ms`` the time from it to this send. A client
+that reads too slowly loses its oldest messages (at most ``event_queue_size`` are kept for it)
+and gets ``{"type": "dropped", "count": n}`` before the next one, as on ``/ws/events``; it never
+slows the daemon or the other clients.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, HTTPException, Request, WebSocket, WebSocketDisconnect
+from pydantic import BaseModel, ConfigDict, Field
+from starlette.concurrency import run_in_threadpool
+
+from eyeserver.api.auth import OperatorDep, websocket_caller
+from eyeserver.api.schemas import ErrorResponse
+from eyeserver.config import Settings
+from eyeserver.service.events import Subscription, SubscriptionClosedError
+from eyeserver.service.patients import PATIENT_ID_PATTERN
+from eyeserver.service.tracking import TrackingControl
+
+__all__ = ["router", "ws_router"]
+
+router = APIRouter(prefix="/tracking", tags=["tracking"])
+ws_router = APIRouter(tags=["tracking"])
+
+_WS_GOING_AWAY = 1001
+_WS_TRY_AGAIN_LATER = 1013
+
+
+async def get_tracking(request: Request) -> TrackingControl:
+    """The daemon's live tracking (503 while it is not running)."""
+    tracking = getattr(request.app.state, "tracking", None)
+    if not isinstance(tracking, TrackingControl):
+        raise HTTPException(status_code=503, detail="the daemon is not running")
+    return tracking
+
+
+TrackingDep = Annotated[TrackingControl, Depends(get_tracking)]
+
+
+class TrackingStart(BaseModel):
+    """Whom to track, and how the beam hold behaves."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    patient_id: str = Field(pattern=PATIENT_ID_PATTERN, examples=["P-0001"])
+    fraction: int = Field(ge=1, le=1000, examples=[3])
+    dwell_frames: int = Field(3, ge=1, le=250, description="Good frames in a row before the "
+                              "beam hold falls.")
+    hold_on_drop: bool = Field(True, description="Hold the beam (and restart the dwell) when "
+                               "frames were dropped before a processed one.")
+
+
+class TrackingStatus(BaseModel):
+    """The running or last tracking session."""
+
+    model_config = ConfigDict(extra="allow")
+
+    running: bool
+    started: str | None
+    stopped: str | None
+    frames_acquired: int = Field(description="Camera frames acquired.")
+    frames_processed: int = Field(description="Frames reconstructed and fitted (one message "
+                                  "each on /ws/pose).")
+    frames_dropped: int = Field(description="Frames acquired but replaced by a newer one "
+                                "before processing (the newest frame wins).")
+    frames_missed: int = Field(description="Camera periods the rig could not serve in time.")
+    frames_held: int = Field(description="Processed frames with the beam held.")
+    beam_hold: bool
+    error: str | None = Field(description="Why the session ended by itself, if it did.")
+    last_message: dict[str, Any] | None = Field(description="The last pose message.")
+
+
+_RESPONSES: dict[int | str, dict[str, Any]] = {
+    404: {"model": ErrorResponse, "description": "No such patient, or the fraction has no "
+          "reference pose."},
+    409: {"model": ErrorResponse, "description": "No active calibration, or the daemon is "
+          "busy (already tracking, capturing, calibrating)."},
+}
+
+
+@router.post("/start", status_code=201, summary="Start live tracking", responses=_RESPONSES)
+async def start(body: TrackingStart, tracking: TrackingDep, caller: OperatorDep,
+                ) -> TrackingStatus:
+    """Stream the patient's unit at the camera rate, reconstruct and fit each frame it keeps up
+    with, compare with the fraction's reference and publish on ``/api/v1/ws/pose``."""
+    status = await run_in_threadpool(lambda: tracking.start(
+        body.patient_id, body.fraction, actor=caller.name, dwell_frames=body.dwell_frames,
+        hold_on_drop=body.hold_on_drop))
+    return TrackingStatus.model_validate(status)
+
+
+@router.post("/stop", summary="Stop live tracking",
+             responses={409: {"model": ErrorResponse, "description": "Not tracking."}})
+async def stop(tracking: TrackingDep, caller: OperatorDep) -> TrackingStatus:
+    """End the session (the frame being processed finishes); the daemon returns to idle."""
+    return TrackingStatus.model_validate(
+        await run_in_threadpool(lambda: tracking.stop(actor=caller.name)))
+
+
+@router.get("", summary="Live tracking status")
+async def status(tracking: TrackingDep) -> TrackingStatus:
+    """Frames acquired, processed, dropped and missed, the beam hold and the last message."""
+    return TrackingStatus.model_validate(await run_in_threadpool(tracking.status))
+
+
+@ws_router.websocket("/ws/pose", name="pose")
+async def stream_pose(websocket: WebSocket) -> None:
+    """Send every processed frame's pose message until the client leaves."""
+    if await websocket_caller(websocket) is None:
+        return  # closed with 1008 and the reason
+    tracking = getattr(websocket.app.state, "tracking", None)
+    settings = websocket.app.state.settings
+    if not isinstance(tracking, TrackingControl) or not isinstance(settings, Settings):
+        await websocket.close(code=_WS_TRY_AGAIN_LATER, reason="the daemon is not running")
+        return
+    with tracking.messages.subscribe(settings.event_queue_size) as subscription:
+        await websocket.accept()
+        sender = asyncio.create_task(_forward(websocket, subscription, tracking))
+        reader = asyncio.create_task(_read_until_disconnect(websocket))
+        try:
+            await asyncio.wait((sender, reader), return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for task in (sender, reader):
+                task.cancel()
+            await asyncio.gather(sender, reader, return_exceptions=True)
+        if sender.done() and not sender.cancelled() \
+                and isinstance(sender.exception(), SubscriptionClosedError):
+            with contextlib.suppress(WebSocketDisconnect, OSError, RuntimeError):
+                await websocket.close(code=_WS_GOING_AWAY, reason="the daemon is stopping")
+
+
+async def _forward(websocket: WebSocket, subscription: Subscription,
+                   tracking: TrackingControl) -> None:
+    clock = tracking.clock
+    while True:
+        message = await subscription.get()
+        t_ns = message.get("t_ns")
+        if isinstance(t_ns, int):
+            # Measured here, at the send, on the rig's clock: what the beam controller sees.
+            message = {**message, "latency_ms": (clock.now_ns() - t_ns) / 1e6}
+        await websocket.send_json(message)
+
+
+async def _read_until_disconnect(websocket: WebSocket) -> None:
+    while True:
+        if (await websocket.receive())["type"] == "websocket.disconnect":
+            return

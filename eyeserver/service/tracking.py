@@ -1,0 +1,627 @@
+"""Live tracking: the eye's pose at the camera rate, with the beam-hold flag, for ``/ws/pose``.
+
+::
+
+    RigFrameSource ─ acquisition thread ─► LatestFrame (1 slot) ─ processing thread ─► EventBus
+     (25 Hz, the patient's unit)           newest wins; a frame     reconstruct, fit,     "pose"
+                                           replaced unread is       deviation, BeamHold  messages
+                                           counted as dropped
+
+One :class:`TrackingSession` follows one patient and fraction: the rig streams frame sets of the
+patient's unit (:attr:`~eyeserver.service.patients.Patient.unit`, the unit on the treated eye's
+side) at the camera rate, paced on an injectable :class:`~eyeserver.core.clock.Clock`. The
+acquisition thread puts each frame set into a one-place slot where the newest wins: a frame set
+that is replaced before the processing thread took it is *dropped*, and counted. Camera slots the
+rig could not serve in time (an acquisition longer than a frame period) are counted as *missed*.
+Both show as gaps in the frame numbers :class:`~eyeserver.service.beamhold.BeamHold` sees, so
+neither is ever skipped silently.
+
+The processing thread reconstructs each frame set it takes with the active calibration (loaded
+once per session), fits the patient's eye model, compares the pose with the fraction's reference
+(:func:`~eyeserver.service.verification.deviation`, :func:`~eyeserver.service.verification.judge`),
+feeds :class:`BeamHold` and publishes one message per processed frame on
+:attr:`TrackingControl.messages`::
+
+    {"t": s, "t_ns": ns, "frame": n, "pose": {"centre_mm", "limbus_centre_mm", "gaze"} | null,
+     "deviation": {"delta_mm", "length_mm", "gaze_deg"} | null, "in_tolerance": bool,
+     "beam_hold": bool, "latency_ms": ms, "confidence": 0…1, "eye": "visible"|"blink"|"lost",
+     "reasons": [...], "dropped_frames": n, "missed_frames": n, "processing_ms": ms}
+
+``t`` is the frame set's mid-exposure time on the rig's monotonic clock (the mean of its
+cameras'), ``latency_ms`` the time from it to the message's send: the publisher stamps it when it
+publishes, and the WebSocket stamps it again right before sending. A fit that fails (no eye, the
+eye lost) or a pose whose gaze cannot be found (lids closed: a blink) gives ``pose`` null and
+``beam_hold`` true.
+
+The clock, the frame source, the reconstruction and the fit are injected, so tests replay any
+sequence exactly (:meth:`TrackingSession.acquire_once`, :meth:`TrackingSession.process_once`).
+While a session runs the daemon is in state ``tracking`` (captures get 409).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import threading
+from collections.abc import Callable, Sequence
+from contextlib import ExitStack
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from eyeserver.calibration.artefact import load_calibration
+from eyeserver.core.clock import Clock, MonotonicClock
+from eyeserver.errors import DeviceError, EyeserverError, StateConflictError
+from eyeserver.hardware.rig import AcquiredStep, Rig
+from eyeserver.io import PointCloud, RigSpec
+from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError, fit_eye
+from eyeserver.pipeline.fusion import Part, fuse
+from eyeserver.pipeline.reconstruct import CalibratedCamera, unit_clouds
+from eyeserver.service.beamhold import BeamHold, BeamHoldConfig, EyeSeen, FrameObservation
+from eyeserver.service.core import NoActiveCalibrationError, Service
+from eyeserver.service.events import EventBus
+from eyeserver.service.patients import Patients, Tolerances
+from eyeserver.service.reconstruction import ReconstructionError, calibrated_cameras, z_range
+from eyeserver.service.verification import FitFunction, deviation, judge
+
+__all__ = ["CAMERA_RATE_HZ", "FrameSet", "FrameSource", "LatestFrame", "Reconstructor",
+           "RigFrameSource", "RigReconstructor", "TrackingControl", "TrackingSession"]
+
+CAMERA_RATE_HZ = 25.0
+"""The cameras' frame rate during live tracking."""
+
+_log = logging.getLogger(__name__)
+_JOIN_S = 10.0
+
+
+@dataclass(frozen=True)
+class FrameSet:
+    """One camera frame of the tracked unit(s).
+
+    Attributes
+    ----------
+    frame : int
+        The camera frame number since tracking started (one per camera period).
+    t_ns : int
+        Mid-exposure time, ns on the rig's monotonic clock.
+    steps : sequence of AcquiredStep
+        The rig's frames (one step per unit); empty for scripted sources.
+    data : object
+        Anything a scripted source hands its scripted reconstruction (tests).
+    """
+
+    frame: int
+    t_ns: int
+    steps: Sequence[AcquiredStep] = ()
+    data: object = None
+
+
+class FrameSource(Protocol):
+    """Where frame sets come from, at the camera rate."""
+
+    def next_frame(self) -> FrameSet | None:
+        """Block until the next frame set; None when the source has ended."""
+        ...
+
+    @property
+    def missed(self) -> int:
+        """Camera frames that could not be acquired in time, so far."""
+        ...
+
+
+Reconstructor = Callable[[FrameSet], CloudLike]
+"""Turns a frame set into a point cloud (WCS, mm)."""
+
+
+class RigFrameSource:
+    """Frame sets of some units of the rig, paced at ``rate_hz`` on ``clock``.
+
+    Frame ``n`` is due at ``start + n / rate_hz``; an acquisition that overruns its period
+    makes the frames whose time has passed *missed* (counted in :attr:`missed`), so the frame
+    numbers keep counting camera periods.
+    """
+
+    def __init__(self, rig: Rig, unit_ids: Sequence[str], clock: Clock,
+                 rate_hz: float = CAMERA_RATE_HZ) -> None:
+        if not rate_hz > 0:
+            raise ValueError(f"rate_hz must be positive, not {rate_hz}")
+        self._rig = rig
+        self._unit_ids = list(unit_ids)
+        self._clock = clock
+        self._period_ns = round(1e9 / rate_hz)
+        self._start_ns: int | None = None
+        self._next = 0
+        self._missed = 0
+
+    @property
+    def missed(self) -> int:
+        return self._missed
+
+    def next_frame(self) -> FrameSet | None:
+        clock = self._clock
+        if self._start_ns is None:
+            self._start_ns = clock.now_ns()
+        due_ns = self._start_ns + self._next * self._period_ns
+        now = clock.now_ns()
+        if now > due_ns + self._period_ns // 2:  # late by more than half a period: missed
+            late = (now - due_ns) // self._period_ns
+            self._missed += int(late)
+            self._next += int(late)
+            due_ns += int(late) * self._period_ns
+        if due_ns > now:
+            clock.sleep((due_ns - now) / 1e9)
+        steps = self._rig.acquire(self._unit_ids)
+        times = [f.meta.t_ns for step in steps for f in step.frames.values()]
+        frame = FrameSet(self._next, round(sum(times) / len(times)), steps)
+        self._next += 1
+        return frame
+
+
+class RigReconstructor:
+    """Reconstructs frame sets of a rig with one calibration, its cameras loaded once.
+
+    Each unit's first two cameras fix each other's fringe order (the default method); the
+    clouds of the units are fused. Raises :class:`ReconstructionError` for a calibration
+    without phase-to-height models.
+    """
+
+    def __init__(self, calibration: str | Path, rig: RigSpec, bit_depth: int | None = None
+                 ) -> None:
+        document = load_calibration(calibration, rig)
+        self._cameras: dict[str, CalibratedCamera] = calibrated_cameras(document)
+        self._limits = z_range(document)
+        self._rig = rig
+        self._saturation = None if bit_depth is None else float(2 ** bit_depth - 1)
+
+    def __call__(self, frame_set: FrameSet) -> CloudLike:
+        parts = []
+        for step in frame_set.steps:
+            by_unit: dict[str, list[str]] = {}
+            for camera_id in step.frames:
+                by_unit.setdefault(self._rig.unit_of_camera(camera_id).id, []).append(camera_id)
+            for camera_ids in by_unit.values():
+                if len(camera_ids) < 2:
+                    raise ReconstructionError(f"camera {camera_ids[0]} has no partner in its "
+                                              "unit to fix its fringe order")
+                a, b = camera_ids[:2]
+                frame_a, frame_b = step.frames[a], step.frames[b]
+                saturation = self._saturation or float(2 ** frame_a.meta.bit_depth - 1)
+                cloud_a, cloud_b = unit_clouds(
+                    self._cameras[a], frame_a.image, self._cameras[b], frame_b.image,
+                    self._limits, saturation_dn=saturation)
+                for camera_id, cloud in ((a, cloud_a), (b, cloud_b)):
+                    parts.append(Part(cloud.points, cloud.quality,
+                                      self._rig.camera_index(camera_id),
+                                      self._rig.unit_of_camera(camera_id).id))
+        fused = fuse(parts)
+        return PointCloud(fused.points.astype(np.float32), fused.quality, fused.camera)
+
+
+class LatestFrame:
+    """A one-place slot where the newest frame set wins; replaced ones are counted as dropped."""
+
+    def __init__(self) -> None:
+        self._condition = threading.Condition()
+        self._item: FrameSet | None = None
+        self._closed = False
+        self.dropped = 0
+        """Frame sets replaced before anyone took them."""
+
+    def put(self, item: FrameSet) -> bool:
+        """Offer a frame set; True when it replaced one that was never taken."""
+        with self._condition:
+            replaced = self._item is not None
+            if replaced:
+                self.dropped += 1
+            self._item = item
+            self._condition.notify_all()
+            return replaced
+
+    def take(self, timeout_s: float | None = None) -> FrameSet | None:
+        """The newest frame set (removing it), waiting for one; None when closed and empty or
+        on timeout."""
+        with self._condition:
+            self._condition.wait_for(lambda: self._item is not None or self._closed, timeout_s)
+            item, self._item = self._item, None
+            return item
+
+    def close(self) -> None:
+        """Wake a waiting :meth:`take`; what is in the slot can still be taken."""
+        with self._condition:
+            self._closed = True
+            self._condition.notify_all()
+
+
+def _vector(values: Sequence[float] | None) -> list[float] | None:
+    return None if values is None else [float(v) for v in values]
+
+
+def _finite_or_none(value: float) -> float | None:
+    return value if math.isfinite(value) else None
+
+
+@dataclass
+class _Counters:
+    acquired: int = 0
+    processed: int = 0
+    last: dict[str, Any] | None = None
+    error: str | None = None
+    beam_hold: bool = True
+    held_frames: int = 0
+    started: str = ""
+    stopped: str | None = None
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+class TrackingSession:
+    """Live tracking of one patient's eye for one fraction (see the module docstring).
+
+    Parameters
+    ----------
+    source : FrameSource
+        The frame sets at the camera rate.
+    reconstruct : Reconstructor
+        Frame set → cloud.
+    fit : FitFunction
+        Cloud, eye model → pose (:func:`~eyeserver.pipeline.eyepose.fit_eye`).
+    model : EyeModel
+        The patient's eye model.
+    reference : dict
+        The fraction's reference pose (``centre_mm``, ``gaze``, ``limbus_centre_mm``).
+    tolerances : Tolerances
+        The patient's tolerances (``min_confidence`` also holds the beam).
+    bus : EventBus
+        Where each processed frame's message is published (type ``"pose"``).
+    clock : Clock
+        The rig's clock: frame times and latencies are on it.
+    dwell_frames, hold_on_drop
+        :class:`~eyeserver.service.beamhold.BeamHoldConfig`.
+    """
+
+    def __init__(self, source: FrameSource, reconstruct: Reconstructor, fit: FitFunction, *,
+                 model: EyeModel, reference: dict[str, Any], tolerances: Tolerances,
+                 bus: EventBus, clock: Clock, dwell_frames: int = 3,
+                 hold_on_drop: bool = True, info: dict[str, Any] | None = None) -> None:
+        self.source = source
+        self.reconstruct = reconstruct
+        self.fit = fit
+        self.model = model
+        self.reference = reference
+        self.tolerances = tolerances
+        self.bus = bus
+        self.clock = clock
+        self.info = dict(info or {})
+        self.beam = BeamHold(BeamHoldConfig(dwell_frames=dwell_frames,
+                                            min_confidence=tolerances.min_confidence,
+                                            hold_on_drop=hold_on_drop))
+        self.slot = LatestFrame()
+        self._counters = _Counters(started=_now_text())
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._on_end: Callable[[], None] | None = None
+        self._done = threading.Event()  # both threads have finished
+        self._ended = threading.Event()  # ... and on_end has run
+
+    # --- one step at a time (the threads loop these; tests call them directly) -------------
+
+    def acquire_once(self) -> FrameSet | None:
+        """Take the next frame set from the source into the slot; None when the source ended."""
+        frame_set = self.source.next_frame()
+        if frame_set is not None:
+            with self._counters.lock:
+                self._counters.acquired += 1
+            self.slot.put(frame_set)
+        return frame_set
+
+    def process_once(self, timeout_s: float | None = 0.0) -> dict[str, Any] | None:
+        """Process the newest frame set in the slot and publish its message (None: none there)."""
+        frame_set = self.slot.take(timeout_s)
+        if frame_set is None:
+            return None
+        return self.process(frame_set)
+
+    def process(self, frame_set: FrameSet) -> dict[str, Any]:
+        """Reconstruct, fit, compare, update the beam hold and publish one frame's message."""
+        started_ns = self.clock.now_ns()
+        pose: EyePose | None = None
+        error: str | None = None
+        eye: EyeSeen = "visible"
+        try:
+            pose = self.fit(self.reconstruct(frame_set), self.model)
+        except (PoseError, ReconstructionError, ValueError) as exc:
+            eye, error = "lost", str(exc) or type(exc).__name__
+        if pose is not None and pose.gaze_source == "none":
+            # A globe without limbus or cornea: the lids cover the front of the eye.
+            eye, error, pose = "blink", "no limbus or cornea visible (blink?)", None
+        message: dict[str, Any] = {"t": frame_set.t_ns / 1e9, "t_ns": frame_set.t_ns,
+                                   "frame": frame_set.frame, "pose": None, "deviation": None,
+                                   "in_tolerance": False, "confidence": 0.0, "eye": eye}
+        in_tolerance, confidence = False, 0.0
+        if pose is not None:
+            ref = self.reference
+            found = deviation(pose.centre_mm, pose.gaze, ref["centre_mm"], ref["gaze"],
+                              pose.limbus_centre_mm, ref.get("limbus_centre_mm"))
+            confidence = float(pose.confidence)
+            in_tolerance = judge(found, self.tolerances, confidence).in_tolerance
+            message.update(
+                pose={"centre_mm": _vector(pose.centre_mm),
+                      "limbus_centre_mm": _vector(pose.limbus_centre_mm),
+                      "gaze": _vector(pose.gaze)},
+                deviation={"delta_mm": list(found.delta_mm),
+                           "length_mm": _finite_or_none(found.length_mm),
+                           "gaze_deg": _finite_or_none(found.gaze_deg)},
+                in_tolerance=in_tolerance,
+                confidence=confidence if math.isfinite(confidence) else 0.0)
+        decision = self.beam.update(FrameObservation(frame_set.frame, eye, in_tolerance,
+                                                     confidence))
+        now_ns = self.clock.now_ns()
+        message.update(beam_hold=decision.beam_hold, reasons=list(decision.reasons),
+                       dropped_frames=self.slot.dropped, missed_frames=self.source.missed,
+                       processing_ms=(now_ns - started_ns) / 1e6,
+                       latency_ms=(now_ns - frame_set.t_ns) / 1e6)
+        if error is not None:
+            message["error"] = error
+        counters = self._counters
+        with counters.lock:
+            counters.processed += 1
+            counters.beam_hold = decision.beam_hold
+            counters.held_frames += decision.beam_hold
+            counters.last = message
+        self.bus.publish("pose", **message)
+        return message
+
+    # --- threads ----------------------------------------------------------------------------
+
+    def start(self, on_end: Callable[[], None] | None = None) -> None:
+        """Run acquisition and processing on their own threads until :meth:`stop` or the
+        source ends; ``on_end`` is called once both have finished."""
+        self._on_end = on_end
+        self._threads = [threading.Thread(target=self._acquire_loop, name="tracking-acquisition",
+                                          daemon=True),
+                         threading.Thread(target=self._process_loop, name="tracking-processing",
+                                          daemon=True)]
+        for thread in self._threads:
+            thread.start()
+
+    def _acquire_loop(self) -> None:
+        try:
+            while not self._stop.is_set():
+                if self.acquire_once() is None:
+                    break
+        except DeviceError as exc:
+            _log.error("tracking acquisition failed", extra={"reason": str(exc)})
+            with self._counters.lock:
+                self._counters.error = str(exc)
+        except Exception as exc:  # the session must end, and say why
+            _log.exception("tracking acquisition failed")
+            with self._counters.lock:
+                self._counters.error = f"{type(exc).__name__}: {exc}"
+        finally:
+            self.slot.close()
+
+    def _process_loop(self) -> None:
+        try:
+            while True:
+                frame_set = self.slot.take(None)
+                if frame_set is None:
+                    break  # closed and empty
+                if self._stop.is_set():
+                    break
+                self.process(frame_set)
+        except Exception as exc:
+            _log.exception("tracking processing failed")
+            with self._counters.lock:
+                self._counters.error = f"{type(exc).__name__}: {exc}"
+            self._stop.set()
+        finally:
+            with self._counters.lock:
+                self._counters.stopped = _now_text()
+            threading.Thread(target=self._finish, name="tracking-end", daemon=True).start()
+
+    def _finish(self) -> None:
+        for thread in self._threads:
+            if thread is not threading.current_thread():
+                thread.join(_JOIN_S)
+        self._done.set()
+        try:
+            if self._on_end is not None:
+                self._on_end()  # the daemon leaves "tracking" before stop() returns
+        finally:
+            self._ended.set()
+
+    def stop(self, timeout_s: float = _JOIN_S) -> None:
+        """Ask both threads to end and wait for them (a frame being processed finishes)."""
+        self._stop.set()
+        self.slot.close()
+        self._ended.wait(timeout_s)
+
+    @property
+    def running(self) -> bool:
+        """Whether the threads are still at work."""
+        return bool(self._threads) and not self._done.is_set()
+
+    def status(self) -> dict[str, Any]:
+        """Counters, the beam-hold flag and the last message."""
+        counters = self._counters
+        with counters.lock:
+            return {**self.info, "running": self.running, "started": counters.started,
+                    "stopped": counters.stopped, "frames_acquired": counters.acquired,
+                    "frames_processed": counters.processed,
+                    "frames_dropped": self.slot.dropped, "frames_missed": self.source.missed,
+                    "frames_held": counters.held_frames, "beam_hold": counters.beam_hold,
+                    "error": counters.error, "last_message": counters.last}
+
+
+def _now_text() -> str:
+    return datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+SourceFactory = Callable[[Service, list[str], Clock], FrameSource]
+"""Builds the frame source of a session from the service, the unit ids and the clock."""
+
+ReconstructorFactory = Callable[[Service], Reconstructor]
+"""Builds the reconstruction of a session (the default loads the active calibration)."""
+
+
+def rig_source(service: Service, unit_ids: list[str], clock: Clock) -> FrameSource:
+    """The daemon's rig at :data:`CAMERA_RATE_HZ`."""
+    return RigFrameSource(service.rig, unit_ids, clock)
+
+
+def active_reconstructor(service: Service) -> Reconstructor:
+    """A :class:`RigReconstructor` of the active calibration.
+
+    Raises
+    ------
+    NoActiveCalibrationError
+        No calibration is active.
+    """
+    active = service.store.active_calibration()
+    if active is None:
+        raise NoActiveCalibrationError(
+            "no calibration is active: import one (POST /api/v1/calibrations) and activate "
+            "it (POST /api/v1/calibrations/{id}/activate)")
+    return RigReconstructor(active.path, service.rig_spec())
+
+
+class TrackingControl:
+    """The daemon's live tracking: at most one :class:`TrackingSession` at a time.
+
+    Parameters
+    ----------
+    service : Service
+        The open daemon (rig, store, state machine, events).
+    patients : Patients
+        Its patients (eye model, reference, tolerances, unit).
+    clock : Clock, optional
+        The rig's clock (default: the machine's monotonic clock, which the simulated room uses).
+    fit, source_factory, reconstructor_factory
+        Public attributes, so tests inject scripted ones.
+
+    :attr:`messages` is the bus of pose messages (``/api/v1/ws/pose``); it outlives sessions, so
+    a client stays connected from one session to the next.
+    """
+
+    def __init__(self, service: Service, patients: Patients, *,
+                 clock: Clock | None = None, fit: FitFunction = fit_eye,
+                 source_factory: SourceFactory = rig_source,
+                 reconstructor_factory: ReconstructorFactory = active_reconstructor) -> None:
+        self.service = service
+        self.patients = patients
+        self.clock: Clock = clock if clock is not None else MonotonicClock()
+        self.fit = fit
+        self.source_factory = source_factory
+        self.reconstructor_factory = reconstructor_factory
+        self.messages = EventBus()
+        self._lock = threading.Lock()
+        self._session: TrackingSession | None = None
+        self._hold: ExitStack | None = None
+        self._last_status: dict[str, Any] | None = None
+
+    @property
+    def session(self) -> TrackingSession | None:
+        """The running (or last) session."""
+        with self._lock:
+            return self._session
+
+    def start(self, patient_id: str, fraction: int, *, actor: str, dwell_frames: int = 3,
+              hold_on_drop: bool = True) -> dict[str, Any]:
+        """Start tracking a patient's eye for a fraction; the daemon enters ``tracking``.
+
+        Raises
+        ------
+        UnknownPatientError, NoReferenceError
+            No such patient, or the fraction has no reference pose (HTTP 404).
+        NoActiveCalibrationError, StateConflictError
+            No calibration is active, or the daemon is busy (tracking already) (HTTP 409).
+        ValueError
+            A bad ``dwell_frames``.
+        """
+        service = self.service
+        patient = self.patients.get(patient_id)
+        reference = self.patients.reference(patient_id, fraction)
+        stored_model = self.patients.eye_model(patient_id)
+        model = EyeModel.population() if stored_model is None else \
+            stored_model.model.to_eye_model()
+        unit_ids = service.unit_ids(patient.unit)
+        with self._lock:
+            if self._hold is not None:
+                raise StateConflictError("cannot start tracking: the daemon is tracking")
+            hold = ExitStack()
+            hold.enter_context(service.operation("tracking", "live tracking"))
+            try:
+                reconstruct = self.reconstructor_factory(service)
+                source = self.source_factory(service, unit_ids, self.clock)
+                session = TrackingSession(
+                    source, reconstruct, self.fit, model=model, reference=reference.pose,
+                    tolerances=patient.tolerances, bus=self.messages, clock=self.clock,
+                    dwell_frames=dwell_frames, hold_on_drop=hold_on_drop,
+                    info={"patient_id": patient_id, "fraction": fraction,
+                          "unit": patient.unit, "rate_hz": CAMERA_RATE_HZ,
+                          "reference_version": reference.version,
+                          "eye_model_version": None if stored_model is None
+                          else stored_model.version})
+            except BaseException:
+                hold.close()
+                raise
+            self._session, self._hold = session, hold
+        service.store.add_audit_entries(actor, "start_tracking", patient.key, [
+            {"patient_id": patient_id, "fraction": fraction, "unit": patient.unit}])
+        service.events.publish("tracking.started", fraction=fraction, unit=patient.unit)
+        _log.info("tracking started", extra={"fraction": fraction, "unit": patient.unit,
+                                             "actor": actor})
+        session.start(on_end=lambda: self._release(session))
+        return session.status()
+
+    def _release(self, session: TrackingSession) -> None:
+        """Leave ``tracking`` once a session's threads have ended (stopped or failed)."""
+        with self._lock:
+            if self._session is not session or self._hold is None:
+                return
+            hold, self._hold = self._hold, None
+        hold.close()
+        status = session.status()
+        self.service.events.publish("tracking.stopped", frames_processed=status[
+            "frames_processed"], frames_dropped=status["frames_dropped"], error=status["error"])
+        _log.info("tracking stopped", extra={k: status[k] for k in (
+            "frames_acquired", "frames_processed", "frames_dropped", "frames_missed", "error")})
+
+    def stop(self, *, actor: str) -> dict[str, Any]:
+        """Stop the running session and leave ``tracking``; its final status.
+
+        Raises
+        ------
+        StateConflictError
+            No session is running (HTTP 409).
+        """
+        with self._lock:
+            session = self._session
+            if session is None or self._hold is None:
+                raise StateConflictError("no live tracking is running")
+        session.stop()
+        self._release(session)
+        with contextlib.suppress(EyeserverError):
+            self.service.store.add_audit_entries(actor, "stop_tracking", "tracking", [
+                {k: v for k, v in session.status().items() if k != "last_message"}])
+        return session.status()
+
+    def status(self) -> dict[str, Any]:
+        """The running or last session's status (``running`` false and zero counts before
+        the first)."""
+        session = self.session
+        if session is None:
+            return {"running": False, "started": None, "stopped": None, "frames_acquired": 0,
+                    "frames_processed": 0, "frames_dropped": 0, "frames_missed": 0,
+                    "frames_held": 0, "beam_hold": True, "error": None, "last_message": None}
+        return session.status()
+
+    def close(self) -> None:
+        """Stop a running session (the daemon is shutting down). Idempotent."""
+        session = self.session
+        if session is not None:
+            session.stop()
+            self._release(session)

@@ -1,0 +1,479 @@
+"""Live tracking: the mechanisms on a manual clock with a scripted frame source and fit, then
+``/api/v1/tracking`` and ``/api/v1/ws/pose`` over a real server.
+
+Nothing here measures wall-clock time: frame times and latencies come from
+:class:`~eyeserver.core.clock.ManualClock`; real time only paces the scripted source (so it
+does not spin) and bounds waits against hangs.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import ExitStack
+from dataclasses import dataclass
+from typing import Any
+
+import httpx
+import numpy as np
+import numpy.typing as npt
+import pytest
+from fastapi import FastAPI
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import ClientConnection, connect
+
+from eyeserver.api import create_app
+from eyeserver.core.clock import Clock, ManualClock
+from eyeserver.core.frames import Frame, FrameMeta
+from eyeserver.hardware.base import TriggerPulse, TriggerStep
+from eyeserver.hardware.rig import AcquiredStep
+from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError
+from eyeserver.service.events import EventBus
+from eyeserver.service.patients import Tolerances
+from eyeserver.service.tracking import (
+    FrameSet,
+    LatestFrame,
+    RigFrameSource,
+    TrackingControl,
+    TrackingSession,
+)
+from tests.apiclient import API, OPERATOR_TOKEN, PHYSICIST_TOKEN, auth, test_settings
+from tests.liveserver import live_server
+
+TIMEOUT_S = 60.0  # only against hangs
+REFERENCE = {"centre_mm": [0.0, 0.0, -10.0], "gaze": [0.0, 0.0, 1.0], "limbus_centre_mm": None}
+TOLERANCES = Tolerances(translation_mm=0.5, gaze_deg=1.0, min_confidence=0.5)
+
+
+@dataclass(frozen=True)
+class _Cloud:
+    points: npt.NDArray[Any]
+    quality: npt.NDArray[Any] | None = None
+    script: object = None
+
+
+def _pose(centre: tuple[float, float, float] = (0.0, 0.0, -10.0),
+          gaze: tuple[float, float, float] = (0.0, 0.0, 1.0), confidence: float = 0.9,
+          gaze_source: str = "limbus") -> EyePose:
+    return EyePose(centre_mm=centre, centre_sd_mm=(0.01, 0.01, 0.01), globe_radius_mm=12.0,
+                   limbus_centre_mm=(centre[0], centre[1], centre[2] + 10.0), limbus_sd_mm=0.02,
+                   gaze=gaze, gaze_sd_deg=0.1, torsion_deg=None, surface_mad_mm=0.05,
+                   sclera_points=1000, confidence=confidence, gaze_source=gaze_source)
+
+
+class ScriptedSource:
+    """Frame ``n`` at ``start + n × 40 ms`` on the clock; ``data`` of each frame from a script
+    (a pose, or an exception the fit raises); ends after ``count`` frames (None: never)."""
+
+    def __init__(self, clock: Clock, script: list[object] | None = None,
+                 count: int | None = None, pace_s: float = 0.0) -> None:
+        self.clock = clock
+        self.script = script or []
+        self.count = count if count is not None or script is None else len(self.script)
+        self.pace_s = pace_s
+        self.frame = 0
+
+    @property
+    def missed(self) -> int:
+        return 0
+
+    def next_frame(self) -> FrameSet | None:
+        if self.count is not None and self.frame >= self.count:
+            return None
+        if self.frame:
+            self.clock.sleep(0.040)
+        if self.pace_s:
+            time.sleep(self.pace_s)  # real time: only so the thread does not spin
+        data = self.script[self.frame] if self.frame < len(self.script) else _pose()
+        frame_set = FrameSet(self.frame, self.clock.now_ns(), data=data)
+        self.frame += 1
+        return frame_set
+
+
+class ScriptedPipeline:
+    """Reconstruction and fit that take a set time on the clock and answer the script."""
+
+    def __init__(self, clock: Clock, reconstruct_s: float = 0.0, fit_s: float = 0.0) -> None:
+        self.clock = clock
+        self.reconstruct_s = reconstruct_s
+        self.fit_s = fit_s
+        self.fitted: list[EyeModel] = []
+
+    def reconstruct(self, frame_set: FrameSet) -> CloudLike:
+        self.clock.sleep(self.reconstruct_s)
+        return _Cloud(np.zeros((0, 3)), script=frame_set.data)
+
+    def fit(self, cloud: CloudLike, model: EyeModel) -> EyePose:
+        self.clock.sleep(self.fit_s)
+        self.fitted.append(model)
+        script = getattr(cloud, "script", None)
+        if isinstance(script, Exception):
+            raise script
+        assert isinstance(script, EyePose)
+        return script
+
+
+def _session(clock: ManualClock, script: list[object], *, reconstruct_s: float = 0.0,
+             fit_s: float = 0.0, dwell_frames: int = 3, bus: EventBus | None = None
+             ) -> TrackingSession:
+    pipeline = ScriptedPipeline(clock, reconstruct_s, fit_s)
+    return TrackingSession(ScriptedSource(clock, script), pipeline.reconstruct, pipeline.fit,
+                           model=EyeModel.population(), reference=REFERENCE,
+                           tolerances=TOLERANCES, bus=bus or EventBus(), clock=clock,
+                           dwell_frames=dwell_frames)
+
+
+def _gaze(deg: float) -> tuple[float, float, float]:
+    rad = np.radians(deg)
+    return (float(np.sin(rad)), 0.0, float(np.cos(rad)))
+
+
+# --- the mechanisms ---------------------------------------------------------------------------
+
+
+def test_the_newest_frame_wins_and_replaced_frames_are_counted() -> None:
+    slot = LatestFrame()
+    assert slot.put(FrameSet(0, 0)) is False
+    assert slot.put(FrameSet(1, 40)) is True
+    assert slot.put(FrameSet(2, 80)) is True
+    taken = slot.take(0)
+    assert taken is not None and taken.frame == 2
+    assert slot.dropped == 2
+    assert slot.take(0) is None
+    slot.put(FrameSet(3, 120))
+    slot.close()
+    last = slot.take(None)
+    assert last is not None and last.frame == 3  # closing keeps what was put
+    assert slot.take(None) is None
+
+
+def test_a_session_processes_only_the_newest_frame_and_reports_the_drops() -> None:
+    clock = ManualClock(1_000_000_000)
+    session = _session(clock, [_pose()] * 6)
+    session.acquire_once()
+    assert session.process_once() is not None  # frame 0
+    for _ in range(3):
+        session.acquire_once()
+    message = session.process_once()
+
+    assert message is not None and message["frame"] == 3
+    assert message["dropped_frames"] == 2
+    assert message["beam_hold"] is True and "dropped" in message["reasons"]
+    status = session.status()
+    assert (status["frames_acquired"], status["frames_processed"],
+            status["frames_dropped"]) == (4, 2, 2)
+    assert session.beam.dropped_frames == 2  # the gap in frame numbers, as BeamHold saw it
+    session.acquire_once()
+    nxt = session.process_once()
+    assert nxt is not None and nxt["frame"] == 4 and "dropped" not in nxt["reasons"]
+    assert session.process_once() is None  # nothing new: nothing is processed twice
+
+
+def test_beam_hold_rises_on_the_first_out_of_tolerance_frame_and_falls_after_the_dwell(
+) -> None:
+    clock = ManualClock()
+    # Frames 0-5 steady, 6-7 a saccade of 5° (tolerance 1°), 8-13 steady again.
+    script: list[object] = [_pose(gaze=_gaze(5.0) if n in (6, 7) else _gaze(0.1))
+                            for n in range(14)]
+    session = _session(clock, script, dwell_frames=3)
+    holds, in_tolerance = [], []
+    for _ in script:
+        session.acquire_once()
+        message = session.process_once()
+        assert message is not None
+        holds.append(message["beam_hold"])
+        in_tolerance.append(message["in_tolerance"])
+
+    assert in_tolerance == [n not in (6, 7) for n in range(14)]
+    # Held until the third good frame, released, held at once on frame 6 (the saccade's
+    # first), and released again on the third good frame after it (frame 10).
+    assert holds == [True, True, False, False, False, False, True, True, True, True,
+                     False, False, False, False]
+    assert session.status()["frames_held"] == 6
+
+
+def test_a_message_has_the_pose_the_deviation_and_latency_from_the_frame_time() -> None:
+    clock = ManualClock(5_000_000_000)
+    bus = EventBus()
+    centre = (0.3, 0.0, -9.7)
+    session = _session(clock, [_pose(centre=centre, gaze=_gaze(0.5), confidence=0.8)],
+                       reconstruct_s=0.021, fit_s=0.009, bus=bus)
+    session.acquire_once()
+    message = session.process_once()
+
+    assert message is not None
+    assert message["t"] == 5.0 and message["t_ns"] == 5_000_000_000 and message["frame"] == 0
+    assert message["latency_ms"] == pytest.approx(30.0)
+    assert message["processing_ms"] == pytest.approx(30.0)
+    assert message["pose"] == {"centre_mm": list(centre),
+                               "limbus_centre_mm": [0.3, 0.0, pytest.approx(0.3)],
+                               "gaze": list(_gaze(0.5))}
+    assert message["deviation"]["delta_mm"] == pytest.approx([0.3, 0.0, 0.3])
+    assert message["deviation"]["length_mm"] == pytest.approx(0.3 * 2 ** 0.5)
+    assert message["deviation"]["gaze_deg"] == pytest.approx(0.5)
+    assert message["in_tolerance"] is True and message["confidence"] == 0.8
+    assert message["beam_hold"] is True and message["reasons"] == ["dwell"]
+    assert message["eye"] == "visible"
+    assert json.loads(json.dumps(message)) == message
+    assert session.bus is bus and bus.last_seq == 1
+
+
+@pytest.mark.parametrize(("script", "eye"), [
+    (PoseError("no globe in the cloud"), "lost"),
+    (_pose(gaze_source="none"), "blink"),
+])
+def test_a_failed_fit_or_a_blink_holds_the_beam_with_no_pose(script: object, eye: str) -> None:
+    clock = ManualClock()
+    session = _session(clock, [_pose(), _pose(), _pose(), script, _pose()])
+    messages = []
+    for _ in range(5):
+        session.acquire_once()
+        messages.append(session.process_once())
+
+    assert [m["beam_hold"] for m in messages if m] == [True, True, False, True, True]
+    failed = messages[3]
+    assert failed is not None
+    assert failed["pose"] is None and failed["deviation"] is None
+    assert failed["eye"] == eye and failed["reasons"] == [eye] and failed["confidence"] == 0.0
+    assert failed["error"]
+
+
+def test_low_confidence_holds_the_beam() -> None:
+    session = _session(ManualClock(), [_pose(confidence=0.2)])
+    session.acquire_once()
+    message = session.process_once()
+    assert message is not None
+    assert message["in_tolerance"] is True and message["beam_hold"] is True
+    assert "low_confidence" in message["reasons"]
+
+
+class _FakeRig:
+    """Acquires at once, or taking ``busy_s`` of the clock; frames mid-exposure 1 ms after."""
+
+    def __init__(self, clock: ManualClock, busy_s: list[float]) -> None:
+        self.clock = clock
+        self.busy_s = busy_s
+        self.calls: list[int] = []
+
+    def acquire(self, unit_ids: list[str]) -> list[AcquiredStep]:
+        now = self.clock.now_ns()
+        self.calls.append(now)
+        step = TriggerStep(projectors=("P1",), cameras=("S1", "S2"))
+        frames = {c: Frame(np.zeros((2, 2), np.uint8),
+                           FrameMeta(c, len(self.calls), now + 1_000_000 + k * 2_000_000,
+                                     2000.0, 0.0, 0, 8))
+                  for k, c in enumerate(("S1", "S2"))}
+        self.clock.advance(self.busy_s[len(self.calls) - 1])
+        return [AcquiredStep(TriggerPulse(len(self.calls), now, step), frames)]
+
+
+def test_the_rig_source_paces_at_the_camera_rate_and_counts_missed_frames() -> None:
+    clock = ManualClock(10_000_000_000)
+    rig = _FakeRig(clock, [0.010, 0.010, 0.130, 0.010, 0.010])
+    source = RigFrameSource(rig, ["left"], clock)  # type: ignore[arg-type]
+    frames = [source.next_frame() for _ in range(5)]
+
+    assert [f.frame for f in frames if f] == [0, 1, 2, 5, 6]  # frames 3 and 4 were missed
+    assert source.missed == 2
+    # Frame 5 is acquired at once, 10 ms late (within half a period); frame 6 on time.
+    assert [(t - 10_000_000_000) / 1e6 for t in rig.calls] == [0.0, 40.0, 80.0, 210.0, 240.0]
+    first = frames[0]
+    assert first is not None and first.t_ns == 10_000_000_000 + 2_000_000  # mean mid-exposure
+
+
+# --- the API and the pose stream over a real server ------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def app(tmp_path_factory: pytest.TempPathFactory) -> FastAPI:
+    data_dir = tmp_path_factory.mktemp("tracking") / "data"
+    return create_app(test_settings(data_dir))
+
+
+@pytest.fixture(scope="module")
+def base_url(app: FastAPI) -> Iterator[str]:
+    with live_server(app) as url:
+        yield url
+
+
+@pytest.fixture(scope="module")
+def tracking(app: FastAPI, base_url: str) -> TrackingControl:
+    control = app.state.tracking
+    assert isinstance(control, TrackingControl)
+    clock = ManualClock(1_000_000_000)
+    pipeline = ScriptedPipeline(clock, reconstruct_s=0.012, fit_s=0.008)
+    control.clock = clock
+    control.fit = pipeline.fit
+    control.reconstructor_factory = lambda service: pipeline.reconstruct
+    control.source_factory = lambda service, units, c: ScriptedSource(c, pace_s=0.002)
+    physicist = auth(PHYSICIST_TOKEN)
+    for request in (
+        httpx.put(f"{base_url}{API}/patients/P-T1", json={"eye": "right", "unit": "left"},
+                  headers=physicist),
+        httpx.put(f"{base_url}{API}/patients/P-T1/fractions/1/reference", json=REFERENCE,
+                  headers=physicist),
+    ):
+        assert request.status_code in (200, 201), request.text
+    return control
+
+
+def _post(base_url: str, path: str, body: dict[str, Any] | None = None,
+          token: str = OPERATOR_TOKEN) -> httpx.Response:
+    return httpx.post(f"{base_url}{API}{path}", json=body, headers=auth(token),
+                      timeout=TIMEOUT_S)
+
+
+def _get(base_url: str, path: str) -> dict[str, Any]:
+    response = httpx.get(f"{base_url}{API}{path}", headers=auth(OPERATOR_TOKEN),
+                         timeout=TIMEOUT_S)
+    assert response.status_code == 200, response.text
+    body: dict[str, Any] = response.json()
+    return body
+
+
+def _connect(base_url: str, token: str | None = OPERATOR_TOKEN, **kwargs: Any
+             ) -> ClientConnection:
+    query = "" if token is None else f"?token={token}"
+    url = base_url.replace("http://", "ws://", 1) + f"{API}/ws/pose{query}"
+    return connect(url, compression=None, open_timeout=TIMEOUT_S, close_timeout=5,
+                   ping_interval=None, **kwargs)
+
+
+def _recv(ws: ClientConnection) -> dict[str, Any]:
+    message: dict[str, Any] = json.loads(ws.recv(timeout=TIMEOUT_S))
+    return message
+
+
+def _wait_state(base_url: str, state: str) -> None:
+    deadline = time.monotonic() + TIMEOUT_S
+    while _get(base_url, "/status")["state"] != state:
+        assert time.monotonic() < deadline, f"the daemon did not become {state}"
+        time.sleep(0.01)
+
+
+def test_tracking_starts_streams_and_stops_through_the_api(
+    base_url: str, tracking: TrackingControl, app: FastAPI
+) -> None:
+    assert _post(base_url, "/tracking/stop").status_code == 409  # nothing to stop
+    with _connect(base_url) as ws:
+        started = _post(base_url, "/tracking/start", {"patient_id": "P-T1", "fraction": 1})
+        assert started.status_code == 201, started.text
+        assert started.json()["running"] is True and started.json()["unit"] == "left"
+        assert _get(base_url, "/status")["state"] == "tracking"
+        # Nothing else may use the hardware meanwhile.
+        capture = _post(base_url, "/captures", {"unit": "left"})
+        assert capture.status_code == 409 and "tracking" in capture.json()["detail"]
+        again = _post(base_url, "/tracking/start", {"patient_id": "P-T1", "fraction": 1})
+        assert again.status_code == 409
+
+        messages = [_recv(ws) for _ in range(10)]
+        stopped = _post(base_url, "/tracking/stop")
+
+    assert stopped.status_code == 200, stopped.text
+    final = stopped.json()
+    assert final["running"] is False and final["error"] is None
+    assert final["frames_processed"] >= 10
+    # Every acquired frame was processed or dropped, but for one that stop() left unread.
+    assert final["frames_acquired"] - 1 <= final["frames_processed"] + final["frames_dropped"]
+    assert final["frames_processed"] + final["frames_dropped"] <= final["frames_acquired"]
+    assert _get(base_url, "/status")["state"] == "idle"
+    assert _get(base_url, "/tracking")["frames_processed"] == final["frames_processed"]
+    pose = [m for m in messages if m["type"] == "pose"]
+    assert final["last_message"]["frame"] >= pose[-1]["frame"]
+    assert pose, messages
+    for message in pose:
+        assert {"t", "frame", "pose", "deviation", "in_tolerance", "beam_hold", "latency_ms",
+                "confidence"} <= set(message)
+        assert set(message["pose"]) == {"centre_mm", "limbus_centre_mm", "gaze"}
+        assert {"delta_mm", "gaze_deg"} <= set(message["deviation"])
+        # The scripted pipeline takes 20 ms of the manual clock; the send adds none of it.
+        assert message["latency_ms"] >= 20.0
+    frames = [m["frame"] for m in pose]
+    assert frames == sorted(frames)
+    assert _post(base_url, "/tracking/stop").status_code == 409
+    assert _post(base_url, "/captures", {"unit": "left"}).status_code == 201
+
+
+def test_tracking_needs_an_operator_a_patient_and_a_reference(
+    base_url: str, tracking: TrackingControl
+) -> None:
+    body = {"patient_id": "P-T1", "fraction": 1}
+    assert httpx.post(f"{base_url}{API}/tracking/start", json=body).status_code == 401
+    assert _post(base_url, "/tracking/start", {"patient_id": "P-none", "fraction": 1}
+                 ).status_code == 404
+    assert _post(base_url, "/tracking/start", {"patient_id": "P-T1", "fraction": 9}
+                 ).status_code == 404
+    assert _post(base_url, "/tracking/start", {"patient_id": "P-T1"}).status_code == 422
+    assert _get(base_url, "/status")["state"] == "idle"
+
+
+@pytest.mark.parametrize("token", [None, "wrong-token"])
+def test_the_pose_stream_closes_with_1008_without_a_valid_token(
+    base_url: str, token: str | None
+) -> None:
+    with _connect(base_url, token) as ws, pytest.raises(ConnectionClosed) as closed:
+        ws.recv(timeout=TIMEOUT_S)
+    assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
+
+
+def test_twenty_clients_one_never_reading_all_others_get_every_message(
+    base_url: str, tracking: TrackingControl
+) -> None:
+    frames, readers = 300, 19
+    original = tracking.source_factory
+    tracking.source_factory = lambda service, units, c: ScriptedSource(
+        c, count=frames, pace_s=0.002)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.connect(("127.0.0.1", int(base_url.rsplit(":", 1)[1])))
+    stack = ExitStack()
+    received: list[list[dict[str, Any]]] = [[] for _ in range(readers)]
+    errors: list[BaseException] = []
+
+    def read(index: int, ws: ClientConnection) -> None:
+        try:
+            while True:
+                message = _recv(ws)
+                received[index].append(message)
+                if message.get("frame") == frames - 1:
+                    return
+        except BaseException as exc:
+            errors.append(exc)
+
+    try:
+        silent = stack.enter_context(_connect(base_url, sock=sock, max_queue=1))
+        clients = [stack.enter_context(_connect(base_url)) for _ in range(readers)]
+        threads = [threading.Thread(target=read, args=(n, ws)) for n, ws in enumerate(clients)]
+        for thread in threads:
+            thread.start()
+        started = _post(base_url, "/tracking/start", {"patient_id": "P-T1", "fraction": 1})
+        assert started.status_code == 201, started.text
+        for thread in threads:
+            thread.join(TIMEOUT_S)
+        _wait_state(base_url, "idle")  # the source ended: the session ended by itself
+        status = _get(base_url, "/tracking")
+        late = [_recv(silent)]
+        while late[-1].get("frame") != frames - 1:
+            late.append(_recv(silent))
+    finally:
+        stack.close()
+        tracking.source_factory = original
+
+    assert not errors, errors
+    processed = status["frames_processed"]
+    assert status["running"] is False and status["frames_acquired"] == frames
+    assert processed + status["frames_dropped"] == frames
+    first = received[0]
+    for messages in received:
+        assert [m["type"] for m in messages].count("dropped") == 0
+        assert [m["frame"] for m in messages] == [m["frame"] for m in first]
+        assert len(messages) == processed
+        seqs = [m["seq"] for m in messages]
+        assert seqs == list(range(seqs[0], seqs[0] + processed))
+    # The silent client lost only its oldest messages, and was told how many.
+    lost = sum(m["count"] for m in late if m["type"] == "dropped")
+    assert lost + len([m for m in late if m["type"] == "pose"]) == processed
+    assert late[-1]["frame"] == frames - 1
