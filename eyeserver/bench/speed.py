@@ -105,7 +105,8 @@ STAGES: dict[str, str] = {
     "order_check": "every pixel's order checked against the partner camera's phase",
     "cloud_assembly": "quality, range crop (camera_cloud's last step)",
     "cross_check": "points the partner's own reconstruction confirms (unit_clouds)",
-    "despeckle": "patches of continuous depth under 1000 px dropped",
+    "despeckle": "patches of continuous depth under 1000 px dropped unless the partner "
+                 "confirms a 200 px+ patch's order as a whole",
     "spatial_unwrapping": "spatial path: scikit-image unwrap_phase (Herráez) of the masked "
                           "phase",
     "spatial_region_order": "spatial path: one order per unwrapped region, voted by the grid",
@@ -464,9 +465,10 @@ def _multi_view_pass(frameset: FrameSet, samples: _Samples) -> dict[str, Any]:
                                         clouds[cam.camera_id], cam, clouds[other.camera_id],
                                         other)
             for cam, other in ((unit.cam_a, unit.cam_b), (unit.cam_b, unit.cam_a))}
-        for cam in (unit.cam_a, unit.cam_b):
+        for cam, other in ((unit.cam_a, unit.cam_b), (unit.cam_b, unit.cam_a)):
             cloud = samples.time(cam.camera_id, "despeckle", _despeckled,
-                                 checked[cam.camera_id], cam.shape)
+                                 checked[cam.camera_id], cam.shape, cam, other,
+                                 phases[other.camera_id], frameset.z_range)
             out["clouds"][cam.camera_id] = cloud
             parts.append(Part(cloud.points, cloud.quality,
                               frameset.camera_index[cam.camera_id], unit.unit_id))
