@@ -27,6 +27,11 @@ that is spherical: the lids are shells in front of it. So:
    eye looks at the beam source, DESIGN §2). The boundary of the valid fringe region lies about
    a period outside the true limbus, so the boundary's radius is not the limbus's: the limbus
    centre reported lies on the fitted axis at the model's limbus depth √(R² − (D/2)²).
+   Measured on rendered eyes, though, the hole reaches up to 25° beyond the limbus, lopsided
+   (the cornea's shadow, fringe erosion, the lids), so the edge circle strays (7.7° median,
+   43° p95 on 24 poses); the gaze is taken instead as the axis of the widest cone that the
+   sclera and lid shell leave empty (4.8° median, 12.7° p95) — far from the 0.5° goal, which
+   needs the limbus found in the images (DESIGN §4 step 8), not in the cloud.
    Where a corneal cap is reconstructed (a sphere of radius 6–10 mm in front of the globe,
    within the hole), the axis through the two centres is a second gaze cue, combined with the
    limbus by inverse variance.
@@ -176,6 +181,8 @@ _HYPOTHESES = 400
 _BAND_MM = 0.25
 _SECTORS = 36
 _NORMAL_MM = 1.6
+_CONE_POINTS = 1500
+_EDGE_IS_LIMBUS_MM = 0.5
 
 
 def fit_sphere(points: npt.ArrayLike) -> tuple[F64, float]:
@@ -247,17 +254,32 @@ def _shell_score(voxels: F64, counts: F64, centres: F64, radii: F64) -> F64:
 
 
 def _normals(voxels: F64) -> tuple[F64, npt.NDArray[np.bool_]]:
-    """Unit normals facing +Z from a PCA of each voxel's 1.6 mm neighbourhood, and where valid."""
+    """Unit normals facing +Z from a PCA of each voxel's 1.6 mm neighbourhood, and where valid.
+
+    Batched: neighbour lists are padded to one length (the voxel itself repeated, weight 0),
+    and all 3×3 scatter matrices go to one ``np.linalg.eigh`` call — a per-voxel loop took
+    ≈ 1 s on a 20 k-voxel cloud.
+    """
     tree = cKDTree(voxels)
+    neighbours = tree.query_ball_point(voxels, _NORMAL_MM, return_sorted=False)
+    sizes = np.fromiter((len(m) for m in neighbours), dtype=np.intp, count=len(voxels))
     normals = np.zeros_like(voxels)
-    valid = np.zeros(len(voxels), dtype=bool)
-    for k, members in enumerate(tree.query_ball_point(voxels, _NORMAL_MM)):
-        if len(members) < 8:
-            continue
-        q = voxels[members] - voxels[members].mean(axis=0)
-        normal = np.linalg.eigh(q.T @ q)[1][:, 0]
-        normals[k] = normal if normal[2] > 0 else -normal
-        valid[k] = True
+    valid = sizes >= 8
+    if not valid.any():
+        return normals, valid
+    rows = np.flatnonzero(valid)
+    width = int(sizes[rows].max())
+    index = np.repeat(rows[:, None], width, axis=1)
+    flat = np.concatenate([neighbours[k] for k in rows]).astype(np.intp)
+    column = np.arange(len(flat)) - np.repeat(np.cumsum(sizes[rows]) - sizes[rows], sizes[rows])
+    index[np.repeat(np.arange(len(rows)), sizes[rows]), column] = flat
+    weight = (np.arange(width)[None, :] < sizes[rows, None]).astype(np.float64)
+    members = voxels[index]
+    mean = (members * weight[..., None]).sum(axis=1) / sizes[rows, None]
+    q = (members - mean[:, None, :]) * weight[..., None]
+    scatter = np.einsum("nki,nkj->nij", q, q)
+    normal = np.linalg.eigh(scatter)[1][:, :, 0]
+    normals[rows] = np.where(normal[:, 2:3] > 0, normal, -normal)
     return normals, valid
 
 
@@ -438,10 +460,26 @@ def _refine_globe(points: F64, weights: F64, centre: F64, radius: float,
         lids = lw * (np.linalg.norm(lid_points - x[:3], axis=1) - x[n_free])
         return np.asarray(np.concatenate([sclera, lids]), dtype=np.float64)
 
+    def jacobian(x: F64) -> F64:
+        # Analytic: a finite-difference Jacobian cost 5 residual evaluations an iteration.
+        blocks = [(points, sw, 0)] + ([(lid_points, lw, n_free)] if use_lids else [])
+        rows = []
+        for shell, root_w, column in blocks:
+            rel = shell - x[:3]
+            unit = rel / np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-12)
+            block = np.zeros((len(shell), len(x)))
+            block[:, :3] = -root_w[:, None] * unit
+            if column:
+                block[:, column] = -root_w
+            elif fixed_radius is None:
+                block[:, 3] = -root_w
+            rows.append(block)
+        return np.asarray(np.vstack(rows), dtype=np.float64)
+
     x0 = np.append(centre, radius) if fixed_radius is None else centre.copy()
     if use_lids:
         x0 = np.append(x0, lid_radius)
-    fit = least_squares(residuals, x0, loss="soft_l1", f_scale=0.05, x_scale=1.0)
+    fit = least_squares(residuals, x0, jac=jacobian, loss="soft_l1", f_scale=0.05, x_scale=1.0)
     x = fit.x
     r_fit = float(fixed_radius if fixed_radius is not None else x[3])
     lid_fit = float(x[n_free]) if use_lids else lid_radius
@@ -518,6 +556,32 @@ def _limbus(directions: F64, start: F64 | None = None) -> tuple[F64, float, F64,
         if moved < 1e-5:
             break
     return result
+
+
+def _empty_cone(directions: F64, axis: F64) -> F64:
+    """Axis of the widest cone about the globe centre that the sclera and lid rim leave empty.
+
+    The hole the cornea leaves in the cloud is wider than the limbus and lopsided (its shadow,
+    fringe erosion, the lids), so a circle fitted to its edge points anywhere; the axis that
+    keeps every edge furthest away (the 99.9th percentile of ``u·g`` smallest, a few stray
+    points allowed) follows the hole's middle. Grids of tilts: ±25° by 1°, then ±1.5° by 0.1°.
+    """
+    if len(directions) > _CONE_POINTS:  # a fixed subsample: the score is a high percentile
+        directions = directions[np.linspace(0, len(directions) - 1, _CONE_POINTS).astype(int)]
+    best = axis / np.linalg.norm(axis)
+    allowed = max(1, round(0.001 * len(directions)))
+    for span, step in ((25.0, 1.0), (1.5, 0.1)):
+        e1, e2 = _frame(best)
+        tilts = np.tan(np.radians(np.arange(-span, span + 1e-9, step)))
+        tx, ty = np.meshgrid(tilts, tilts)
+        cand = best[None] + tx.ravel()[:, None] * e1 + ty.ravel()[:, None] * e2
+        cand /= np.linalg.norm(cand, axis=1, keepdims=True)
+        score = np.empty(len(cand))
+        for start in range(0, len(cand), 256):
+            dots = directions @ cand[start:start + 256].T
+            score[start:start + 256] = -np.partition(-dots, allowed - 1, axis=0)[allowed - 1]
+        best = cand[int(np.argmin(score))]
+    return best
 
 
 def _cornea(points: F64, centre: F64, radius: float, gaze: F64, cos_beta: float,
@@ -619,13 +683,20 @@ def fit_eye(cloud: CloudLike, model: EyeModel) -> EyePose:
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     # The opening (sclera and the lids' inner rim together) is centred near the cornea; the
     # sclera alone, often more on one side, is not.
-    around = np.abs(np.linalg.norm(points - centre, axis=1) - radius) < 3.0
+    dist_all = np.linalg.norm(points - centre, axis=1)
+    around = np.abs(dist_all - radius) < 3.0
     start = (points[around] - centre).mean(axis=0) if around.any() else None
     limbus = _limbus(directions, start)
+    # The widest empty cone of the sclera and lid shell (R − 0.3 … R + 2 mm): measured on 24
+    # rendered poses, gaze 4.8° median (p95 13°) against 7.7° (p95 43°) from the edge circle.
+    shell = (dist_all > radius - 0.3) & (dist_all < radius + 2.0)
+    opening = None
+    if shell.sum() >= MIN_SCLERA_POINTS and start is not None:
+        opening = _empty_cone((points[shell] - centre) / dist_all[shell, None], start)
     half = model.limbus_diameter_mm / 2
     depth = math.sqrt(max(radius**2 - half**2, 0.0))
     gaze_source = "none"
-    gaze = directions.mean(axis=0)
+    gaze = directions.mean(axis=0) if opening is None else opening
     gaze /= np.linalg.norm(gaze)
     gaze_sd = 90.0
     limbus_centre: tuple[float, float, float] | None = None
@@ -636,6 +707,9 @@ def fit_eye(cloud: CloudLike, model: EyeModel) -> EyePose:
         g, cos_beta, tilt_cov, _ = limbus
         if g[2] < 0:  # the hole faces the cameras; a flip means the ring was misread
             g = -g
+        edge_radius = radius * math.sqrt(max(1.0 - cos_beta**2, 0.0))
+        if opening is not None and abs(edge_radius - half) > _EDGE_IS_LIMBUS_MM:
+            g = opening  # the hole is not the limbus: its edge circle would stray
         lateral = float(np.sqrt(np.sum(centre_sd**2 * (1.0 - g**2))))
         # Tilt of the fitted circle plus the globe centre's own lateral uncertainty seen from
         # the limbus plane.
