@@ -36,26 +36,21 @@ picture again reads ``GET /api/v1/status``.
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 from typing import Any
 
-from fastapi import APIRouter, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, WebSocket
 from starlette.concurrency import run_in_threadpool
 
 import eyeserver
 from eyeserver.api.auth import websocket_caller
+from eyeserver.api.streaming import WS_TRY_AGAIN_LATER, stream
 from eyeserver.config import Settings
 from eyeserver.service.core import Service
-from eyeserver.service.events import Subscription, SubscriptionClosedError, event_time
+from eyeserver.service.events import event_time
 
 __all__ = ["router"]
 
 router = APIRouter(tags=["events"])
-
-_WS_GOING_AWAY = 1001
-_WS_TRY_AGAIN_LATER = 1013
-
 
 @router.websocket("/ws/events", name="events")
 async def stream_events(websocket: WebSocket) -> None:
@@ -65,25 +60,13 @@ async def stream_events(websocket: WebSocket) -> None:
     service = getattr(websocket.app.state, "service", None)
     settings = websocket.app.state.settings
     if not isinstance(service, Service) or not isinstance(settings, Settings):
-        await websocket.close(code=_WS_TRY_AGAIN_LATER, reason="the daemon is not running")
+        await websocket.close(code=WS_TRY_AGAIN_LATER, reason="the daemon is not running")
         return
     # Subscribe before the snapshot: an event between the two is sent (again), never missed.
     with service.events.subscribe(settings.event_queue_size) as subscription:
         await websocket.accept()
         hello = await run_in_threadpool(_hello, service, settings, subscription.start_seq)
-        sender = asyncio.create_task(_forward(websocket, subscription, hello))
-        reader = asyncio.create_task(_read_until_disconnect(websocket))
-        try:
-            await asyncio.wait((sender, reader), return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            for task in (sender, reader):
-                task.cancel()
-            # The sender fails when the client has gone; that is how streams end.
-            await asyncio.gather(sender, reader, return_exceptions=True)
-        if sender.done() and not sender.cancelled() \
-                and isinstance(sender.exception(), SubscriptionClosedError):
-            with contextlib.suppress(WebSocketDisconnect, OSError, RuntimeError):
-                await websocket.close(code=_WS_GOING_AWAY, reason="the daemon is stopping")
+        await stream(websocket, subscription, first=[hello])
 
 
 def _hello(service: Service, settings: Settings, last_seq: int) -> dict[str, Any]:
@@ -99,17 +82,3 @@ def _hello(service: Service, settings: Settings, last_seq: int) -> dict[str, Any
         "queue_size": settings.event_queue_size,
         "last_seq": last_seq,
     }
-
-
-async def _forward(websocket: WebSocket, subscription: Subscription,
-                   hello: dict[str, Any]) -> None:
-    await websocket.send_json(hello)
-    while True:
-        await websocket.send_json(await subscription.get())
-
-
-async def _read_until_disconnect(websocket: WebSocket) -> None:
-    while True:
-        message = await websocket.receive()
-        if message["type"] == "websocket.disconnect":
-            return

@@ -20,18 +20,16 @@ slows the daemon or the other clients.
 
 from __future__ import annotations
 
-import asyncio
-import contextlib
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, HTTPException, Request, WebSocket, WebSocketDisconnect
+from fastapi import APIRouter, Depends, HTTPException, Request, WebSocket
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from eyeserver.api.auth import OperatorDep, websocket_caller
 from eyeserver.api.schemas import ErrorResponse
+from eyeserver.api.streaming import WS_TRY_AGAIN_LATER, stream
 from eyeserver.config import Settings
-from eyeserver.service.events import Subscription, SubscriptionClosedError
 from eyeserver.service.patients import PATIENT_ID_PATTERN
 from eyeserver.service.tracking import TrackingControl
 
@@ -39,10 +37,6 @@ __all__ = ["router", "ws_router"]
 
 router = APIRouter(prefix="/tracking", tags=["tracking"])
 ws_router = APIRouter(tags=["tracking"])
-
-_WS_GOING_AWAY = 1001
-_WS_TRY_AGAIN_LATER = 1013
-
 
 async def get_tracking(request: Request) -> TrackingControl:
     """The daemon's live tracking (503 while it is not running)."""
@@ -129,37 +123,17 @@ async def stream_pose(websocket: WebSocket) -> None:
     tracking = getattr(websocket.app.state, "tracking", None)
     settings = websocket.app.state.settings
     if not isinstance(tracking, TrackingControl) or not isinstance(settings, Settings):
-        await websocket.close(code=_WS_TRY_AGAIN_LATER, reason="the daemon is not running")
+        await websocket.close(code=WS_TRY_AGAIN_LATER, reason="the daemon is not running")
         return
+    clock = tracking.clock
+
+    def stamped(message: dict[str, Any]) -> dict[str, Any]:
+        t_ns = message.get("t_ns")
+        if not isinstance(t_ns, int):
+            return message
+        # Measured here, at the send, on the rig's clock: what the beam controller sees.
+        return {**message, "latency_ms": (clock.now_ns() - t_ns) / 1e6}
+
     with tracking.messages.subscribe(settings.event_queue_size) as subscription:
         await websocket.accept()
-        sender = asyncio.create_task(_forward(websocket, subscription, tracking))
-        reader = asyncio.create_task(_read_until_disconnect(websocket))
-        try:
-            await asyncio.wait((sender, reader), return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            for task in (sender, reader):
-                task.cancel()
-            await asyncio.gather(sender, reader, return_exceptions=True)
-        if sender.done() and not sender.cancelled() \
-                and isinstance(sender.exception(), SubscriptionClosedError):
-            with contextlib.suppress(WebSocketDisconnect, OSError, RuntimeError):
-                await websocket.close(code=_WS_GOING_AWAY, reason="the daemon is stopping")
-
-
-async def _forward(websocket: WebSocket, subscription: Subscription,
-                   tracking: TrackingControl) -> None:
-    clock = tracking.clock
-    while True:
-        message = await subscription.get()
-        t_ns = message.get("t_ns")
-        if isinstance(t_ns, int):
-            # Measured here, at the send, on the rig's clock: what the beam controller sees.
-            message = {**message, "latency_ms": (clock.now_ns() - t_ns) / 1e6}
-        await websocket.send_json(message)
-
-
-async def _read_until_disconnect(websocket: WebSocket) -> None:
-    while True:
-        if (await websocket.receive())["type"] == "websocket.disconnect":
-            return
+        await stream(websocket, subscription, prepare=stamped)

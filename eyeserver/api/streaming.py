@@ -1,0 +1,61 @@
+"""Sending a bus subscription to a WebSocket client until it leaves (``/ws/events``,
+``/ws/pose``).
+
+The subscription's bounded queue is what keeps a slow client from holding anyone up; this only
+moves its messages to the socket, watches for the client leaving and says goodbye (1001) when
+the daemon closes the bus.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from fastapi import WebSocket, WebSocketDisconnect
+
+from eyeserver.service.events import Subscription, SubscriptionClosedError
+
+__all__ = ["WS_TRY_AGAIN_LATER", "stream"]
+
+WS_GOING_AWAY = 1001
+WS_TRY_AGAIN_LATER = 1013
+"""Close code for a socket opened while the daemon is not running."""
+
+Message = dict[str, Any]
+
+
+async def stream(websocket: WebSocket, subscription: Subscription, *,
+                 first: Sequence[Message] = (),
+                 prepare: Callable[[Message], Message] | None = None) -> None:
+    """Send ``first``, then every message of ``subscription`` (through ``prepare``, at the
+    send) until the client disconnects or the bus closes. The socket must be accepted."""
+    sender = asyncio.create_task(_forward(websocket, subscription, first, prepare))
+    reader = asyncio.create_task(_read_until_disconnect(websocket))
+    try:
+        await asyncio.wait((sender, reader), return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for task in (sender, reader):
+            task.cancel()
+        # The sender fails when the client has gone; that is how streams end.
+        await asyncio.gather(sender, reader, return_exceptions=True)
+    if sender.done() and not sender.cancelled() \
+            and isinstance(sender.exception(), SubscriptionClosedError):
+        with contextlib.suppress(WebSocketDisconnect, OSError, RuntimeError):
+            await websocket.close(code=WS_GOING_AWAY, reason="the daemon is stopping")
+
+
+async def _forward(websocket: WebSocket, subscription: Subscription, first: Sequence[Message],
+                   prepare: Callable[[Message], Message] | None) -> None:
+    for message in first:
+        await websocket.send_json(message)
+    while True:
+        message = await subscription.get()
+        await websocket.send_json(message if prepare is None else prepare(message))
+
+
+async def _read_until_disconnect(websocket: WebSocket) -> None:
+    while True:
+        if (await websocket.receive())["type"] == "websocket.disconnect":
+            return
