@@ -8,14 +8,14 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal, Self
 
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Depends
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from starlette.concurrency import run_in_threadpool
 
 from eyeserver.api.auth import PhysicistDep, require
+from eyeserver.api.deps import app_state
 from eyeserver.api.routers.jobs import JobResponse, job_response
 from eyeserver.api.schemas import ErrorResponse
-from eyeserver.errors import StateConflictError
 from eyeserver.io import ChessboardSpec
 from eyeserver.service.calibration_session import CalibrationSessions, describe
 
@@ -31,11 +31,7 @@ router = APIRouter(prefix="/calibration-sessions", tags=["calibration sessions"]
                    dependencies=[Depends(require("physicist"))], responses=_ERRORS)
 
 
-def _sessions(request: Request) -> CalibrationSessions:
-    sessions = getattr(request.app.state, "calibration_sessions", None)
-    if not isinstance(sessions, CalibrationSessions):
-        raise StateConflictError("the daemon's service is not running")
-    return sessions
+_sessions = app_state("calibration_sessions", CalibrationSessions)
 
 
 SessionsDep = Annotated[CalibrationSessions, Depends(_sessions)]

@@ -10,14 +10,13 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, Path, Request, Response
+from fastapi import APIRouter, Depends, Path, Response
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from eyeserver.api.auth import PhysicistDep
-from eyeserver.api.deps import ServiceDep
+from eyeserver.api.deps import ServiceDep, app_state
 from eyeserver.api.schemas import ErrorResponse
-from eyeserver.errors import StateConflictError
 from eyeserver.service.patients import (
     DEFAULT_MIN_CONFIDENCE,
     DEFAULT_TOLERANCE_GAZE_DEG,
@@ -48,20 +47,8 @@ _UNKNOWN: dict[int | str, dict[str, Any]] = {
     404: {"model": ErrorResponse, "description": "No such patient."}}
 
 
-def get_patients(request: Request) -> Patients:
-    """The daemon's :class:`Patients` (made by the lifespan)."""
-    patients = getattr(request.app.state, "patients", None)
-    if not isinstance(patients, Patients):
-        raise StateConflictError("the daemon's service is not running")
-    return patients
-
-
-def get_verification(request: Request) -> PoseVerification:
-    """The daemon's :class:`PoseVerification` (made by the lifespan)."""
-    verification = getattr(request.app.state, "verification", None)
-    if not isinstance(verification, PoseVerification):
-        raise StateConflictError("the daemon's service is not running")
-    return verification
+get_patients = app_state("patients", Patients)
+get_verification = app_state("verification", PoseVerification)
 
 
 PatientsDep = Annotated[Patients, Depends(get_patients)]
