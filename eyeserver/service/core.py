@@ -759,11 +759,7 @@ class Service:
         UnknownIdError, StorageError
             As for :meth:`Store.get_capture`.
         """
-        path = self.store.get_capture(capture_id).path / CLOUD_FILE
-        if not path.is_file():
-            raise NoCloudError(f"capture {capture_id} has not been reconstructed yet "
-                               f"(POST /api/v1/captures/{capture_id}/reconstruction)")
-        return path
+        return self._result_file(capture_id, CLOUD_FILE)
 
     def reconstruction_summary(self, capture_id: str) -> dict[str, Any]:
         """The stored summary of a capture's reconstruction (as :meth:`reconstruct` returned).
@@ -775,14 +771,18 @@ class Service:
         UnknownIdError, StorageError
             As for :meth:`Store.get_capture`.
         """
-        path = self.store.get_capture(capture_id).path / SUMMARY_FILE
-        try:
-            text = path.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise NoCloudError(f"capture {capture_id} has not been reconstructed yet "
-                               f"(POST /api/v1/captures/{capture_id}/reconstruction)") from None
-        summary: dict[str, Any] = json.loads(text)
+        path = self._result_file(capture_id, SUMMARY_FILE)
+        summary: dict[str, Any] = json.loads(path.read_text(encoding="utf-8"))
         return summary
+
+    def _result_file(self, capture_id: str, name: str) -> Path:
+        """A file a reconstruction keeps beside a capture's bundle (errors as
+        :meth:`cloud_path`)."""
+        path = self.store.get_capture(capture_id).path / name
+        if not path.is_file():
+            raise NoCloudError(f"capture {capture_id} has not been reconstructed yet "
+                               f"(POST /api/v1/captures/{capture_id}/reconstruction)")
+        return path
 
     def delete_capture(self, capture_id: str, *, actor: str, reason: str) -> None:
         """Delete a capture with everything kept beside it (audited first; see
