@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -59,6 +60,7 @@ from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
 from eyeserver.errors import EyeserverError
+from eyeserver.pipeline.limbus import LimbusNotFoundError, LimbusView, find_limbus, globe_on_limbus
 
 __all__ = ["CloudLike", "EyeModel", "EyePose", "PoseError", "fit_eye", "fit_sphere"]
 
@@ -135,9 +137,12 @@ class EyePose:
     sclera_points: int
     confidence: float
     gaze_source: str = "limbus"
-    """Where the gaze came from: "limbus", "limbus+cornea", "cornea" or "none" (not found)."""
+    """Where the gaze came from: "limbus (images)" (the limbus found in the fringe images),
+    or from the cloud alone: "limbus" (the hole the sclera leaves), "limbus+cornea", or "none"
+    (not found)."""
     boundary_radius_mm: float | None = None
-    """Radius of the sclera's inner boundary (the valid region's edge, ≥ the true limbus)."""
+    """Radius of the limbus circle found in the images, or else of the sclera's inner boundary
+    in the cloud (the valid region's edge, ≥ the true limbus)."""
     cornea_points: int = 0
     fit_ms: float = 0.0
 
@@ -613,7 +618,7 @@ def _cornea(points: F64, centre: F64, radius: float, gaze: F64, cos_beta: float,
     return fit.x[:3], int(good.sum()), float(math.sqrt(np.trace(cov[:3, :3])))
 
 
-def fit_eye(cloud: CloudLike, model: EyeModel) -> EyePose:
+def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ()) -> EyePose:
     """Fit the eye model to a fused cloud: globe centre and radius, limbus, gaze, confidence.
 
     Parameters
@@ -622,6 +627,11 @@ def fit_eye(cloud: CloudLike, model: EyeModel) -> EyePose:
         Points (N, 3) in WCS mm, with optional per-point quality in [0, 1] used as weights.
     model : EyeModel
         The patient's model; a fixed ``globe_radius_mm`` is imposed, None fits the radius.
+    views : sequence of LimbusView
+        The fringe images the cloud came from, with their cameras. When given, the limbus is
+        found in them (:mod:`eyeserver.pipeline.limbus`) and sets the gaze, the limbus centre
+        and, with the sclera, the globe (``gaze_source`` ``"limbus (images)"``); when it is not
+        found there (lids closed, too little contrast) the cloud-only estimate stands.
 
     Returns
     -------
@@ -734,8 +744,32 @@ def fit_eye(cloud: CloudLike, model: EyeModel) -> EyePose:
         limbus_sd = float(math.sqrt(float(centre_sd @ centre_sd)
                                     + (depth * math.radians(gaze_sd)) ** 2))
 
+    sclera_count = len(sclera)
+    if views:
+        try:
+            limbus_fit = find_limbus(views, centre, gaze, radius, half)
+            globe = globe_on_limbus(points, limbus_fit, centre, radius, fixed)
+        except LimbusNotFoundError:
+            pass  # the cloud-only estimate stands
+        else:
+            g = limbus_fit.normal
+            depth_l = float((limbus_fit.centre - globe.centre) @ g)
+            gaze, gaze_sd, gaze_source = g, limbus_fit.gaze_sd_deg, "limbus (images)"
+            centre, radius = globe.centre, globe.radius
+            # Per axis: the limbus centre's spread, the depth's along the gaze, and the tilt's
+            # lever arm across it.
+            lever = depth_l * math.radians(gaze_sd)
+            centre_sd = np.sqrt(limbus_fit.centre_sd_mm**2 / 3.0 + (globe.depth_sd_mm * g) ** 2
+                                + lever**2 * (1.0 - g**2))
+            limbus_centre = (float(limbus_fit.centre[0]), float(limbus_fit.centre[1]),
+                             float(limbus_fit.centre[2]))
+            limbus_sd = limbus_fit.centre_sd_mm
+            boundary_radius = limbus_fit.radius
+            surface_mad = globe.surface_mad_mm
+            sclera_count = globe.points
+
     # Confidence: enough sclera, a surface that fits the model, a gaze that is found and sharp.
-    seen = 1.0 - math.exp(-len(sclera) / WELL_SEEN_POINTS)
+    seen = 1.0 - math.exp(-sclera_count / WELL_SEEN_POINTS)
     fits = 1.0 / (1.0 + (surface_mad / 0.15) ** 2)
     sharp = 0.0 if gaze_source == "none" else 1.0 / (1.0 + (gaze_sd / 1.0) ** 2)
     radius_plausible = 1.0 if r_bounds[0] <= radius <= r_bounds[1] else 0.3
@@ -747,7 +781,7 @@ def fit_eye(cloud: CloudLike, model: EyeModel) -> EyePose:
         limbus_centre_mm=limbus_centre, limbus_sd_mm=limbus_sd,
         gaze=(float(gaze[0]), float(gaze[1]), float(gaze[2])),
         gaze_sd_deg=float(gaze_sd), torsion_deg=None,
-        surface_mad_mm=surface_mad, sclera_points=len(sclera),
+        surface_mad_mm=surface_mad, sclera_points=sclera_count,
         confidence=float(min(max(confidence, 0.0), 1.0)),
         gaze_source=gaze_source, boundary_radius_mm=boundary_radius,
         cornea_points=cornea_points, fit_ms=1000.0 * (time.perf_counter() - started))

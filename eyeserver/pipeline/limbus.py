@@ -1,0 +1,377 @@
+"""The limbus found in the fringe images, and the globe that carries it (DESIGN §4 step 8).
+
+The cornea returns almost no projector light (transparent: what comes back is the dark iris
+behind it) while the sclera around it is bright, so in each camera the limbus is the sharpest
+dark-inside, bright-outside edge of the fringe-free intensity. A circle in space (centre ``L``,
+unit normal ``g``, radius ``r``) is fitted to those edges in every camera at once by its
+reprojection error; its normal is the gaze and its centre the limbus centre. Measured on
+rendered eyes this gives the gaze to ≈ 0.2° and the limbus centre to ≈ 0.02 mm, where the
+cloud-only estimate (the axis of the hole the sclera leaves, :mod:`eyeserver.pipeline.eyepose`)
+strays by 5–13°: the cloud's sclera ends a fringe period outside the limbus, lopsided.
+
+1. **Fringe-free intensity.** ``I − B·cos φ`` with ``B`` and ``φ`` from the FTM demodulation
+   (:func:`~eyeserver.pipeline.demodulate.demodulate`) keeps the full resolution at the edge,
+   where a box filter over a period would blur it by a period. Computed only in a window around
+   the prior eye's projection.
+2. **Start.** The cloud fit's gaze can be 10–25° off; limbus circles tilted 0–30° about it are
+   scored by the mean outward intensity step along their projections, and the best one starts.
+3. **Edges.** Along the outward normal of the projected circle (120 samples per camera), the
+   *innermost* rising edge at least 40 % as strong as the strongest one on that profile, with
+   sub-pixel position from a parabola through the derivative. Innermost, because outside the
+   limbus lie other rising edges (a projector shadow's end, the lids' margins) but inside it only
+   the cornea.
+4. **Circle.** ``scipy.optimize.least_squares`` on the edge points' distances to the projected
+   circle's tangent (pixels), Cauchy loss (lid margins crossing the cornea and shadow edges are
+   outliers; seen from several cameras they cannot all agree with one circle), three rounds with
+   the search window shrinking 20 → 8 → 4 px. Uncertainties from the Jacobian and a robust
+   residual scale.
+5. **Globe.** The limbus lies on the globe: its centre is ``C = L − h·g`` with
+   ``R = √(h² + r²)``, so one number ``h`` is left to fit, on the sclera points of the cloud
+   (soft-L1). The reconstructed sclera is pulled towards the lids within a fringe period of
+   their margins and towards the cornea at the limbus (the band-limited FTM blends the surfaces
+   across depth steps); points within 2 mm of the lid shell or in front of the limbus plane are
+   left out.
+
+Not modelled: a pupil or iris pattern inside the limbus (rising edges inside the cornea would
+be taken for the limbus; a real eye's pupil edge is weaker than the limbus in near infrared but
+should be checked on real images) and corneal refraction of the limbus (small at the limbus
+itself).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+from scipy.optimize import OptimizeResult, least_squares
+from scipy.spatial import cKDTree
+
+from eyeserver.pipeline.demodulate import demodulate
+from eyeserver.pipeline.geometry import project
+from eyeserver.pipeline.reconstruct import CalibratedCamera
+
+__all__ = ["Globe", "Limbus", "LimbusNotFoundError", "LimbusView", "find_limbus", "fringe_free", "globe_on_limbus"]
+
+F64 = npt.NDArray[np.float64]
+F32 = npt.NDArray[np.float32]
+
+SAMPLES = 120
+"""Points of the projected circle where an edge is looked for, per camera."""
+
+EDGE_SHARE = 0.4
+"""An edge counts when it rises at least this share of the profile's strongest rise."""
+
+MIN_EDGE_DN_PER_PX = 2.0
+"""And by at least this much (DN per pixel): flatter profiles hold no edge."""
+
+REACHES_PX = (20.0, 8.0, 4.0)
+"""Half-widths of the edge search, round by round."""
+
+MIN_COVERAGE = 0.4
+"""Share of the circle's samples that must hold an edge, in at least two cameras."""
+
+MAX_RESIDUAL_PX = 1.0
+"""A fit whose median edge distance exceeds this is not the limbus."""
+
+LID_CLEARANCE_MM = 2.0
+"""Sclera points closer than this to the lid shell are left out of the globe's fit."""
+
+_WINDOW_MARGIN_PX = 40
+_TILTS_DEG = (0.0, 6.0, 12.0, 18.0, 24.0, 30.0)
+
+
+class LimbusNotFoundError(ValueError):
+    """No limbus in the images (lids closed, eye outside the view, no contrast)."""
+
+
+@dataclass(frozen=True)
+class LimbusView:
+    """One camera's fringe image with its calibration."""
+
+    camera: CalibratedCamera
+    image: npt.NDArray[Any]
+
+
+@dataclass(frozen=True)
+class Limbus:
+    """The limbus circle in the WCS (mm) with its uncertainties."""
+
+    centre: F64
+    normal: F64
+    """Unit normal pointing out of the eye (the gaze)."""
+    radius: float
+    centre_sd_mm: float
+    gaze_sd_deg: float
+    radius_sd_mm: float
+    residual_px: float
+    """Median distance of the edges kept to the fitted circle's projections."""
+    coverage: dict[str, float]
+    """Per camera, the share of the circle where an edge was found."""
+
+
+@dataclass(frozen=True)
+class Globe:
+    """A spherical globe carrying the limbus: ``centre = L − h·g``, ``radius = √(h² + r²)``."""
+
+    centre: F64
+    radius: float
+    depth_sd_mm: float
+    """Uncertainty of ``h`` (the centre's distance behind the limbus plane)."""
+    points: int
+    surface_mad_mm: float
+
+
+def fringe_free(camera: CalibratedCamera, image: npt.ArrayLike,
+                window: tuple[int, int, int, int] | None = None) -> tuple[F32, tuple[int, int]]:
+    """``I − B·cos φ`` (the image without its fringe), lightly smoothed (σ = 1 px).
+
+    ``window`` ``(x0, y0, x1, y1)`` limits the work to a part of the image; returns the
+    intensity and the window's origin.
+    """
+    pixels = np.asarray(image, dtype=np.float32)
+    x0, y0 = 0, 0
+    if window is not None:
+        x0, y0, x1, y1 = window
+        pixels = pixels[y0:y1, x0:x1]
+    result = demodulate(pixels, camera.carrier)
+    flat = pixels - result.modulation * np.cos(result.wrapped_phase)
+    return np.asarray(cv2.GaussianBlur(flat, (0, 0), 1.0), dtype=np.float32), (x0, y0)
+
+
+def _basis(normal: F64) -> tuple[F64, F64]:
+    helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(normal, helper)
+    u /= np.linalg.norm(u)
+    return u, np.cross(normal, u)
+
+
+def _circle(centre: F64, normal: F64, radius: float, angles: F64) -> tuple[F64, F64]:
+    """Points on the circle at ``angles`` and their tangents."""
+    u, v = _basis(normal)
+    cos, sin = np.cos(angles)[:, None], np.sin(angles)[:, None]
+    return centre + radius * (cos * u + sin * v), -sin * u + cos * v
+
+
+class _Image:
+    """One camera's fringe-free intensity in a window, and projections into it."""
+
+    def __init__(self, view: LimbusView, centre: F64, radius: float) -> None:
+        camera = view.camera
+        self.camera = camera
+        height, width = np.asarray(view.image).shape[:2]
+        corners = centre + radius * np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1)
+                                              for sz in (-1, 1)], dtype=np.float64)
+        uv = self.project_full(corners)
+        x0, y0 = np.floor(uv.min(axis=0)).astype(int) - _WINDOW_MARGIN_PX
+        x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + _WINDOW_MARGIN_PX
+        x0, y0, x1, y1 = max(0, x0), max(0, y0), min(width, x1), min(height, y1)
+        if x1 - x0 < 32 or y1 - y0 < 32:
+            raise LimbusNotFoundError(f"camera {camera.camera_id} does not see the eye")
+        self.flat, origin = fringe_free(camera, view.image, (x0, y0, x1, y1))
+        self.origin = np.asarray(origin, dtype=np.float64)
+
+    def project_full(self, points: F64) -> F64:
+        cam = self.camera
+        return project(points, cam.K, cam.dist, cam.R, cam.T)
+
+    def profiles(self, uv: F64, outward: F64, offsets: F64) -> F32:
+        """Intensity along ``uv + s·outward`` for every offset ``s`` (one row per point)."""
+        local = uv - self.origin
+        map_x = (local[:, None, 0] + offsets[None] * outward[:, None, 0]).astype(np.float32)
+        map_y = (local[:, None, 1] + offsets[None] * outward[:, None, 1]).astype(np.float32)
+        return np.asarray(cv2.remap(self.flat, map_x, map_y, cv2.INTER_LINEAR,
+                                    borderMode=cv2.BORDER_REPLICATE), dtype=np.float32)
+
+    def outline(self, centre: F64, normal: F64, radius: float, angles: F64
+                ) -> tuple[F64, F64]:
+        """Projected circle points and their outward image normals."""
+        points, tangents = _circle(centre, normal, radius, angles)
+        uv = self.project_full(points)
+        ahead = self.project_full(points + 1e-3 * tangents)
+        step = ahead - uv
+        outward = np.stack([step[:, 1], -step[:, 0]], axis=1)
+        outward /= np.maximum(np.linalg.norm(outward, axis=1, keepdims=True), 1e-12)
+        middle = self.project_full(centre[None])[0]
+        outward *= np.where(((uv - middle) * outward).sum(axis=1) < 0, -1.0, 1.0)[:, None]
+        return uv, outward
+
+
+def _support(images: Sequence[_Image], centre: F64, normal: F64, radius: float) -> float:
+    """Mean outward intensity step across the projected circle (DN), over the cameras."""
+    angles = np.linspace(0.0, 2 * math.pi, 90, endpoint=False)
+    steps = []
+    for image in images:
+        uv, outward = image.outline(centre, normal, radius, angles)
+        profile = image.profiles(uv, outward, np.array([-1.5, 1.5]))
+        steps.append(float(np.median(profile[:, 1] - profile[:, 0])))
+    return float(np.mean(steps))
+
+
+def _start(images: Sequence[_Image], globe_centre: F64, gaze: F64, depth: float,
+           radius: float) -> F64:
+    """The gaze among circles tilted 0–30° about ``gaze`` whose outline steps up most."""
+    u, v = _basis(gaze)
+    best, best_gaze = -math.inf, gaze
+    for tilt in _TILTS_DEG:
+        azimuths = range(0, 360, 30) if tilt else (0,)
+        for azimuth in azimuths:
+            a, b = math.radians(tilt), math.radians(azimuth)
+            g = math.cos(a) * gaze + math.sin(a) * (math.cos(b) * u + math.sin(b) * v)
+            score = _support(images, globe_centre + depth * g, g, radius)
+            if score > best:
+                best, best_gaze = score, g
+    return best_gaze
+
+
+def _edges(image: _Image, centre: F64, normal: F64, radius: float, reach: float
+           ) -> tuple[F64, F64]:
+    """``(angles, edge pixels)`` of the innermost strong rising edge near the projection."""
+    angles = np.linspace(0.0, 2 * math.pi, SAMPLES, endpoint=False)
+    uv, outward = image.outline(centre, normal, radius, angles)
+    offsets = np.arange(-reach, reach + 0.25, 0.5)
+    rise = np.gradient(image.profiles(uv, outward, offsets), axis=1) / 0.5
+    inner = rise[:, 1:-1]
+    peak = (inner >= rise[:, :-2]) & (inner >= rise[:, 2:])
+    strong = peak & (inner >= np.maximum(EDGE_SHARE * inner.max(axis=1, keepdims=True),
+                                         MIN_EDGE_DN_PER_PX))
+    found = strong.any(axis=1)
+    k = np.argmax(strong, axis=1) + 1
+    rows = np.arange(len(k))
+    before, at, after = rise[rows, k - 1], rise[rows, k], rise[rows, k + 1]
+    curvature = before - 2 * at + after
+    shift = np.where(np.abs(curvature) > 1e-9, 0.5 * (before - after) / curvature, 0.0)
+    position = offsets[k] + 0.5 * np.clip(shift, -1.0, 1.0)
+    edge = uv + position[:, None] * outward
+    return angles[found], edge[found]
+
+
+def _gaze(params: F64) -> F64:
+    gx, gy = params[3], params[4]
+    return np.array([gx, gy, math.sqrt(max(1e-9, 1.0 - gx * gx - gy * gy))])
+
+
+def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], centre: F64,
+                normal: F64, radius: float) -> OptimizeResult:
+    """Least squares of the edges' distances to the projected circle's tangents (pixels).
+
+    Each edge keeps the circle angle it was found at; moving along the tangent costs nothing to
+    first order, so the association holds within a round.
+    """
+    # The gaze is parametrised by its X and Y components, Z > 0: the limbus faces the cameras.
+    def residuals(params: F64) -> F64:
+        centre_, normal_, radius_ = params[:3], _gaze(params), float(params[5])
+        out = []
+        for image, (angles, found) in zip(images, edges, strict=True):
+            if len(angles) == 0:
+                continue
+            uv, outward = image.outline(centre_, normal_, radius_, angles)
+            out.append(((found - uv) * outward).sum(axis=1))
+        return np.concatenate(out)
+
+    start = np.array([*centre, normal[0], normal[1], radius])
+    return least_squares(residuals, start, loss="cauchy", f_scale=1.0,
+                         x_scale=np.array([0.1, 0.1, 0.1, 0.01, 0.01, 0.1]))
+
+
+def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: npt.ArrayLike,
+                globe_radius: float, limbus_radius: float) -> Limbus:
+    """The limbus circle seen in ``views``, starting from a rough eye pose (see the module).
+
+    Raises
+    ------
+    LimbusNotFoundError
+        Fewer than two cameras see enough of a limbus, or the edges fit no circle.
+    """
+    centre0 = np.asarray(globe_centre, dtype=np.float64)
+    gaze0 = np.asarray(gaze, dtype=np.float64)
+    gaze0 = gaze0 / np.linalg.norm(gaze0)
+    if gaze0[2] <= 0:
+        raise LimbusNotFoundError("the eye looks away from the cameras")
+    depth = math.sqrt(max(globe_radius**2 - limbus_radius**2, 1.0))
+    images = []
+    for view in views:
+        try:
+            images.append(_Image(view, centre0 + depth * gaze0, globe_radius * 0.6))
+        except LimbusNotFoundError:
+            continue
+    if len(images) < 2:
+        raise LimbusNotFoundError("fewer than two cameras see the eye")
+    normal = _start(images, centre0, gaze0, depth, limbus_radius)
+    centre, radius = centre0 + depth * normal, float(limbus_radius)
+    for reach in REACHES_PX:
+        edges = [_edges(image, centre, normal, radius, reach) for image in images]
+        if sum(len(a) >= MIN_COVERAGE * SAMPLES for a, _ in edges) < 2:
+            raise LimbusNotFoundError("no limbus edge in at least two cameras (lids closed?)")
+        solution = _fit_circle(images, edges, centre, normal, radius)
+        centre, normal, radius = solution.x[:3], _gaze(solution.x), float(solution.x[5])
+    residual = np.abs(solution.fun)
+    scale = 1.4826 * float(np.median(residual))
+    if not residual.size or float(np.median(residual)) > MAX_RESIDUAL_PX \
+            or not 0.5 * limbus_radius < radius < 1.5 * limbus_radius:
+        raise LimbusNotFoundError("the edges found fit no limbus circle")
+    jac = solution.jac
+    try:
+        cov = np.linalg.inv(jac.T @ jac) * max(scale, 0.05) ** 2
+    except np.linalg.LinAlgError:
+        cov = np.full((6, 6), np.inf)
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    return Limbus(centre=centre, normal=normal, radius=radius,
+                  centre_sd_mm=float(np.linalg.norm(sd[:3])),
+                  gaze_sd_deg=math.degrees(float(np.hypot(sd[3], sd[4]))),
+                  radius_sd_mm=float(sd[5]), residual_px=float(np.median(residual)),
+                  coverage={image.camera.camera_id: len(a) / SAMPLES
+                            for image, (a, _) in zip(images, edges, strict=True)})
+
+
+def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, rough_centre: npt.ArrayLike,
+                    rough_radius: float, fixed_radius: float | None = None) -> Globe:
+    """The sphere through the limbus circle that fits the cloud's sclera best.
+
+    ``rough_centre`` and ``rough_radius`` (the cloud-only fit) pick the sclera (within 0.3 mm
+    of that sphere, behind the limbus plane) and the lid shell (0.5–4 mm outside it). A
+    ``fixed_radius`` (the patient's model) sets ``h`` outright; the sclera then only measures
+    how well the model fits.
+    """
+    cloud = np.asarray(points, dtype=np.float64)
+    centre0 = np.asarray(rough_centre, dtype=np.float64)
+    L, g, r = limbus.centre, limbus.normal, limbus.radius
+    offset = np.linalg.norm(cloud - centre0, axis=1) - rough_radius
+    behind = (cloud - L) @ g < -0.6
+    clear = np.ones(len(cloud), dtype=bool)
+    lids = cloud[(offset > 0.5) & (offset < 4.0)]
+    if len(lids):
+        distance, _ = cKDTree(lids).query(cloud, distance_upper_bound=LID_CLEARANCE_MM)
+        clear = ~np.isfinite(distance)
+    chosen = (np.abs(offset) < 0.3) & behind & clear
+    depth = math.sqrt(max((fixed_radius or rough_radius) ** 2 - r**2, 1.0))
+    residual: F64 | None = None
+    sd = 0.0
+    for band in (None, 0.3, 0.2, 0.15):
+        if band is not None:
+            offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
+            chosen = (np.abs(offset) < band) & behind & clear
+        sclera = cloud[chosen]
+        if len(sclera) < 30:
+            break
+
+        def residuals(params: F64, sclera: F64 = sclera) -> F64:
+            return np.asarray(np.linalg.norm(sclera - (L - params[0] * g), axis=1)
+                              - math.hypot(params[0], r))
+
+        if fixed_radius is not None:
+            residual = residuals(np.array([depth]))
+            continue
+        solution = least_squares(residuals, [depth], loss="soft_l1", f_scale=0.05)
+        depth, residual = float(solution.x[0]), solution.fun
+        scale = 1.4826 * float(np.median(np.abs(residual)))
+        jtj = float(solution.jac[:, 0] @ solution.jac[:, 0])
+        sd = scale / math.sqrt(jtj) if jtj > 0 else math.inf
+    if residual is None:
+        raise LimbusNotFoundError("too little sclera beside the limbus to place the globe")
+    return Globe(centre=L - depth * g, radius=math.hypot(depth, r), depth_sd_mm=sd,
+                 points=len(residual), surface_mad_mm=float(np.median(np.abs(residual))))
