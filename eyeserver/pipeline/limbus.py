@@ -55,7 +55,8 @@ from eyeserver.pipeline.demodulate import demodulate
 from eyeserver.pipeline.geometry import project
 from eyeserver.pipeline.reconstruct import CalibratedCamera
 
-__all__ = ["Globe", "Limbus", "LimbusNotFoundError", "LimbusView", "find_limbus", "fringe_free", "globe_on_limbus"]
+__all__ = ["Globe", "Limbus", "LimbusNotFoundError", "LimbusView", "find_limbus", "fringe_free",
+           "globe_on_limbus"]
 
 F64 = npt.NDArray[np.float64]
 F32 = npt.NDArray[np.float32]
