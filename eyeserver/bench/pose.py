@@ -26,7 +26,7 @@ from eyeserver.hardware.sim.config import RoomConfig
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.pipeline.eyepose import EyeModel, EyePose, fit_eye
-from eyeserver.service.reconstruction import reconstruct_bundle
+from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
 
 Progress = Callable[[str], None]
 
@@ -60,9 +60,10 @@ def _measure(session: SimSession, spec: SceneSpec, caldir: Path, bundle: Path,
     session.record(spec, bundle, overwrite=True)
     truth = json.loads((bundle / "truth.json").read_text())["eye"]
     cloud, _ = reconstruct_bundle(caldir, bundle)
+    views = limbus_views(caldir, bundle)
     started = time.perf_counter()
     try:
-        pose = fit_eye(cloud, EyeModel.population())
+        pose = fit_eye(cloud, EyeModel.population(), views)
     except EyeserverError as exc:
         return None, truth, 0.0, str(exc)
     return pose, truth, time.perf_counter() - started, None

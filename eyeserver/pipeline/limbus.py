@@ -82,6 +82,12 @@ MAX_RESIDUAL_PX = 1.0
 LID_CLEARANCE_MM = 2.0
 """Sclera points closer than this to the lid shell are left out of the globe's fit."""
 
+LIMBUS_CLEARANCE_MM = 1.5
+"""And so are those closer than this to the limbus."""
+
+MIN_SCLERA_POINTS = 30
+"""Fewest sclera points the globe is placed on."""
+
 _WINDOW_MARGIN_PX = 40
 _TILTS_DEG = (0.0, 6.0, 12.0, 18.0, 24.0, 30.0)
 
@@ -342,13 +348,18 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, rough_centre: npt.Arr
     centre0 = np.asarray(rough_centre, dtype=np.float64)
     L, g, r = limbus.centre, limbus.normal, limbus.radius
     offset = np.linalg.norm(cloud - centre0, axis=1) - rough_radius
-    behind = (cloud - L) @ g < -0.6
+    along = (cloud - L) @ g
+    across = np.linalg.norm((cloud - L) - along[:, None] * g, axis=1)
+    behind = (along < 0) & (np.hypot(along, across - r) > LIMBUS_CLEARANCE_MM)
     clear = np.ones(len(cloud), dtype=bool)
     lids = cloud[(offset > 0.5) & (offset < 4.0)]
     if len(lids):
         distance, _ = cKDTree(lids).query(cloud, distance_upper_bound=LID_CLEARANCE_MM)
         clear = ~np.isfinite(distance)
     chosen = (np.abs(offset) < 0.3) & behind & clear
+    if chosen.sum() < MIN_SCLERA_POINTS:  # the lids leave little: take what there is
+        clear[:] = True
+        chosen = (np.abs(offset) < 0.3) & behind
     depth = math.sqrt(max((fixed_radius or rough_radius) ** 2 - r**2, 1.0))
     residual: F64 | None = None
     sd = 0.0
@@ -357,7 +368,7 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, rough_centre: npt.Arr
             offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
             chosen = (np.abs(offset) < band) & behind & clear
         sclera = cloud[chosen]
-        if len(sclera) < 30:
+        if len(sclera) < MIN_SCLERA_POINTS:
             break
 
         def residuals(params: F64, sclera: F64 = sclera) -> F64:

@@ -15,6 +15,7 @@ from eyeserver.errors import EyeserverError
 from eyeserver.io import Bundle, PointCloud, read_bundle
 from eyeserver.pipeline.demodulate import Carrier
 from eyeserver.pipeline.fusion import Part, Region, fuse
+from eyeserver.pipeline.limbus import LimbusView
 from eyeserver.pipeline.phase_height import PhaseHeightModel
 from eyeserver.pipeline.reconstruct import (
     METHODS,
@@ -134,6 +135,18 @@ def unit_pairs(bundle: Bundle) -> list[tuple[int, str, str]]:
     for index, camera_id in bundle.fringe_images():
         by_unit.setdefault((index, bundle.rig.unit_of_camera(camera_id).id), []).append(camera_id)
     return [(index, ids[0], ids[1]) for (index, _), ids in by_unit.items() if len(ids) >= 2]
+
+
+def limbus_views(calibration: str | Path, bundle_path: str | Path) -> list[LimbusView]:
+    """Each camera's first fringe image in a bundle, with its calibration: where the eye fit
+    looks for the limbus (:func:`~eyeserver.pipeline.eyepose.fit_eye`)."""
+    bundle = read_bundle(bundle_path)
+    cameras = calibrated_cameras(load_calibration(calibration, bundle.rig))
+    first: dict[str, int] = {}
+    for index, camera_id in bundle.fringe_images():
+        first.setdefault(camera_id, index)
+    return [LimbusView(cameras[camera_id], bundle.load_image(index, camera_id))
+            for camera_id, index in first.items()]
 
 
 def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,

@@ -23,14 +23,15 @@ from __future__ import annotations
 import json
 import logging
 import math
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 from eyeserver.errors import EyeserverError
 from eyeserver.io import read_ply
 from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, fit_eye
+from eyeserver.pipeline.limbus import LimbusView
 from eyeserver.service.core import NoActiveCalibrationError, Service
 from eyeserver.service.patients import (
     Patient,
@@ -38,13 +39,19 @@ from eyeserver.service.patients import (
     ReferencePose,
     Tolerances,
 )
+from eyeserver.service.reconstruction import limbus_views
 from eyeserver.service.storage import UnknownIdError
 
 __all__ = ["Deviation", "FitFunction", "PoseVerification", "Verdict", "deviation",
            "gaze_angle_deg", "judge"]
 
-FitFunction = Callable[[CloudLike, EyeModel], EyePose]
-"""What fits an eye model to a cloud (:func:`~eyeserver.pipeline.eyepose.fit_eye`)."""
+class FitFunction(Protocol):
+    """What fits an eye model to a cloud and, when given, the fringe images it came from
+    (:func:`~eyeserver.pipeline.eyepose.fit_eye`)."""
+
+    def __call__(self, cloud: CloudLike, model: EyeModel,
+                 views: Sequence[LimbusView] = (), /) -> EyePose: ...
+
 
 Vector = Sequence[float]
 
@@ -160,6 +167,14 @@ class _Observation:
                 "cloud_points": self.cloud_points, "fit": self.pose.to_dict()}
 
 
+def _reference_radius(reference: ReferencePose | None) -> float | None:
+    """The globe radius fitted when a reference was captured (None for a planned one)."""
+    if reference is None or reference.evidence is None:
+        return None
+    radius = (reference.evidence.get("fit") or {}).get("globe_radius_mm")
+    return float(radius) if isinstance(radius, (int, float)) and math.isfinite(radius) else None
+
+
 class PoseVerification:
     """Pose measurements of the patients of one daemon.
 
@@ -184,9 +199,15 @@ class PoseVerification:
 
     # --- measuring --------------------------------------------------------------------------
 
-    def _observe(self, patient: Patient, actor: str, action: str, fraction: int
-                 ) -> _Observation:
-        """Capture, reconstruct and fit; a failure after the capture is audited with it."""
+    def _observe(self, patient: Patient, actor: str, action: str, fraction: int,
+                 reference: ReferencePose | None = None) -> _Observation:
+        """Capture, reconstruct and fit; a failure after the capture is audited with it.
+
+        A reference captured at set-up holds the globe radius fitted then: a model that leaves
+        the radius free keeps it, so that the fit's radius uncertainty (±0.15 mm from the
+        narrow band of sclera the lids leave) cannot move the centre between reference and
+        measurement.
+        """
         service = self.service
         if service.store.active_calibration() is None:  # before moving any hardware
             raise NoActiveCalibrationError(
@@ -195,11 +216,16 @@ class PoseVerification:
         stored_model = self.patients.eye_model(patient.patient_id)
         model = EyeModel.population() if stored_model is None else \
             stored_model.model.to_eye_model()
+        held = _reference_radius(reference)
+        if held is not None and model.globe_radius_mm is None and model.globe_semi_axes_mm is None:
+            model = replace(model, globe_radius_mm=held)
         capture = service.capture(patient.unit)
         try:
             summary = service.reconstruct(capture.id)
             cloud = read_ply(service.cloud_path(capture.id))
-            pose = self.fit(cloud, model)
+            calibration = service.store.get_calibration(str(summary["calibration_id"]))
+            views = limbus_views(calibration.path, service.store.get_capture(capture.id).path)
+            pose = self.fit(cloud, model, views)
         except EyeserverError as exc:
             service.audit.record(actor, action, patient.key, {
                 "patient_id": patient.patient_id, "fraction": fraction,
@@ -233,7 +259,7 @@ class PoseVerification:
         """
         patient = self.patients.get(patient_id)
         reference = self.patients.reference(patient_id, fraction)
-        seen = self._observe(patient, actor, "measure_pose", fraction)
+        seen = self._observe(patient, actor, "measure_pose", fraction, reference)
         pose = seen.pose
         ref = reference.pose
         found = deviation(pose.centre_mm, pose.gaze, ref["centre_mm"], ref["gaze"],
