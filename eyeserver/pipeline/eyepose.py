@@ -180,6 +180,10 @@ MIN_SCLERA_POINTS = 30
 WELL_SEEN_POINTS = 300
 """Sclera points at which the confidence's point term reaches 1 − 1/e."""
 
+WELL_SEEN_LIMBUS_POINTS = 100
+"""The same when the limbus comes from the images: the sclera then only sets one number, the
+globe's depth behind the limbus, from the points clear of lids and limbus."""
+
 _VOXEL_MM = 0.5
 _LOCAL_MM = 6.0
 _HYPOTHESES = 400
@@ -748,7 +752,7 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
     if views:
         try:
             limbus_fit = find_limbus(views, centre, gaze, radius, half)
-            globe = globe_on_limbus(points, limbus_fit, centre, radius, fixed)
+            globe = globe_on_limbus(points, limbus_fit, fixed)
         except LimbusNotFoundError:
             pass  # the cloud-only estimate stands
         else:
@@ -769,7 +773,8 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
             sclera_count = globe.points
 
     # Confidence: enough sclera, a surface that fits the model, a gaze that is found and sharp.
-    seen = 1.0 - math.exp(-sclera_count / WELL_SEEN_POINTS)
+    seen = 1.0 - math.exp(-sclera_count / (WELL_SEEN_POINTS if gaze_source != "limbus (images)"
+                                           else WELL_SEEN_LIMBUS_POINTS))
     fits = 1.0 / (1.0 + (surface_mad / 0.15) ** 2)
     sharp = 0.0 if gaze_source == "none" else 1.0 / (1.0 + (gaze_sd / 1.0) ** 2)
     radius_plausible = 1.0 if r_bounds[0] <= radius <= r_bounds[1] else 0.3

@@ -13,8 +13,11 @@ strays by 5–13°: the cloud's sclera ends a fringe period outside the limbus, 
    (:func:`~eyeserver.pipeline.demodulate.demodulate`) keeps the full resolution at the edge,
    where a box filter over a period would blur it by a period. Computed only in a window around
    the prior eye's projection.
-2. **Start.** The cloud fit's gaze can be 10–25° off; limbus circles tilted 0–30° about it are
-   scored by the mean outward intensity step along their projections, and the best one starts.
+2. **Start.** The cloud fit's gaze can be 10–25° off, and on some rigs the cloud fit takes the
+   wrong shell altogether; limbus circles tilted 0–30° about it are scored by the mean outward
+   intensity step along their projections, and so are circles about the cornea's dark disc
+   (the dark region with the largest inscribed circle, triangulated from the cameras) looking
+   towards them; the best one starts.
 3. **Edges.** Along the outward normal of the projected circle (120 samples per camera), the
    *innermost* rising edge at least 40 % as strong as the strongest one on that profile, with
    sub-pixel position from a parabola through the derivative. Innermost, because outside the
@@ -26,11 +29,13 @@ strays by 5–13°: the cloud's sclera ends a fringe period outside the limbus, 
    the search window shrinking 20 → 8 → 4 px. Uncertainties from the Jacobian and a robust
    residual scale.
 5. **Globe.** The limbus lies on the globe: its centre is ``C = L − h·g`` with
-   ``R = √(h² + r²)``, so one number ``h`` is left to fit, on the sclera points of the cloud
-   (soft-L1). The reconstructed sclera is pulled towards the lids within a fringe period of
+   ``R = √(h² + r²)``, so one number ``h`` is left, which every sclera point of the cloud
+   gives in closed form (:func:`globe_on_limbus`: votes, the innermost shell, weighted mean
+   shift). The reconstructed sclera is pulled towards the lids within a fringe period of
    their margins and towards the cornea at the limbus (the band-limited FTM blends the surfaces
-   across depth steps); points within 2 mm of the lid shell or in front of the limbus plane are
-   left out.
+   across depth steps), so points near either are left out; what remains is a narrow band
+   whose systematic error (≈ 0.05–0.1 mm) limits ``h``, and so the centre's depth, to
+   ≈ 0.1–0.3 mm, where the limbus centre is good to ≈ 0.02 mm.
 
 Not modelled: a pupil or iris pattern inside the limbus (rising edges inside the cornea would
 be taken for the limbus; a real eye's pupil edge is weaker than the limbus in near infrared but
@@ -40,6 +45,7 @@ itself).
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -79,14 +85,26 @@ MIN_COVERAGE = 0.4
 MAX_RESIDUAL_PX = 1.0
 """A fit whose median edge distance exceeds this is not the limbus."""
 
-LID_CLEARANCE_MM = 2.0
+GOOD_RESIDUAL_PX = 0.5
+"""One within this needs no second start (measured: 0.1–0.2 px on the limbus, ≈ 1 px on a
+circle stuck on a lid or shadow edge)."""
+
+LID_CLEARANCE_MM = 1.0
 """Sclera points closer than this to the lid shell are left out of the globe's fit."""
 
 LIMBUS_CLEARANCE_MM = 1.5
 """And so are those closer than this to the limbus."""
 
+GLOBE_DEPTHS_MM = (6.0, 17.0)
+"""Distances from the globe centre to the limbus plane considered when the radius is fitted
+(globes of ≈ 8–18 mm with a 11.7 mm limbus)."""
+
 MIN_SCLERA_POINTS = 30
 """Fewest sclera points the globe is placed on."""
+
+DARK_SHARE = 0.35
+"""Fringe-free intensity below this share of the image's bright level counts as dark (the
+cornea returns ≈ 0.06 of the white plate's light, sclera and skin 0.4–0.5)."""
 
 _WINDOW_MARGIN_PX = 40
 _TILTS_DEG = (0.0, 6.0, 12.0, 18.0, 24.0, 30.0)
@@ -164,22 +182,27 @@ def _circle(centre: F64, normal: F64, radius: float, angles: F64) -> tuple[F64, 
     return centre + radius * (cos * u + sin * v), -sin * u + cos * v
 
 
+def _window(view: LimbusView, centre: F64, radius: float) -> tuple[int, int, int, int]:
+    """The part of a view's image where a ball of ``radius`` about ``centre`` is seen."""
+    camera = view.camera
+    height, width = np.asarray(view.image).shape[:2]
+    corners = centre + radius * np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1)
+                                          for sz in (-1, 1)], dtype=np.float64)
+    uv = project(corners, camera.K, camera.dist, camera.R, camera.T)
+    x0, y0 = np.floor(uv.min(axis=0)).astype(int) - _WINDOW_MARGIN_PX
+    x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + _WINDOW_MARGIN_PX
+    x0, y0, x1, y1 = max(0, x0), max(0, y0), min(width, x1), min(height, y1)
+    if x1 - x0 < 32 or y1 - y0 < 32:
+        raise LimbusNotFoundError(f"camera {camera.camera_id} does not see the eye")
+    return int(x0), int(y0), int(x1), int(y1)
+
+
 class _Image:
     """One camera's fringe-free intensity in a window, and projections into it."""
 
-    def __init__(self, view: LimbusView, centre: F64, radius: float) -> None:
-        camera = view.camera
-        self.camera = camera
-        height, width = np.asarray(view.image).shape[:2]
-        corners = centre + radius * np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1)
-                                              for sz in (-1, 1)], dtype=np.float64)
-        uv = self.project_full(corners)
-        x0, y0 = np.floor(uv.min(axis=0)).astype(int) - _WINDOW_MARGIN_PX
-        x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + _WINDOW_MARGIN_PX
-        x0, y0, x1, y1 = max(0, x0), max(0, y0), min(width, x1), min(height, y1)
-        if x1 - x0 < 32 or y1 - y0 < 32:
-            raise LimbusNotFoundError(f"camera {camera.camera_id} does not see the eye")
-        self.flat, origin = fringe_free(camera, view.image, (x0, y0, x1, y1))
+    def __init__(self, view: LimbusView, window: tuple[int, int, int, int] | None) -> None:
+        self.camera = view.camera
+        self.flat, origin = fringe_free(view.camera, view.image, window)
         self.origin = np.asarray(origin, dtype=np.float64)
 
     def project_full(self, points: F64) -> F64:
@@ -219,9 +242,10 @@ def _support(images: Sequence[_Image], centre: F64, normal: F64, radius: float) 
     return float(np.mean(steps))
 
 
-def _start(images: Sequence[_Image], globe_centre: F64, gaze: F64, depth: float,
-           radius: float) -> F64:
-    """The gaze among circles tilted 0–30° about ``gaze`` whose outline steps up most."""
+def _start(images: Sequence[_Image], pivot: F64, arm: float, gaze: F64, radius: float
+           ) -> tuple[float, F64]:
+    """Among circles tilted 0–30° about ``gaze`` (centred at ``pivot + arm·g`` for a gaze
+    ``g``), the one whose outline steps up most: ``(score, g)``."""
     u, v = _basis(gaze)
     best, best_gaze = -math.inf, gaze
     for tilt in _TILTS_DEG:
@@ -229,10 +253,46 @@ def _start(images: Sequence[_Image], globe_centre: F64, gaze: F64, depth: float,
         for azimuth in azimuths:
             a, b = math.radians(tilt), math.radians(azimuth)
             g = math.cos(a) * gaze + math.sin(a) * (math.cos(b) * u + math.sin(b) * v)
-            score = _support(images, globe_centre + depth * g, g, radius)
+            score = _support(images, pivot + arm * g, g, radius)
             if score > best:
                 best, best_gaze = score, g
-    return best_gaze
+    return best, best_gaze
+
+
+def _dark_blob_centre(images: Sequence[_Image], limbus_radius: float) -> F64 | None:
+    """The limbus centre where the cameras' largest dark disc is seen (the cornea), or None.
+
+    Shadows are dark too, but thin: the cornea is the dark region with the largest inscribed
+    circle (``cv2.distanceTransform``). Rays through the discs' centres are intersected in
+    the least-squares sense; None when fewer than two cameras see one or the rays miss each
+    other by more than a limbus radius.
+    """
+    rays = []
+    for image in images:
+        flat = cv2.GaussianBlur(image.flat, (0, 0), 2.0)
+        dark = (flat < DARK_SHARE * float(np.percentile(flat, 95))).astype(np.uint8)
+        border = max(1, round(image.camera.carrier.period_px))
+        dark[:border], dark[-border:], dark[:, :border], dark[:, -border:] = 0, 0, 0, 0
+        inscribed = cv2.distanceTransform(dark, cv2.DIST_L2, 5)
+        y, x = np.unravel_index(int(np.argmax(inscribed)), inscribed.shape)
+        if inscribed[y, x] < 8.0:
+            continue
+        cam = image.camera
+        pixel = (np.array([[x, y]], dtype=np.float64) + image.origin).reshape(-1, 1, 2)
+        normalised = cv2.undistortPoints(pixel, cam.K, cam.dist).reshape(2)
+        direction = cam.R.T @ np.array([normalised[0], normalised[1], 1.0])
+        rays.append((cam.centre, direction / np.linalg.norm(direction)))
+    if len(rays) < 2:
+        return None
+    # The point closest to all rays: Σ (I − d dᵀ)(X − C) = 0.
+    lhs, rhs = np.zeros((3, 3)), np.zeros(3)
+    for origin, direction in rays:
+        across = np.eye(3) - np.outer(direction, direction)
+        lhs += across
+        rhs += across @ origin
+    point = np.linalg.solve(lhs, rhs)
+    misses = [np.linalg.norm((np.eye(3) - np.outer(d, d)) @ (point - c)) for c, d in rays]
+    return np.asarray(point, dtype=np.float64) if max(misses) < limbus_radius else None
 
 
 def _edges(image: _Image, centre: F64, normal: F64, radius: float, reach: float
@@ -285,31 +345,9 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
                          x_scale=np.array([0.1, 0.1, 0.1, 0.01, 0.01, 0.1]))
 
 
-def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: npt.ArrayLike,
-                globe_radius: float, limbus_radius: float) -> Limbus:
-    """The limbus circle seen in ``views``, starting from a rough eye pose (see the module).
-
-    Raises
-    ------
-    LimbusNotFoundError
-        Fewer than two cameras see enough of a limbus, or the edges fit no circle.
-    """
-    centre0 = np.asarray(globe_centre, dtype=np.float64)
-    gaze0 = np.asarray(gaze, dtype=np.float64)
-    gaze0 = gaze0 / np.linalg.norm(gaze0)
-    if gaze0[2] <= 0:
-        raise LimbusNotFoundError("the eye looks away from the cameras")
-    depth = math.sqrt(max(globe_radius**2 - limbus_radius**2, 1.0))
-    images = []
-    for view in views:
-        try:
-            images.append(_Image(view, centre0 + depth * gaze0, globe_radius * 0.6))
-        except LimbusNotFoundError:
-            continue
-    if len(images) < 2:
-        raise LimbusNotFoundError("fewer than two cameras see the eye")
-    normal = _start(images, centre0, gaze0, depth, limbus_radius)
-    centre, radius = centre0 + depth * normal, float(limbus_radius)
+def _refine(images: Sequence[_Image], centre: F64, normal: F64, radius: float) -> Limbus:
+    """Edges and circle, three rounds (module steps 3 and 4), from one start."""
+    expected = radius
     for reach in REACHES_PX:
         edges = [_edges(image, centre, normal, radius, reach) for image in images]
         if sum(len(a) >= MIN_COVERAGE * SAMPLES for a, _ in edges) < 2:
@@ -317,10 +355,9 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
         solution = _fit_circle(images, edges, centre, normal, radius)
         centre, normal, radius = solution.x[:3], _gaze(solution.x), float(solution.x[5])
     residual = np.abs(solution.fun)
-    scale = 1.4826 * float(np.median(residual))
-    if not residual.size or float(np.median(residual)) > MAX_RESIDUAL_PX \
-            or not 0.5 * limbus_radius < radius < 1.5 * limbus_radius:
+    if not 0.5 * expected < radius < 1.5 * expected:
         raise LimbusNotFoundError("the edges found fit no limbus circle")
+    scale = 1.4826 * float(np.median(residual))
     jac = solution.jac
     try:
         cov = np.linalg.inv(jac.T @ jac) * max(scale, 0.05) ** 2
@@ -335,55 +372,135 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
                             for image, (a, _) in zip(images, edges, strict=True)})
 
 
-def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, rough_centre: npt.ArrayLike,
-                    rough_radius: float, fixed_radius: float | None = None) -> Globe:
-    """The sphere through the limbus circle that fits the cloud's sclera best.
+def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: npt.ArrayLike,
+                globe_radius: float, limbus_radius: float, *, search: bool = True) -> Limbus:
+    """The limbus circle seen in ``views``, starting from a rough eye pose (see the module).
 
-    ``rough_centre`` and ``rough_radius`` (the cloud-only fit) pick the sclera (within 0.3 mm
-    of that sphere, behind the limbus plane) and the lid shell (0.5–4 mm outside it). A
-    ``fixed_radius`` (the patient's model) sets ``h`` outright; the sclera then only measures
-    how well the model fits.
+    The search starts about the rough pose, in a window of each image around it. When that
+    ends in no limbus, or in edges further than :data:`GOOD_RESIDUAL_PX` from the circle,
+    and ``search`` is on, it starts again from the cornea's dark disc in the whole images
+    (module step 2), and the closer fit wins. Without ``search``, the faster choice when the
+    rough pose is good (live tracking starts from the previous frame), only the window is read.
+
+    Raises
+    ------
+    LimbusNotFoundError
+        Fewer than two cameras see enough of a limbus, or the edges fit no circle.
+    """
+    centre0 = np.asarray(globe_centre, dtype=np.float64)
+    gaze0 = np.asarray(gaze, dtype=np.float64)
+    gaze0 = gaze0 / np.linalg.norm(gaze0)
+    if gaze0[2] <= 0:
+        raise LimbusNotFoundError("the eye looks away from the cameras")
+    depth = math.sqrt(max(globe_radius**2 - limbus_radius**2, 1.0))
+    found: list[Limbus] = []
+    failure = LimbusNotFoundError("fewer than two cameras see the eye")
+    images = []
+    for view in views:
+        with contextlib.suppress(LimbusNotFoundError):
+            images.append(_Image(view, _window(view, centre0 + depth * gaze0,
+                                               globe_radius * 0.6)))
+    if len(images) >= 2:
+        _, normal = _start(images, centre0, depth, gaze0, limbus_radius)
+        try:
+            found.append(_refine(images, centre0 + depth * normal, normal, limbus_radius))
+        except LimbusNotFoundError as exc:
+            failure = exc
+    if search and (not found or found[0].residual_px > GOOD_RESIDUAL_PX):
+        whole = [_Image(view, None) for view in views]
+        blob = _dark_blob_centre(whole, limbus_radius)
+        if blob is not None:
+            # The gaze towards the cameras (+Z) about the dark disc, tilted as it fits best.
+            _, normal = _start(whole, blob, 0.0, np.array([0.0, 0.0, 1.0]), limbus_radius)
+            try:
+                found.append(_refine(whole, blob, normal, limbus_radius))
+            except LimbusNotFoundError as exc:
+                failure = exc
+    found = [limbus for limbus in found if limbus.residual_px <= MAX_RESIDUAL_PX]
+    if not found:
+        raise failure if str(failure) else LimbusNotFoundError("no limbus found")
+    return min(found, key=lambda limbus: limbus.residual_px)
+
+
+def _votes(cloud: F64, limbus: Limbus, chosen: npt.NDArray[np.bool_]) -> tuple[F64, F64]:
+    """Each chosen point's ``h`` and its weight (see :func:`globe_on_limbus`)."""
+    L, g, r = limbus.centre, limbus.normal, limbus.radius
+    rel = cloud[chosen] - L
+    along = rel @ g
+    return (r**2 - np.einsum("ij,ij->i", rel, rel)) / (2.0 * along), along**2
+
+
+def _innermost_depth(votes: F64) -> float:
+    """Where the votes for ``h`` start: the sclera, the innermost shell through the limbus.
+
+    Nothing lies inside the globe, so the first 0.3 mm window holding a fit's worth of votes
+    starts the sclera's shell; its peak lies within 0.5 mm.
+    """
+    edges = np.arange(GLOBE_DEPTHS_MM[0], GLOBE_DEPTHS_MM[1] + 0.1, 0.1)
+    counts = np.convolve(np.histogram(votes, bins=edges)[0], np.ones(3), mode="same")
+    enough = np.flatnonzero(counts >= MIN_SCLERA_POINTS)
+    if not len(enough):
+        raise LimbusNotFoundError("too little sclera beside the limbus to place the globe")
+    first = int(enough[0])
+    return float(edges[first + int(np.argmax(counts[first:first + 6]))] + 0.05)
+
+
+def _mean_shift(votes: F64, weights: F64, start: float, bandwidths: Sequence[float]) -> float:
+    depth = start
+    for bandwidth in bandwidths:
+        for _ in range(5):
+            near = np.abs(votes - depth) < bandwidth
+            if near.sum() < 10:
+                return depth
+            depth = float(np.average(votes[near], weights=weights[near]))
+    return depth
+
+
+def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float | None = None
+                    ) -> Globe:
+    """The sphere through the limbus circle that the cloud's sclera lies on.
+
+    A point ``p`` lies on the sphere through the circle with centre ``L − h·g`` when
+    ``h = (r² − |p − L|²) / (2 (p − L)·g)``: every point behind the limbus plane (and more
+    than :data:`LIMBUS_CLEARANCE_MM` from the limbus) votes for one ``h``, weighted by its
+    squared depth behind the plane (the vote's error shrinks with it). The sclera votes sharply
+    for its own ``h``; the lids, outside it and on no sphere through the limbus, vote for
+    larger, scattered values — often many more of them (on the `wide` rig 150 sclera votes
+    against 20 000 of the lids) — so the innermost shell is taken (:func:`_innermost_depth`)
+    and refined by weighted mean shift; then again without the points within
+    :data:`LID_CLEARANCE_MM` of the lids, which the band-limited FTM pulls towards them.
+    Measured on 24 rendered poses this beats a geometric least-squares fit of the sclera
+    (0.11 against 0.13 mm median centre error, p95 0.29 against 0.37 mm), which follows the
+    pulled points outward. A ``fixed_radius`` (the patient's model) sets ``h`` outright; the
+    sclera then only measures how well the model fits.
     """
     cloud = np.asarray(points, dtype=np.float64)
-    centre0 = np.asarray(rough_centre, dtype=np.float64)
     L, g, r = limbus.centre, limbus.normal, limbus.radius
-    offset = np.linalg.norm(cloud - centre0, axis=1) - rough_radius
     along = (cloud - L) @ g
     across = np.linalg.norm((cloud - L) - along[:, None] * g, axis=1)
-    behind = (along < 0) & (np.hypot(along, across - r) > LIMBUS_CLEARANCE_MM)
+    behind = (along < -0.5) & (np.hypot(along, across - r) > LIMBUS_CLEARANCE_MM)
+    votes, weights = _votes(cloud, limbus, behind)
     clear = np.ones(len(cloud), dtype=bool)
+    if fixed_radius is not None:
+        depth = math.sqrt(max(fixed_radius**2 - r**2, 1.0))
+    else:
+        depth = _mean_shift(votes, weights, _innermost_depth(votes), (0.4, 0.25, 0.15, 0.1))
+    offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
     lids = cloud[(offset > 0.5) & (offset < 4.0)]
     if len(lids):
         distance, _ = cKDTree(lids).query(cloud, distance_upper_bound=LID_CLEARANCE_MM)
-        clear = ~np.isfinite(distance)
-    chosen = (np.abs(offset) < 0.3) & behind & clear
-    if chosen.sum() < MIN_SCLERA_POINTS:  # the lids leave little: take what there is
-        clear[:] = True
-        chosen = (np.abs(offset) < 0.3) & behind
-    depth = math.sqrt(max((fixed_radius or rough_radius) ** 2 - r**2, 1.0))
-    residual: F64 | None = None
-    sd = 0.0
-    for band in (None, 0.3, 0.2, 0.15):
-        if band is not None:
-            offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
-            chosen = (np.abs(offset) < band) & behind & clear
-        sclera = cloud[chosen]
-        if len(sclera) < MIN_SCLERA_POINTS:
-            break
-
-        def residuals(params: F64, sclera: F64 = sclera) -> F64:
-            return np.asarray(np.linalg.norm(sclera - (L - params[0] * g), axis=1)
-                              - math.hypot(params[0], r))
-
-        if fixed_radius is not None:
-            residual = residuals(np.array([depth]))
-            continue
-        solution = least_squares(residuals, [depth], loss="soft_l1", f_scale=0.05)
-        depth, residual = float(solution.x[0]), solution.fun
-        scale = 1.4826 * float(np.median(np.abs(residual)))
-        jtj = float(solution.jac[:, 0] @ solution.jac[:, 0])
-        sd = scale / math.sqrt(jtj) if jtj > 0 else math.inf
-    if residual is None:
+        if (~np.isfinite(distance) & behind & (np.abs(offset) < 0.3)).sum() >= MIN_SCLERA_POINTS:
+            clear = ~np.isfinite(distance)
+            if fixed_radius is None:
+                votes, weights = _votes(cloud, limbus, behind & clear)
+                depth = _mean_shift(votes, weights, depth, (0.25, 0.15, 0.1))
+    offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
+    sclera = behind & clear & (np.abs(offset) < 0.3)
+    if sclera.sum() < MIN_SCLERA_POINTS:
         raise LimbusNotFoundError("too little sclera beside the limbus to place the globe")
-    return Globe(centre=L - depth * g, radius=math.hypot(depth, r), depth_sd_mm=sd,
-                 points=len(residual), surface_mad_mm=float(np.median(np.abs(residual))))
+    near = np.abs(votes - depth) < 0.1
+    spread = 1.4826 * float(np.median(np.abs(votes[near] - depth))) if near.any() else math.inf
+    depth_sd = 0.0 if fixed_radius is not None else spread / math.sqrt(max(int(near.sum()), 1))
+    return Globe(centre=L - depth * g, radius=math.hypot(depth, r), depth_sd_mm=depth_sd,
+                 points=int(sclera.sum()),
+                 surface_mad_mm=float(np.median(np.abs(offset[sclera]))))
