@@ -62,7 +62,8 @@ from scipy.spatial import cKDTree
 from eyeserver.errors import EyeserverError
 from eyeserver.pipeline.limbus import LimbusNotFoundError, LimbusView, find_limbus, globe_on_limbus
 
-__all__ = ["CloudLike", "EyeModel", "EyePose", "PoseError", "fit_eye", "fit_sphere"]
+__all__ = ["CloudLike", "EyeModel", "EyePose", "Gaze", "PoseError", "cloud_gaze", "fit_eye",
+           "fit_sphere", "pose_from_cloud", "pose_on_limbus"]
 
 
 class CloudLike(Protocol):
@@ -693,13 +694,44 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
     surface_mad = float(np.median(np.abs(resid)))
     centre_sd = np.sqrt(np.clip(np.diag(cov)[:3], 0.0, None))
 
+    gaze = cloud_gaze(points, sclera, centre, radius, centre_sd, model)
+    if views:
+        on_limbus = pose_on_limbus(points, views, model, centre, gaze.direction, radius, fixed,
+                                   started)
+        if on_limbus is not None:
+            return on_limbus
+    plausible = 1.0 if r_bounds[0] <= radius <= r_bounds[1] else 0.3
+    return pose_from_cloud(centre, centre_sd, radius, gaze, surface_mad, len(sclera), started,
+                           plausible)
+
+
+@dataclass(frozen=True)
+class Gaze:
+    """The gaze and what comes with it: the limbus, where it came from, how sure it is."""
+
+    direction: F64
+    sd_deg: float
+    source: str
+    limbus_centre: F64 | None = None
+    limbus_sd_mm: float | None = None
+    boundary_radius_mm: float | None = None
+    cornea_points: int = 0
+
+
+def cloud_gaze(points: F64, sclera: F64, centre: F64, radius: float, centre_sd: F64,
+               model: EyeModel, fallback: F64 | None = None) -> Gaze:
+    """The gaze from the cloud alone, about a fitted globe (module step 3).
+
+    ``points`` is the cloud without the face's plane, ``sclera`` the points on the globe;
+    ``fallback`` starts the search where nothing lies around the globe (None: no gaze then).
+    """
     directions = sclera - centre
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     # The opening (sclera and the lids' inner rim together) is centred near the cornea; the
     # sclera alone, often more on one side, is not.
     dist_all = np.linalg.norm(points - centre, axis=1)
     around = np.abs(dist_all - radius) < 3.0
-    start = (points[around] - centre).mean(axis=0) if around.any() else None
+    start = (points[around] - centre).mean(axis=0) if around.any() else fallback
     limbus = _limbus(directions, start)
     # The widest empty cone of the sclera and lid shell (R − 0.3 … R + 2 mm): measured on 24
     # rendered poses, gaze 4.8° median (p95 13°) against 7.7° (p95 43°) from the edge circle.
@@ -709,84 +741,96 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
         opening = _empty_cone((points[shell] - centre) / dist_all[shell, None], start)
     half = model.limbus_diameter_mm / 2
     depth = math.sqrt(max(radius**2 - half**2, 0.0))
-    gaze_source = "none"
     gaze = directions.mean(axis=0) if opening is None else opening
-    gaze /= np.linalg.norm(gaze)
-    gaze_sd = 90.0
-    limbus_centre: tuple[float, float, float] | None = None
-    limbus_sd: float | None = None
-    boundary_radius: float | None = None
-    cornea_points = 0
-    if limbus is not None:
-        g, cos_beta, tilt_cov, _ = limbus
-        if g[2] < 0:  # the hole faces the cameras; a flip means the ring was misread
-            g = -g
-        edge_radius = radius * math.sqrt(max(1.0 - cos_beta**2, 0.0))
-        if opening is not None and abs(edge_radius - half) > _EDGE_IS_LIMBUS_MM:
-            g = opening  # the hole is not the limbus: its edge circle would stray
-        lateral = float(np.sqrt(np.sum(centre_sd**2 * (1.0 - g**2))))
-        # Tilt of the fitted circle plus the globe centre's own lateral uncertainty seen from
-        # the limbus plane.
-        tilt_var = float(np.trace(tilt_cov)) + (lateral / max(depth, 1.0)) ** 2
-        gaze, gaze_sd = g, math.degrees(math.sqrt(tilt_var))
-        gaze_source = "limbus"
-        boundary_radius = radius * math.sqrt(max(1.0 - cos_beta**2, 0.0))
-        cornea = _cornea(points, centre, radius, g, cos_beta)
-        if cornea is not None:
-            c_centre, cornea_points, c_sd = cornea
-            axis = c_centre - centre
-            if np.linalg.norm(axis) > 1.0:
-                axis /= np.linalg.norm(axis)
-                var_c = (c_sd / max(float(np.linalg.norm(c_centre - centre)), 1.0)) ** 2
-                var_l = math.radians(gaze_sd) ** 2
-                blend = gaze / var_l + axis / var_c
-                gaze = blend / np.linalg.norm(blend)
-                gaze_sd = math.degrees(math.sqrt(1.0 / (1.0 / var_l + 1.0 / var_c)))
-                gaze_source = "limbus+cornea"
-        limbus_point = centre + depth * gaze
-        limbus_centre = (float(limbus_point[0]), float(limbus_point[1]), float(limbus_point[2]))
-        limbus_sd = float(math.sqrt(float(centre_sd @ centre_sd)
-                                    + (depth * math.radians(gaze_sd)) ** 2))
+    if limbus is None:
+        return Gaze(gaze / np.linalg.norm(gaze), 90.0, "none")
+    g, cos_beta, tilt_cov, _ = limbus
+    if g[2] < 0:  # the hole faces the cameras; a flip means the ring was misread
+        g = -g
+    edge_radius = radius * math.sqrt(max(1.0 - cos_beta**2, 0.0))
+    if opening is not None and abs(edge_radius - half) > _EDGE_IS_LIMBUS_MM:
+        g = opening  # the hole is not the limbus: its edge circle would stray
+    lateral = float(np.sqrt(np.sum(centre_sd**2 * (1.0 - g**2))))
+    # Tilt of the fitted circle plus the globe centre's own lateral uncertainty seen from
+    # the limbus plane.
+    tilt_var = float(np.trace(tilt_cov)) + (lateral / max(depth, 1.0)) ** 2
+    gaze, gaze_sd, source, cornea_points = g, math.degrees(math.sqrt(tilt_var)), "limbus", 0
+    cornea = _cornea(points, centre, radius, g, cos_beta)
+    if cornea is not None:
+        c_centre, cornea_points, c_sd = cornea
+        axis = c_centre - centre
+        if np.linalg.norm(axis) > 1.0:
+            axis /= np.linalg.norm(axis)
+            var_c = (c_sd / max(float(np.linalg.norm(c_centre - centre)), 1.0)) ** 2
+            var_l = math.radians(gaze_sd) ** 2
+            blend = gaze / var_l + axis / var_c
+            gaze = blend / np.linalg.norm(blend)
+            gaze_sd = math.degrees(math.sqrt(1.0 / (1.0 / var_l + 1.0 / var_c)))
+            source = "limbus+cornea"
+    limbus_sd = float(math.sqrt(float(centre_sd @ centre_sd)
+                                + (depth * math.radians(gaze_sd)) ** 2))
+    return Gaze(gaze, gaze_sd, source, centre + depth * gaze, limbus_sd, edge_radius,
+                cornea_points)
 
-    sclera_count = len(sclera)
-    if views:
-        try:
-            limbus_fit = find_limbus(views, centre, gaze, radius, half)
-            globe = globe_on_limbus(points, limbus_fit, fixed)
-        except LimbusNotFoundError:
-            pass  # the cloud-only estimate stands
-        else:
-            g = limbus_fit.normal
-            depth_l = float((limbus_fit.centre - globe.centre) @ g)
-            gaze, gaze_sd, gaze_source = g, limbus_fit.gaze_sd_deg, "limbus (images)"
-            centre, radius = globe.centre, globe.radius
-            # Per axis: the limbus centre's spread, the depth's along the gaze, and the tilt's
-            # lever arm across it.
-            lever = depth_l * math.radians(gaze_sd)
-            centre_sd = np.sqrt(limbus_fit.centre_sd_mm**2 / 3.0 + (globe.depth_sd_mm * g) ** 2
-                                + lever**2 * (1.0 - g**2))
-            limbus_centre = (float(limbus_fit.centre[0]), float(limbus_fit.centre[1]),
-                             float(limbus_fit.centre[2]))
-            limbus_sd = limbus_fit.centre_sd_mm
-            boundary_radius = limbus_fit.radius
-            surface_mad = globe.surface_mad_mm
-            sclera_count = globe.points
 
-    # Confidence: enough sclera, a surface that fits the model, a gaze that is found and sharp.
-    seen = 1.0 - math.exp(-sclera_count / (WELL_SEEN_POINTS if gaze_source != "limbus (images)"
-                                           else WELL_SEEN_LIMBUS_POINTS))
+def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, centre: F64,
+                   rough_gaze: F64, radius: float, fixed_radius: float | None, started: float,
+                   *, search: bool = True) -> EyePose | None:
+    """The pose from the limbus found in ``views`` and the sclera of ``points`` that carries
+    it (:mod:`eyeserver.pipeline.limbus`), from a rough globe and gaze; None where no limbus
+    is found.
+
+    ``fixed_radius`` holds the globe's radius (the patient's model, or the last frame's while
+    tracking); ``search`` as :func:`~eyeserver.pipeline.limbus.find_limbus`. ``started`` is
+    the fit's start (``time.perf_counter()``) for ``fit_ms``.
+    """
+    try:
+        limbus = find_limbus(views, centre, rough_gaze, radius, model.limbus_diameter_mm / 2,
+                             search=search)
+        globe = globe_on_limbus(points, limbus, fixed_radius)
+    except LimbusNotFoundError:
+        return None
+    g = limbus.normal
+    depth = float((limbus.centre - globe.centre) @ g)
+    # Per axis: the limbus centre's spread, the depth's along the gaze, and the tilt's lever
+    # arm across it.
+    lever = depth * math.radians(limbus.gaze_sd_deg)
+    centre_sd = np.sqrt(limbus.centre_sd_mm**2 / 3.0 + (globe.depth_sd_mm * g) ** 2
+                        + lever**2 * (1.0 - g**2))
+    gaze = Gaze(g, limbus.gaze_sd_deg, "limbus (images)", limbus.centre, limbus.centre_sd_mm,
+                limbus.radius)
+    confidence = _confidence(globe.points, WELL_SEEN_LIMBUS_POINTS, globe.surface_mad_mm, gaze)
+    return _pose(globe.centre, centre_sd, globe.radius, gaze, globe.surface_mad_mm,
+                 globe.points, confidence, started)
+
+
+def pose_from_cloud(centre: F64, centre_sd: F64, radius: float, gaze: Gaze, surface_mad: float,
+                    sclera_points: int, started: float, plausible: float = 1.0) -> EyePose:
+    """The pose of a globe fitted to the cloud with its :func:`cloud_gaze`; ``plausible``
+    scales the confidence (0.3 for a radius outside the model's bounds)."""
+    confidence = _confidence(sclera_points, WELL_SEEN_POINTS, surface_mad, gaze) * plausible
+    return _pose(centre, centre_sd, radius, gaze, surface_mad, sclera_points, confidence,
+                 started)
+
+
+def _confidence(sclera_points: int, well_seen: int, surface_mad: float, gaze: Gaze) -> float:
+    """Enough sclera, a surface that fits the model, a gaze that is found and sharp."""
+    seen = 1.0 - math.exp(-sclera_points / well_seen)
     fits = 1.0 / (1.0 + (surface_mad / 0.15) ** 2)
-    sharp = 0.0 if gaze_source == "none" else 1.0 / (1.0 + (gaze_sd / 1.0) ** 2)
-    radius_plausible = 1.0 if r_bounds[0] <= radius <= r_bounds[1] else 0.3
-    confidence = seen * fits * (0.25 + 0.75 * sharp) * radius_plausible
+    sharp = 0.0 if gaze.source == "none" else 1.0 / (1.0 + (gaze.sd_deg / 1.0) ** 2)
+    return seen * fits * (0.25 + 0.75 * sharp)
+
+
+def _pose(centre: F64, centre_sd: F64, radius: float, gaze: Gaze, surface_mad: float,
+          sclera_points: int, confidence: float, started: float) -> EyePose:
+    def triple(v: F64) -> tuple[float, float, float]:
+        return float(v[0]), float(v[1]), float(v[2])
+
     return EyePose(
-        centre_mm=(float(centre[0]), float(centre[1]), float(centre[2])),
-        centre_sd_mm=(float(centre_sd[0]), float(centre_sd[1]), float(centre_sd[2])),
-        globe_radius_mm=float(radius),
-        limbus_centre_mm=limbus_centre, limbus_sd_mm=limbus_sd,
-        gaze=(float(gaze[0]), float(gaze[1]), float(gaze[2])),
-        gaze_sd_deg=float(gaze_sd), torsion_deg=None,
-        surface_mad_mm=surface_mad, sclera_points=sclera_count,
-        confidence=float(min(max(confidence, 0.0), 1.0)),
-        gaze_source=gaze_source, boundary_radius_mm=boundary_radius,
-        cornea_points=cornea_points, fit_ms=1000.0 * (time.perf_counter() - started))
+        centre_mm=triple(centre), centre_sd_mm=triple(centre_sd), globe_radius_mm=float(radius),
+        limbus_centre_mm=None if gaze.limbus_centre is None else triple(gaze.limbus_centre),
+        limbus_sd_mm=gaze.limbus_sd_mm, gaze=triple(gaze.direction),
+        gaze_sd_deg=float(gaze.sd_deg), torsion_deg=None, surface_mad_mm=float(surface_mad),
+        sclera_points=int(sclera_points), confidence=float(min(max(confidence, 0.0), 1.0)),
+        gaze_source=gaze.source, boundary_radius_mm=gaze.boundary_radius_mm,
+        cornea_points=gaze.cornea_points, fit_ms=1000.0 * (time.perf_counter() - started))

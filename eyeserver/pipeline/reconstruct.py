@@ -154,6 +154,10 @@ class CalibratedCamera:
     carrier: Carrier
     reference_phase: F32
     border_px: int
+    strong_modulation: float | None = None
+    """The modulation of the image's strong fringes the mask's threshold is relative to
+    (:data:`MODULATION_FRACTION`); None: each image's own 95th percentile. A window of an image
+    (:func:`cropped`) takes the whole image's, so that it masks the same pixels."""
     x: F64 = field(init=False, repr=False)
     y: F64 = field(init=False, repr=False)
     rays: F64 = field(init=False, repr=False)
@@ -203,6 +207,56 @@ class CalibratedCamera:
             p0 = (other.R @ centre + other.T)[None, :] - centre[2] * p1
             self._towards[other.camera_id] = (p0, p1)
         return self._towards[other.camera_id]
+
+
+def cropped(camera: CalibratedCamera, x0: int, y0: int, x1: int, y1: int, *,
+            strong_modulation: float | None = None) -> CalibratedCamera:
+    """The camera that sees only the window ``[y0:y1, x0:x1]`` of ``camera``'s images.
+
+    The principal point moves by the window's origin, so every pixel keeps its undistorted
+    normalised coordinates, its ray and (with the cropped reference phase) its phase-to-height
+    model: where the window and the whole image both give a point at a pixel, it is the same
+    (measured on the simulated eye: within 0.003 mm), except within the band-pass's reach of
+    the window's border, which :func:`camera_phase` masks (``border_px``). Fringe phases are
+    absolute (the demodulated phase includes the carrier ramp), so the crop needs no phase
+    offset. The window keeps some points the whole image drops: a fringe order whose rival
+    orders project outside the other camera's window has no rival left to be confused with.
+
+    Parameters
+    ----------
+    camera : CalibratedCamera
+        The whole image's camera.
+    x0, y0, x1, y1 : int
+        The window in pixels, columns ``x0 ≤ j < x1`` and rows ``y0 ≤ i < y1``, within the
+        image.
+    strong_modulation : float, optional
+        The whole image's strong fringes' modulation (:func:`strong_modulation`), so the window
+        masks what the whole image masks; None: the camera's own setting.
+
+    Raises
+    ------
+    ValueError
+        A window that is empty or leaves the image.
+    """
+    height, width = camera.shape
+    if not (0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height):
+        raise ValueError(f"window ({x0}, {y0})–({x1}, {y1}) must be a non-empty part of the "
+                         f"{width}×{height} image")
+    K = camera.K.copy()
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    return CalibratedCamera(camera.camera_id, K, camera.dist, camera.R, camera.T, camera.model,
+                            camera.carrier,
+                            np.ascontiguousarray(camera.reference_phase[y0:y1, x0:x1]),
+                            camera.border_px,
+                            camera.strong_modulation if strong_modulation is None
+                            else strong_modulation)
+
+
+def strong_modulation(camera: CalibratedCamera, image: npt.ArrayLike) -> float:
+    """The modulation of ``image``'s strong fringes (its 95th percentile), what
+    :func:`camera_phase` masks weak fringes against."""
+    return float(np.percentile(demodulate(np.asarray(image), camera.carrier).modulation, 95))
 
 
 @dataclass
@@ -278,7 +332,8 @@ def camera_phase(camera: CalibratedCamera, image: npt.ArrayLike,
     pixels = np.asarray(image)
     result = demodulate(pixels, camera.carrier)
     dphi = phase_difference(result.wrapped_phase, camera.reference_phase)
-    strong = float(np.percentile(result.modulation, 95))
+    strong = (float(np.percentile(result.modulation, 95)) if camera.strong_modulation is None
+              else camera.strong_modulation)
     b = camera.border_px
     valid = (result.modulation > MODULATION_FRACTION * strong) & border_mask(dphi.shape, b)
     if saturation_dn is not None:

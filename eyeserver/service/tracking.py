@@ -33,6 +33,13 @@ publishes, and the WebSocket stamps it again right before sending. A fit that fa
 eye lost) or a pose whose gaze cannot be found (lids closed: a blink) gives ``pose`` null and
 ``beam_hold`` true.
 
+Once a frame gave a pose, the next ones are followed from it (the eye moves little in 40 ms):
+the reconstruction covers only a window around the eye in each camera
+(:meth:`RigReconstructor.focus`, :func:`~eyeserver.pipeline.eyetrack.eye_window`) and the
+globe is refitted from the last pose (:func:`~eyeserver.pipeline.eyetrack.track_eye`) instead
+of searched for; the global fit (:func:`~eyeserver.pipeline.eyepose.fit_eye`) comes back when
+the warm fit fails, and the whole image once the eye is lost. A blink keeps the last globe.
+
 The clock, the frame source, the reconstruction and the fit are injected, so tests replay any
 sequence exactly (:meth:`TrackingSession.acquire_once`, :meth:`TrackingSession.process_once`).
 While a session runs the daemon is in state ``tracking`` (captures get 409).
@@ -46,12 +53,13 @@ import math
 import threading
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+import numpy.typing as npt
 
 from eyeserver.calibration.artefact import load_calibration
 from eyeserver.core.clock import Clock, MonotonicClock
@@ -59,23 +67,37 @@ from eyeserver.errors import DeviceError, EyeserverError, StateConflictError
 from eyeserver.hardware.rig import AcquiredStep, Rig
 from eyeserver.io import PointCloud, RigSpec
 from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError, fit_eye
+from eyeserver.pipeline.eyetrack import eye_window, track_eye
 from eyeserver.pipeline.fusion import Part, fuse
-from eyeserver.pipeline.reconstruct import CalibratedCamera, unit_clouds
+from eyeserver.pipeline.limbus import LimbusView
+from eyeserver.pipeline.reconstruct import (
+    CalibratedCamera,
+    cropped,
+    strong_modulation,
+    unit_clouds,
+)
 from eyeserver.service.beamhold import BeamHold, BeamHoldConfig, EyeSeen, FrameObservation
 from eyeserver.service.core import NoActiveCalibrationError, Service
 from eyeserver.service.events import EventBus
 from eyeserver.service.patients import Patients, Tolerances
 from eyeserver.service.reconstruction import ReconstructionError, calibrated_cameras, z_range
-from eyeserver.service.verification import FitFunction, deviation, judge
+from eyeserver.service.verification import (
+    FitFunction,
+    deviation,
+    judge,
+    reference_radius,
+)
 
-__all__ = ["CAMERA_RATE_HZ", "FrameSet", "FrameSource", "LatestFrame", "Reconstructor",
-           "RigFrameSource", "RigReconstructor", "TrackingControl", "TrackingSession"]
+__all__ = ["CAMERA_RATE_HZ", "FocusingReconstructor", "FrameSet", "FrameSource", "LatestFrame",
+           "Reconstructor", "RigFrameSource", "RigReconstructor", "TrackFunction",
+           "TrackedCloud", "TrackingControl", "TrackingSession"]
 
 CAMERA_RATE_HZ = 25.0
 """The cameras' frame rate during live tracking."""
 
 _log = logging.getLogger(__name__)
 _JOIN_S = 10.0
+_MAX_WINDOWS = 8  # cropped cameras kept (each ≈ 15 MB: pixel grid, rays, the partner map)
 
 
 @dataclass(frozen=True)
@@ -115,6 +137,41 @@ class FrameSource(Protocol):
 
 Reconstructor = Callable[[FrameSet], CloudLike]
 """Turns a frame set into a point cloud (WCS, mm)."""
+
+class TrackFunction(Protocol):
+    """Cloud, eye model, the last frame's pose and, when given, the fringe images the cloud came
+    from → pose (:func:`~eyeserver.pipeline.eyetrack.track_eye`); raises
+    :class:`~eyeserver.pipeline.eyepose.PoseError` when it cannot follow the eye."""
+
+    def __call__(self, cloud: CloudLike, model: EyeModel, previous: EyePose,
+                 views: Sequence[LimbusView] = (), /) -> EyePose: ...
+
+
+@dataclass(frozen=True)
+class TrackedCloud:
+    """A frame set's fused cloud (WCS, mm) with the images it came from, for the limbus.
+
+    ``views`` are the cameras and images (or their windows around the eye) the cloud was
+    reconstructed from (:class:`~eyeserver.pipeline.limbus.LimbusView`).
+    """
+
+    points: npt.NDArray[np.float32]
+    quality: npt.NDArray[np.float32] | None
+    camera: npt.NDArray[np.uint8] | None
+    views: tuple[LimbusView, ...] = ()
+
+
+@runtime_checkable
+class FocusingReconstructor(Protocol):
+    """A reconstruction that can confine itself to where the eye is."""
+
+    def __call__(self, frame_set: FrameSet) -> CloudLike:
+        """Frame set → cloud (WCS, mm)."""
+        ...
+
+    def focus(self, pose: EyePose | None) -> None:
+        """Reconstruct only around ``pose``'s eye from now on; None: the whole images."""
+        ...
 
 
 class RigFrameSource:
@@ -167,6 +224,11 @@ class RigReconstructor:
     Each unit's first two cameras fix each other's fringe order (the default method); the
     clouds of the units are fused. Raises :class:`ReconstructionError` for a calibration
     without phase-to-height models.
+
+    After :meth:`focus` on a pose, each camera's image is reconstructed only inside the window
+    around that eye (:func:`~eyeserver.pipeline.eyetrack.eye_window`), a few times fewer pixels
+    than the whole image; the cropped cameras are kept per window (windows are rounded to
+    :data:`~eyeserver.pipeline.eyetrack.WINDOW_QUANTUM_PX`, so a still eye keeps one).
     """
 
     def __init__(self, calibration: str | Path, rig: RigSpec, bit_depth: int | None = None
@@ -176,9 +238,37 @@ class RigReconstructor:
         self._limits = z_range(document)
         self._rig = rig
         self._saturation = None if bit_depth is None else float(2 ** bit_depth - 1)
+        self._pose: EyePose | None = None
+        self._cropped: dict[tuple[str, tuple[int, int, int, int]], CalibratedCamera] = {}
 
-    def __call__(self, frame_set: FrameSet) -> CloudLike:
+    def focus(self, pose: EyePose | None) -> None:
+        """Reconstruct only around ``pose``'s eye from now on; None: the whole images."""
+        self._pose = pose
+
+    def _view(self, camera_id: str, image: npt.NDArray[Any],
+              ) -> tuple[CalibratedCamera, npt.NDArray[Any]]:
+        """The camera and image to reconstruct: the window around the eye in focus, if any."""
+        camera = self._cameras[camera_id]
+        pose = self._pose
+        if pose is None:
+            return camera, image
+        window = eye_window(camera, pose.centre_mm, pose.globe_radius_mm)
+        if window is None or window == (0, 0, camera.shape[1], camera.shape[0]):
+            return camera, image
+        key = (camera_id, window)
+        if key not in self._cropped:
+            if len(self._cropped) >= _MAX_WINDOWS:
+                self._cropped.clear()  # an eye that wandered far: start the cache anew
+            # The whole image's fringe strength, so the window masks what the whole image
+            # would (a window's own is the eye's alone): measured once per window.
+            self._cropped[key] = cropped(camera, *window,
+                                         strong_modulation=strong_modulation(camera, image))
+        x0, y0, x1, y1 = window
+        return self._cropped[key], image[y0:y1, x0:x1]
+
+    def __call__(self, frame_set: FrameSet) -> TrackedCloud:
         parts = []
+        views: list[LimbusView] = []
         for step in frame_set.steps:
             by_unit: dict[str, list[str]] = {}
             for camera_id in step.frames:
@@ -190,15 +280,18 @@ class RigReconstructor:
                 a, b = camera_ids[:2]
                 frame_a, frame_b = step.frames[a], step.frames[b]
                 saturation = self._saturation or float(2 ** frame_a.meta.bit_depth - 1)
-                cloud_a, cloud_b = unit_clouds(
-                    self._cameras[a], frame_a.image, self._cameras[b], frame_b.image,
-                    self._limits, saturation_dn=saturation)
+                camera_a, image_a = self._view(a, np.asarray(frame_a.image))
+                camera_b, image_b = self._view(b, np.asarray(frame_b.image))
+                cloud_a, cloud_b = unit_clouds(camera_a, image_a, camera_b, image_b,
+                                               self._limits, saturation_dn=saturation)
+                views += [LimbusView(camera_a, image_a), LimbusView(camera_b, image_b)]
                 for camera_id, cloud in ((a, cloud_a), (b, cloud_b)):
                     parts.append(Part(cloud.points, cloud.quality,
                                       self._rig.camera_index(camera_id),
                                       self._rig.unit_of_camera(camera_id).id))
         fused = fuse(parts)
-        return PointCloud(fused.points.astype(np.float32), fused.quality, fused.camera)
+        whole = PointCloud(fused.points.astype(np.float32), fused.quality, fused.camera)
+        return TrackedCloud(whole.points, whole.quality, whole.camera, tuple(views))
 
 
 class LatestFrame:
@@ -267,7 +360,8 @@ class TrackingSession:
     reconstruct : Reconstructor
         Frame set → cloud.
     fit : FitFunction
-        Cloud, eye model → pose (:func:`~eyeserver.pipeline.eyepose.fit_eye`).
+        Cloud, eye model → pose (:func:`~eyeserver.pipeline.eyepose.fit_eye`): the first
+        frame's, and whenever the eye is not followed.
     model : EyeModel
         The patient's eye model.
     reference : dict
@@ -280,15 +374,26 @@ class TrackingSession:
         The rig's clock: frame times and latencies are on it.
     dwell_frames, hold_on_drop
         :class:`~eyeserver.service.beamhold.BeamHoldConfig`.
+    track : TrackFunction, optional
+        Cloud, eye model, last pose → pose (:func:`~eyeserver.pipeline.eyetrack.track_eye`):
+        every frame after one with a pose; a :class:`PoseError` falls back on ``fit``. None
+        fits every frame with ``fit``.
+
+    A reconstruction that is a :class:`FocusingReconstructor` is focused on the last pose
+    before each frame (None once the eye is lost: the whole images again).
     """
 
     def __init__(self, source: FrameSource, reconstruct: Reconstructor, fit: FitFunction, *,
                  model: EyeModel, reference: dict[str, Any], tolerances: Tolerances,
                  bus: EventBus, clock: Clock, dwell_frames: int = 3,
-                 hold_on_drop: bool = True, info: dict[str, Any] | None = None) -> None:
+                 hold_on_drop: bool = True, info: dict[str, Any] | None = None,
+                 track: TrackFunction | None = None) -> None:
         self.source = source
         self.reconstruct = reconstruct
         self.fit = fit
+        self.track = track
+        self.last_pose: EyePose | None = None
+        """The last globe found (a blink's too); None before the first and once lost."""
         self.model = model
         self.reference = reference
         self.tolerances = tolerances
@@ -309,9 +414,13 @@ class TrackingSession:
     # --- one step at a time (the threads loop these; tests call them directly) -------------
 
     def acquire_once(self) -> FrameSet | None:
-        """Take the next frame set from the source into the slot; None when the source ended."""
+        """Take the next frame set from the source into the slot; None when the source ended.
+
+        A frame set that arrives once :meth:`stop` was asked for is not offered (nor counted):
+        the processing thread may have ended already, and it would be left unread.
+        """
         frame_set = self.source.next_frame()
-        if frame_set is not None:
+        if frame_set is not None and not self._stop.is_set():
             with self._counters.lock:
                 self._counters.acquired += 1
             self.slot.put(frame_set)
@@ -330,10 +439,14 @@ class TrackingSession:
         pose: EyePose | None = None
         error: str | None = None
         eye: EyeSeen = "visible"
+        previous = self.last_pose
+        if isinstance(self.reconstruct, FocusingReconstructor):
+            self.reconstruct.focus(previous)
         try:
-            pose = self.fit(self.reconstruct(frame_set), self.model)
+            pose = self._fit(self.reconstruct(frame_set), previous)
         except (PoseError, ReconstructionError, ValueError) as exc:
             eye, error = "lost", str(exc) or type(exc).__name__
+        self.last_pose = pose
         if pose is not None and pose.gaze_source == "none":
             # A globe without limbus or cornea: the lids cover the front of the eye.
             eye, error, pose = "blink", "no limbus or cornea visible (blink?)", None
@@ -373,6 +486,17 @@ class TrackingSession:
             counters.last = message
         self.bus.publish("pose", **message)
         return message
+
+    def _fit(self, cloud: CloudLike, previous: EyePose | None) -> EyePose:
+        """Follow the eye from the last pose where there is one, else (or failing) fit it;
+        with the images the cloud came from, where the reconstruction gives them."""
+        views = cloud.views if isinstance(cloud, TrackedCloud) else ()
+        if previous is not None and self.track is not None:
+            with contextlib.suppress(PoseError):
+                if views:
+                    return self.track(cloud, self.model, previous, views)
+                return self.track(cloud, self.model, previous)
+        return self.fit(cloud, self.model, views) if views else self.fit(cloud, self.model)
 
     # --- threads ----------------------------------------------------------------------------
 
@@ -499,8 +623,8 @@ class TrackingControl:
         Its patients (eye model, reference, tolerances, unit).
     clock : Clock, optional
         The rig's clock (default: the machine's monotonic clock, which the simulated room uses).
-    fit, source_factory, reconstructor_factory
-        Public attributes, so tests inject scripted ones.
+    fit, track, source_factory, reconstructor_factory
+        Public attributes, so tests inject scripted ones (``track`` None: ``fit`` every frame).
 
     :attr:`messages` is the bus of pose messages (``/api/v1/ws/pose``); it outlives sessions, so
     a client stays connected from one session to the next.
@@ -508,12 +632,14 @@ class TrackingControl:
 
     def __init__(self, service: Service, patients: Patients, *,
                  clock: Clock | None = None, fit: FitFunction = fit_eye,
+                 track: TrackFunction | None = track_eye,
                  source_factory: SourceFactory = rig_source,
                  reconstructor_factory: ReconstructorFactory = active_reconstructor) -> None:
         self.service = service
         self.patients = patients
         self.clock: Clock = clock if clock is not None else MonotonicClock()
         self.fit = fit
+        self.track = track
         self.source_factory = source_factory
         self.reconstructor_factory = reconstructor_factory
         self.messages = EventBus()
@@ -547,6 +673,11 @@ class TrackingControl:
         stored_model = self.patients.eye_model(patient_id)
         model = EyeModel.population() if stored_model is None else \
             stored_model.model.to_eye_model()
+        # As pose verification does: a model leaving the radius free takes the reference's,
+        # so the radius's uncertainty cannot move the centre between reference and frames.
+        held = reference_radius(reference)
+        if held is not None and model.globe_radius_mm is None and model.globe_semi_axes_mm is None:
+            model = replace(model, globe_radius_mm=held)
         unit_ids = service.unit_ids(patient.unit)
         with self._lock:
             if self._hold is not None:
@@ -559,7 +690,7 @@ class TrackingControl:
                 session = TrackingSession(
                     source, reconstruct, self.fit, model=model, reference=reference.pose,
                     tolerances=patient.tolerances, bus=self.messages, clock=self.clock,
-                    dwell_frames=dwell_frames, hold_on_drop=hold_on_drop,
+                    dwell_frames=dwell_frames, hold_on_drop=hold_on_drop, track=self.track,
                     info={"patient_id": patient_id, "fraction": fraction,
                           "unit": patient.unit, "rate_hz": CAMERA_RATE_HZ,
                           "reference_version": reference.version,

@@ -43,7 +43,7 @@ from eyeserver.service.reconstruction import limbus_views
 from eyeserver.service.storage import UnknownIdError
 
 __all__ = ["Deviation", "FitFunction", "PoseVerification", "Verdict", "deviation",
-           "gaze_angle_deg", "judge"]
+           "gaze_angle_deg", "judge", "reference_radius"]
 
 class FitFunction(Protocol):
     """What fits an eye model to a cloud and, when given, the fringe images it came from
@@ -167,7 +167,7 @@ class _Observation:
                 "cloud_points": self.cloud_points, "fit": self.pose.to_dict()}
 
 
-def _reference_radius(reference: ReferencePose | None) -> float | None:
+def reference_radius(reference: ReferencePose | None) -> float | None:
     """The globe radius fitted when a reference was captured (None for a planned one)."""
     if reference is None or reference.evidence is None:
         return None
@@ -216,7 +216,7 @@ class PoseVerification:
         stored_model = self.patients.eye_model(patient.patient_id)
         model = EyeModel.population() if stored_model is None else \
             stored_model.model.to_eye_model()
-        held = _reference_radius(reference)
+        held = reference_radius(reference)
         if held is not None and model.globe_radius_mm is None and model.globe_semi_axes_mm is None:
             model = replace(model, globe_radius_mm=held)
         capture = service.capture(patient.unit)
