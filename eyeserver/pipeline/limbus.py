@@ -168,18 +168,12 @@ def fringe_free(camera: CalibratedCamera, image: npt.ArrayLike,
     return np.asarray(cv2.GaussianBlur(flat, (0, 0), 1.0), dtype=np.float32), (x0, y0)
 
 
-def _basis(normal: F64) -> tuple[F64, F64]:
-    helper = np.array([1.0, 0.0, 0.0]) if abs(normal[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = np.cross(normal, helper)
-    u /= np.linalg.norm(u)
-    return u, np.cross(normal, u)
-
-
-def _circle(centre: F64, normal: F64, radius: float, angles: F64) -> tuple[F64, F64]:
-    """Points on the circle at ``angles`` and their tangents."""
-    u, v = _basis(normal)
-    cos, sin = np.cos(angles)[:, None], np.sin(angles)[:, None]
-    return centre + radius * (cos * u + sin * v), -sin * u + cos * v
+def _basis(normals: F64) -> tuple[F64, F64]:
+    """Two unit vectors completing each normal ``(..., 3)`` to an orthonormal frame."""
+    helper = np.where(np.abs(normals[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    u = np.cross(normals, helper)
+    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    return u, np.cross(normals, u)
 
 
 def _window(view: LimbusView, centre: F64, radius: float) -> tuple[int, int, int, int]:
@@ -220,43 +214,53 @@ class _Image:
     def outline(self, centre: F64, normal: F64, radius: float, angles: F64
                 ) -> tuple[F64, F64]:
         """Projected circle points and their outward image normals."""
-        points, tangents = _circle(centre, normal, radius, angles)
-        uv = self.project_full(points)
-        ahead = self.project_full(points + 1e-3 * tangents)
-        step = ahead - uv
-        outward = np.stack([step[:, 1], -step[:, 0]], axis=1)
-        outward /= np.maximum(np.linalg.norm(outward, axis=1, keepdims=True), 1e-12)
-        middle = self.project_full(centre[None])[0]
-        outward *= np.where(((uv - middle) * outward).sum(axis=1) < 0, -1.0, 1.0)[:, None]
+        uv, outward = self.outlines(centre[None], normal[None], radius, angles)
+        return uv[0], outward[0]
+
+    def outlines(self, centres: F64, normals: F64, radius: float, angles: F64
+                 ) -> tuple[F64, F64]:
+        """:meth:`outline` of many circles ``(H, 3)`` at once: ``(H, M, 2)`` each, in one
+        projection (a call per circle cost more than the projecting)."""
+        h, m = len(centres), len(angles)
+        u, v = _basis(normals)
+        cos, sin = np.cos(angles)[None, :, None], np.sin(angles)[None, :, None]
+        u, v = u[:, None, :], v[:, None, :]
+        on = (centres[:, None, :] + radius * (cos * u + sin * v)).reshape(-1, 3)
+        ahead = on + 1e-3 * (-sin * u + cos * v).reshape(-1, 3)
+        uv_all = self.project_full(np.concatenate([on, ahead, centres]))
+        uv = uv_all[:h * m].reshape(h, m, 2)
+        step = uv_all[h * m:2 * h * m].reshape(h, m, 2) - uv
+        middle = uv_all[2 * h * m:]
+        outward = np.stack([step[..., 1], -step[..., 0]], axis=-1)
+        outward /= np.maximum(np.linalg.norm(outward, axis=-1, keepdims=True), 1e-12)
+        facing = ((uv - middle[:, None, :]) * outward).sum(axis=-1) < 0
+        outward *= np.where(facing, -1.0, 1.0)[..., None]
         return uv, outward
 
 
-def _support(images: Sequence[_Image], centre: F64, normal: F64, radius: float) -> float:
-    """Mean outward intensity step across the projected circle (DN), over the cameras."""
-    angles = np.linspace(0.0, 2 * math.pi, 90, endpoint=False)
-    steps = []
-    for image in images:
-        uv, outward = image.outline(centre, normal, radius, angles)
-        profile = image.profiles(uv, outward, np.array([-1.5, 1.5]))
-        steps.append(float(np.median(profile[:, 1] - profile[:, 0])))
-    return float(np.mean(steps))
-
-
-def _start(images: Sequence[_Image], pivot: F64, arm: float, gaze: F64, radius: float
-           ) -> tuple[float, F64]:
-    """Among circles tilted 0–30° about ``gaze`` (centred at ``pivot + arm·g`` for a gaze
-    ``g``), the one whose outline steps up most: ``(score, g)``."""
+def _start(images: Sequence[_Image], pivot: F64, arm: float, gaze: F64, radius: float,
+           tilts_deg: Sequence[float] = _TILTS_DEG) -> tuple[float, F64]:
+    """Among circles tilted by ``tilts_deg`` about ``gaze`` (centred at ``pivot + arm·g`` for a
+    gaze ``g``), the one whose outline steps up most (the mean over the cameras of the median
+    outward intensity step across it): ``(score, g)``."""
     u, v = _basis(gaze)
-    best, best_gaze = -math.inf, gaze
-    for tilt in _TILTS_DEG:
-        azimuths = range(0, 360, 30) if tilt else (0,)
-        for azimuth in azimuths:
+    candidates = [gaze]
+    for tilt in tilts_deg[1:]:
+        for azimuth in range(0, 360, 30):
             a, b = math.radians(tilt), math.radians(azimuth)
-            g = math.cos(a) * gaze + math.sin(a) * (math.cos(b) * u + math.sin(b) * v)
-            score = _support(images, pivot + arm * g, g, radius)
-            if score > best:
-                best, best_gaze = score, g
-    return best, best_gaze
+            candidates.append(math.cos(a) * gaze
+                              + math.sin(a) * (math.cos(b) * u + math.sin(b) * v))
+    normals = np.array(candidates)
+    centres = pivot + arm * normals
+    angles = np.linspace(0.0, 2 * math.pi, 90, endpoint=False)
+    scores = np.zeros(len(normals))
+    for image in images:
+        uv, outward = image.outlines(centres, normals, radius, angles)
+        across = image.profiles(uv.reshape(-1, 2), outward.reshape(-1, 2),
+                                np.array([-1.5, 1.5])).reshape(len(normals), len(angles), 2)
+        scores += np.median(across[..., 1] - across[..., 0], axis=1)
+    best = int(np.argmax(scores))
+    return float(scores[best]) / len(images), normals[best]
 
 
 def _dark_blob_centre(images: Sequence[_Image], limbus_radius: float) -> F64 | None:
@@ -401,7 +405,9 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
             images.append(_Image(view, _window(view, centre0 + depth * gaze0,
                                                globe_radius * 0.6)))
     if len(images) >= 2:
-        _, normal = _start(images, centre0, depth, gaze0, limbus_radius)
+        # From the last frame's pose, the eye turned by a saccade at most.
+        tilts = _TILTS_DEG if search else _TILTS_DEG[:3]
+        _, normal = _start(images, centre0, depth, gaze0, limbus_radius, tilts)
         try:
             found.append(_refine(images, centre0 + depth * normal, normal, limbus_radius))
         except LimbusNotFoundError as exc:
@@ -487,10 +493,15 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
         depth = _mean_shift(votes, weights, _innermost_depth(votes), (0.4, 0.25, 0.15, 0.1))
     offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
     lids = cloud[(offset > 0.5) & (offset < 4.0)]
-    if len(lids):
-        distance, _ = cKDTree(lids).query(cloud, distance_upper_bound=LID_CLEARANCE_MM)
-        if (~np.isfinite(distance) & behind & (np.abs(offset) < 0.3)).sum() >= MIN_SCLERA_POINTS:
-            clear = ~np.isfinite(distance)
+    # Only points that can be sclera are looked up (an eighth of the cloud or less).
+    candidate = behind & (np.abs(offset) < 0.5)
+    if len(lids) and candidate.any():
+        distance, _ = cKDTree(lids).query(cloud[candidate],
+                                          distance_upper_bound=LID_CLEARANCE_MM)
+        far = np.zeros(len(cloud), dtype=bool)
+        far[candidate] = ~np.isfinite(distance)
+        if (far & (np.abs(offset) < 0.3)).sum() >= MIN_SCLERA_POINTS:
+            clear = far
             if fixed_radius is None:
                 votes, weights = _votes(cloud, limbus, behind & clear)
                 depth = _mean_shift(votes, weights, depth, (0.25, 0.15, 0.1))
