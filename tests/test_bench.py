@@ -60,12 +60,14 @@ def test_speed_bench_times_the_pipeline(calibrated_rooms: Any,
                                         capsys: pytest.CaptureFixture[str]) -> None:
     _, caldir = calibrated_rooms("default")
     report = _json(capsys, ["bench", "speed", "--json", "--frames", "2", "--calibration",
-                            str(caldir), "--api-requests", "2"])
+                            str(caldir), "--api-requests", "2", "--tracking-seconds", "3"])
     assert report["frameset_2cam_ms"] > 0 and report["frameset_4cam_ms"] > 0
     assert set(report["reconstruction"]) == {"multi-view_2cam", "multi-view_4cam",
                                              "spatial_2cam", "spatial_4cam"}
     assert report["sim_render_2cam_ms"] > 0
-    assert "frame_to_pose_p99_ms" in report["pending"]
+    # A short live-tracking run through a daemon: messages arrived, their latency measured.
+    assert report["frame_to_pose_p99_ms"] >= report["frame_to_pose_median_ms"] > 0
+    assert report["tracking"]["frames"]["processed"] > 0
     assert report["goals_ms"] == {"frameset_2cam_ms": 10.0, "frameset_4cam_ms": 20.0}
     for key in ("framesets_2cam_per_s", "framesets_4cam_per_s", "frameset_4cam_2threads_ms",
                 "framesets_4cam_2threads_per_s", "peak_rss_mib"):

@@ -125,6 +125,16 @@ def render_speed(speed: dict[str, Any]) -> str:
         lines.append("")
     for key, why in speed.get("pending", {}).items():
         lines.append(f"- Pending `{key}`: {why}")
+    live = speed.get("tracking")
+    if live:
+        frames = live["frames"]
+        lines += ["", f"Live tracking ({live['seconds']} s at 25 Hz; {live['what']}): frame → "
+                  f"pose {_value(speed.get('frame_to_pose_median_ms'), 0)} ms median, "
+                  f"{_value(speed.get('frame_to_pose_p99_ms'), 0)} ms p99 (goal p99 "
+                  f"{_value(speed.get('frame_to_pose_goal_p99_ms'), 0)} ms); "
+                  f"{frames['processed']} of {frames['camera_periods']} camera frames "
+                  f"processed (goal 99 %), {frames['dropped']} dropped and {frames['missed']} "
+                  "missed, all counted."]
     lines += ["", f"The speed run took {speed.get('duration_s')} s.", ""]
     return "\n".join(lines)
 
