@@ -60,14 +60,12 @@ def test_speed_bench_times_the_pipeline(calibrated_rooms: Any,
                                         capsys: pytest.CaptureFixture[str]) -> None:
     _, caldir = calibrated_rooms("default")
     report = _json(capsys, ["bench", "speed", "--json", "--frames", "2", "--calibration",
-                            str(caldir), "--api-requests", "2", "--tracking-seconds", "3"])
+                            str(caldir), "--api-requests", "2", "--tracking-seconds", "0"])
     assert report["frameset_2cam_ms"] > 0 and report["frameset_4cam_ms"] > 0
     assert set(report["reconstruction"]) == {"multi-view_2cam", "multi-view_4cam",
                                              "spatial_2cam", "spatial_4cam"}
     assert report["sim_render_2cam_ms"] > 0
-    # A short live-tracking run through a daemon: messages arrived, their latency measured.
-    assert report["frame_to_pose_p99_ms"] >= report["frame_to_pose_median_ms"] > 0
-    assert report["tracking"]["frames"]["processed"] > 0
+    assert "tracking" not in report and "frame_to_pose_p99_ms" not in report  # skipped
     assert report["goals_ms"] == {"frameset_2cam_ms": 10.0, "frameset_4cam_ms": 20.0}
     for key in ("framesets_2cam_per_s", "framesets_4cam_per_s", "frameset_4cam_2threads_ms",
                 "framesets_4cam_2threads_per_s", "peak_rss_mib"):
@@ -157,3 +155,32 @@ def test_speed_bench_contrib_peer_is_guarded() -> None:
     difference = np.angle(np.exp(1j * (ftp(image, carrier)
                                        - demodulate(image, carrier).wrapped_phase)))
     assert np.median(np.abs(difference[30:-30, 30:-30])) < 0.05
+
+
+def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    _, caldir = calibrated_rooms("default")
+    report = _json(capsys, ["bench", "pose", "--json", "--poses", "3", "--calibration",
+                            str(caldir)])
+    assert report["poses"] == 3 and report["fitted"] == 3
+    assert report["gaze_sources"] == {"limbus (images)": 3}
+    # Measured on 200 poses: see docs/benchmarks.md; three poses stay well inside these.
+    assert report["gaze_error_deg"]["max"] < 1.0
+    assert report["limbus_centre_error_mm"]["max"] < 0.05
+    assert report["centre_error_mm"]["max"] < 0.6
+    assert 0.8 < report["shift"]["measured_shift_mm"] < 1.2 and report["shift"]["fails_tolerance"]
+
+
+def test_tracking_bench_measures_live_tracking(calibrated_rooms: Any,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """A short run through a daemon on loopback (the figures are the bench's, not checked)."""
+    _, caldir = calibrated_rooms("default")
+    report = _json(capsys, ["bench", "tracking", "--json", "--seconds", "15", "--calibration",
+                            str(caldir)])
+    frames, latency = report["frames"], report["latency_ms"]
+    assert report["error"] is None
+    assert frames["processed"] > 0
+    assert frames["camera_periods"] == frames["acquired"] + frames["missed"]
+    assert latency["end_to_end_p99"] >= latency["end_to_end_median"] > 0
+    assert report["fits"]["with_pose"] > 0
+    assert report["clients"]["count"] == 20 and report["clients"]["reader_messages_lost"] == 0

@@ -101,6 +101,10 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
                             np.asarray(pose.centre_mm) - truth["centre_mm"])),
                         "gaze_error_deg": _angle_deg(pose.gaze, truth["gaze"]),
                         "radius_error_mm": pose.globe_radius_mm - truth["globe_radius_mm"],
+                        "limbus_error_mm": None if pose.limbus_centre_mm is None
+                        else float(np.linalg.norm(np.asarray(pose.limbus_centre_mm)
+                                                  - truth["limbus_centre_mm"])),
+                        "gaze_source": pose.gaze_source,
                         "surface_mad_mm": pose.surface_mad_mm,
                         "sclera_points": pose.sclera_points, "confidence": pose.confidence,
                         "fit_ms": 1000.0 * seconds})
@@ -130,6 +134,10 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
         "centre_error_mm": _stats([r["centre_error_mm"] for r in fitted]),
         "gaze_error_deg": _stats([r["gaze_error_deg"] for r in fitted]),
         "radius_error_mm": _stats([abs(r["radius_error_mm"]) for r in fitted]),
+        "limbus_centre_error_mm": _stats([r["limbus_error_mm"] for r in fitted
+                                          if r["limbus_error_mm"] is not None]),
+        "gaze_sources": {source: sum(1 for r in fitted if r["gaze_source"] == source)
+                         for source in sorted({r["gaze_source"] for r in fitted})},
         "surface_mad_mm": _stats([r["surface_mad_mm"] for r in fitted]),
         "sclera_points": _stats([float(r["sclera_points"]) for r in fitted]),
         "fit_ms": _stats([r["fit_ms"] for r in fitted]),
@@ -148,10 +156,12 @@ def format_text(report: dict[str, Any]) -> str:
            line("globe centre error (mm)", "centre_error_mm", "≤ 0.1 mm"),
            line("gaze error (deg)", "gaze_error_deg", "≤ 0.5°"),
            line("globe radius |error| (mm)", "radius_error_mm", "-"),
+           line("limbus centre error (mm)", "limbus_centre_error_mm", "-"),
            line("surface–model median |distance| (mm)", "surface_mad_mm",
                 "≤ 0.10 mm; paper 0.43 mm"),
            line("sclera points", "sclera_points", "-"),
            line("fit time (ms)", "fit_ms", "-")]
+    out.append("gaze from: " + ", ".join(f"{k} {v}" for k, v in report["gaze_sources"].items()))
     shift = report["shift"]
     if "measured_shift_mm" in shift:
         verdict = "FAIL (detected)" if shift["fails_tolerance"] else "pass (missed!)"

@@ -807,6 +807,7 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
         if tracking_seconds:
             from eyeserver.bench import tracking
             progress(f"live tracking for {tracking_seconds} s (frame → pose latency)")
+            (work / "tracking").mkdir()
             live = tracking.run(tracking_seconds, calibration=calibration, room_file=room_file,
                                 work=work / "tracking", progress=progress)
     rss_before_mib = peak_rss_mib()

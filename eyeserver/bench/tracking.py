@@ -16,6 +16,7 @@ drift and a scripted saccade out of tolerance and back) and live tracking for a 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import socket
@@ -147,10 +148,25 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path,
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     sock.connect(("127.0.0.1", port))
-    silent = _Reader(connect(url, sock=sock, max_queue=1, compression=None,
-                             ping_interval=None), silent=True)
-    readers = [_Reader(connect(url, compression=None, ping_interval=None))
-               for _ in range(CLIENTS - 1)]
+    # websockets wants its connections entered as context managers (else a DeprecationWarning
+    # from its version 14 on); the stack closes them all at the end.
+    with contextlib.ExitStack() as connections:
+        silent = _Reader(connections.enter_context(connect(
+            url, sock=sock, max_queue=1, compression=None, ping_interval=None)), silent=True)
+        readers = [_Reader(connections.enter_context(connect(url, compression=None,
+                                                             ping_interval=None)))
+                   for _ in range(CLIENTS - 1)]
+        status, elapsed_s, started = _track(client, seconds, saccade_s, lead_s, silent,
+                                            readers, progress)
+    return _report(seconds, elapsed_s, started, status, reference, readers, silent,
+                   saccade_end_ns)
+
+
+def _track(client: Any, seconds: float, saccade_s: float, lead_s: float, silent: _Reader,
+           readers: list[_Reader], progress: Progress
+           ) -> tuple[dict[str, Any], float, dict[str, Any]]:
+    """Track for ``seconds`` while the readers read: the daemon's final status, the time
+    tracked, and its answer to the start."""
     for reader in readers:
         reader.start()
     try:
@@ -172,8 +188,7 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path,
             reader.ws.close()
         for reader in readers:
             reader.thread.join(5)
-    return _report(seconds, elapsed_s, started, status, reference, readers, silent,
-                   saccade_end_ns)
+    return status, elapsed_s, started
 
 
 def _report(seconds: float, elapsed_s: float, started: dict[str, Any], status: dict[str, Any],
