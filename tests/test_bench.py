@@ -11,7 +11,7 @@ import pytest
 
 from eyeserver.bench import speed
 from eyeserver.bench.figures import FIGURES
-from eyeserver.bench.report import render, render_speed
+from eyeserver.bench.report import render, render_pose, render_speed
 from eyeserver.cli import main
 from eyeserver.pipeline.demodulate import Carrier, demodulate
 
@@ -169,6 +169,8 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
     assert report["limbus_centre_error_mm"]["max"] < 0.05
     assert report["centre_error_mm"]["max"] < 0.6
     assert 0.8 < report["shift"]["measured_shift_mm"] < 1.2 and report["shift"]["fails_tolerance"]
+    section = "\n".join(render_pose(report))
+    assert "## Eye pose" in section and "a fail against the 0.2 mm tolerance" in section
 
 
 def test_tracking_bench_measures_live_tracking(calibrated_rooms: Any,

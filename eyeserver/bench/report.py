@@ -1,7 +1,8 @@
 """``docs/benchmarks.md`` from the benches' JSON documents (``scripts/benchmarks.sh`` runs both
 benches and this module; the page is never edited by hand).
 
-Usage: ``python -m eyeserver.bench.report ACCURACY.json SPEED.json > docs/benchmarks.md``
+Usage: ``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json] >
+docs/benchmarks.md``
 """
 
 from __future__ import annotations
@@ -22,8 +23,9 @@ def _value(value: Any, digits: int = 3) -> str:
     return str(value)
 
 
-def render(accuracy: dict[str, Any], speed: dict[str, Any]) -> str:
-    """The Markdown page."""
+def render(accuracy: dict[str, Any], speed: dict[str, Any],
+           pose: dict[str, Any] | None = None) -> str:
+    """The Markdown page (the eye pose section when ``pose`` is given)."""
     machine = accuracy["machine"]
     noise = accuracy["noise_model"]
     lines = [
@@ -90,7 +92,8 @@ def render(accuracy: dict[str, Any], speed: dict[str, Any]) -> str:
         lines += ["", "Figures (written with `--out DIR`): "
                   + ", ".join(f"`{f}`" for f in accuracy["figures"]) + "."]
     lines += ["", f"The accuracy run took {accuracy.get('duration_s')} s.", ""]
-    return "\n".join(lines) + "\n" + render_speed(speed)
+    page = "\n".join(lines) + "\n" + render_speed(speed)
+    return page if pose is None else page + "\n".join(render_pose(pose))
 
 
 def render_speed(speed: dict[str, Any]) -> str:
@@ -139,11 +142,47 @@ def render_speed(speed: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def render_pose(pose: dict[str, Any]) -> list[str]:
+    """The eye pose section (``eyeserver bench pose``)."""
+    def row(name: str, key: str, goal: str) -> str:
+        stats = pose[key]
+        return (f"| {name} | {_value(stats['median'])} | {_value(stats['p95'])} | "
+                f"{_value(stats['max'])} | {goal} |")
+
+    lines = ["## Eye pose", "",
+             f"`eyeserver bench pose`: {pose['fitted']} of {pose['poses']} random rendered eyes "
+             "fitted (±5 mm, ±10°, globes of 11, 12 and 13 mm; population model, radius "
+             "fitted); gaze from: " + ", ".join(f"{k} {v}" for k, v in
+                                               pose.get("gaze_sources", {}).items()) + ".", "",
+             "| figure | median | p95 | max | goal |", "|---|---|---|---|---|",
+             row("globe centre error (mm)", "centre_error_mm", "≤ 0.1"),
+             row("gaze error (°)", "gaze_error_deg", "≤ 0.5"),
+             row("globe radius |error| (mm)", "radius_error_mm", "–")]
+    if "limbus_centre_error_mm" in pose:
+        lines.append(row("limbus centre error (mm)", "limbus_centre_error_mm", "–"))
+    lines += [row("surface–model median distance (mm)", "surface_mad_mm", "paper 0.43"),
+              row("fit time (ms)", "fit_ms", "–"), ""]
+    for radius, by in pose["by_globe_radius"].items():
+        lines.append(f"- globe {radius} mm ({by['poses']} poses): centre "
+                     f"{_value(by['centre_error_mm']['median'])} mm median, "
+                     f"{_value(by['centre_error_mm']['p95'])} p95; gaze "
+                     f"{_value(by['gaze_error_deg']['median'])}° median, "
+                     f"{_value(by['gaze_error_deg']['p95'])}° p95")
+    shift = pose["shift"]
+    if "measured_shift_mm" in shift:
+        lines.append(f"- a {shift['true_shift_mm']} mm shift between two captures measured "
+                     f"{shift['measured_shift_mm']:.3f} mm: "
+                     + ("a fail against" if shift["fails_tolerance"] else "MISSED by")
+                     + f" the {shift['tolerance_mm']} mm tolerance")
+    return [*lines, ""]
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``python -m eyeserver.bench.report ACCURACY.json SPEED.json``: the page on stdout."""
+    """``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json]``: the page on
+    stdout."""
     args = sys.argv[1:] if argv is None else argv
-    if len(args) != 2:
-        print("usage: python -m eyeserver.bench.report ACCURACY.json SPEED.json",
+    if len(args) not in (2, 3):
+        print("usage: python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json]",
               file=sys.stderr)
         return 2
     documents = []
@@ -153,7 +192,7 @@ def main(argv: list[str] | None = None) -> int:
         except (OSError, ValueError) as exc:
             print(f"eyeserver.bench.report: error: {path}: {exc}", file=sys.stderr)
             return 2
-    print(render(documents[0], documents[1]))
+    print(render(documents[0], documents[1], documents[2] if len(documents) > 2 else None))
     return 0
 
 
