@@ -11,19 +11,36 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, TypeVar
 
 from fastapi import WebSocket, WebSocketDisconnect
 
+from eyeserver.api.auth import websocket_caller
+from eyeserver.config import Settings
 from eyeserver.service.events import Subscription, SubscriptionClosedError
 
-__all__ = ["WS_TRY_AGAIN_LATER", "stream"]
+__all__ = ["WS_TRY_AGAIN_LATER", "opened", "stream"]
 
 WS_GOING_AWAY = 1001
 WS_TRY_AGAIN_LATER = 1013
 """Close code for a socket opened while the daemon is not running."""
 
 Message = dict[str, Any]
+T = TypeVar("T")
+
+
+async def opened(websocket: WebSocket, name: str, kind: type[T]) -> tuple[T, Settings] | None:
+    """``app.state.<name>`` (a ``kind``) and the settings for a stream, once the caller is
+    checked; None when the socket was closed instead: 1008 with the reason for a caller
+    without a valid token, 1013 while the daemon is not running. Not yet accepted."""
+    if await websocket_caller(websocket) is None:
+        return None  # closed with 1008 and the reason
+    found = getattr(websocket.app.state, name, None)
+    settings = websocket.app.state.settings
+    if not isinstance(found, kind) or not isinstance(settings, Settings):
+        await websocket.close(code=WS_TRY_AGAIN_LATER, reason="the daemon is not running")
+        return None
+    return found, settings
 
 
 async def stream(websocket: WebSocket, subscription: Subscription, *,

@@ -68,8 +68,8 @@ from scipy.spatial import cKDTree
 from eyeserver.errors import EyeserverError
 from eyeserver.pipeline.limbus import LimbusNotFoundError, LimbusView, find_limbus, globe_on_limbus
 
-__all__ = ["CloudLike", "EyeModel", "EyePose", "Gaze", "PoseError", "cloud_gaze", "fit_eye",
-           "fit_sphere", "pose_from_cloud", "pose_on_limbus"]
+__all__ = ["CloudLike", "EyeModel", "EyePose", "Gaze", "PoseError", "checked_cloud", "cloud_gaze",
+           "fit_eye", "fit_sphere", "pose_from_cloud", "pose_on_limbus"]
 
 
 class CloudLike(Protocol):
@@ -629,6 +629,25 @@ def _cornea(points: F64, centre: F64, radius: float, gaze: F64, cos_beta: float,
     return fit.x[:3], int(good.sum()), float(math.sqrt(np.trace(cov[:3, :3])))
 
 
+def checked_cloud(cloud: CloudLike) -> tuple[F64, F64]:
+    """A cloud's points (N, 3) and fit weights (its quality clipped to 0.05–1, or ones).
+
+    Raises
+    ------
+    ValueError
+        ``cloud.points`` is not (N, 3) or holds non-finite values.
+    """
+    points = np.asarray(cloud.points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"cloud.points must have shape (N, 3), got {points.shape}")
+    if not np.isfinite(points).all():
+        raise ValueError("cloud.points must be finite")
+    quality = cloud.quality
+    weights = (np.ones(len(points)) if quality is None
+               else np.clip(np.asarray(quality, dtype=np.float64), 0.05, 1.0))
+    return points, weights
+
+
 def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ()) -> EyePose:
     """Fit the eye model to a fused cloud: globe centre and radius, limbus, gaze, confidence.
 
@@ -656,14 +675,7 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
         ``cloud.points`` is not (N, 3) or holds non-finite values.
     """
     started = time.perf_counter()
-    points = np.asarray(cloud.points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"cloud.points must have shape (N, 3), got {points.shape}")
-    if not np.isfinite(points).all():
-        raise ValueError("cloud.points must be finite")
-    quality = cloud.quality
-    weights = (np.ones(len(points)) if quality is None
-               else np.clip(np.asarray(quality, dtype=np.float64), 0.05, 1.0))
+    points, weights = checked_cloud(cloud)
     if len(points) < MIN_SCLERA_POINTS:
         raise PoseError(f"no eye found: the cloud holds {len(points)} points")
     fixed = model.globe_radius_mm

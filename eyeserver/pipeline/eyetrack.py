@@ -54,6 +54,7 @@ from eyeserver.pipeline.eyepose import (
     # globe as the global one.
     _radial_shells,
     _refine_globe,
+    checked_cloud,
     cloud_gaze,
     pose_from_cloud,
     pose_on_limbus,
@@ -224,14 +225,7 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
         ``cloud.points`` is not (N, 3) or holds non-finite values.
     """
     started = time.perf_counter()
-    points = np.asarray(cloud.points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"cloud.points must have shape (N, 3), got {points.shape}")
-    if not np.isfinite(points).all():
-        raise ValueError("cloud.points must be finite")
-    quality = cloud.quality
-    weights = (np.ones(len(points)) if quality is None
-               else np.clip(np.asarray(quality, dtype=np.float64), 0.05, 1.0))
+    points, weights = checked_cloud(cloud)
     centre = np.asarray(previous.centre_mm, dtype=np.float64)
     radius = float(model.globe_radius_mm if model.globe_radius_mm is not None
                    else previous.globe_radius_mm)

@@ -53,7 +53,7 @@ import math
 import threading
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -85,7 +85,7 @@ from eyeserver.service.verification import (
     FitFunction,
     deviation,
     judge,
-    reference_radius,
+    measurement_model,
 )
 
 __all__ = ["CAMERA_RATE_HZ", "FocusingReconstructor", "FrameSet", "FrameSource", "LatestFrame",
@@ -671,13 +671,7 @@ class TrackingControl:
         patient = self.patients.get(patient_id)
         reference = self.patients.reference(patient_id, fraction)
         stored_model = self.patients.eye_model(patient_id)
-        model = EyeModel.population() if stored_model is None else \
-            stored_model.model.to_eye_model()
-        # As pose verification does: a model leaving the radius free takes the reference's,
-        # so the radius's uncertainty cannot move the centre between reference and frames.
-        held = reference_radius(reference)
-        if held is not None and model.globe_radius_mm is None and model.globe_semi_axes_mm is None:
-            model = replace(model, globe_radius_mm=held)
+        model = measurement_model(stored_model, reference)
         unit_ids = service.unit_ids(patient.unit)
         with self._lock:
             if self._hold is not None:

@@ -34,6 +34,7 @@ from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, fit_eye
 from eyeserver.pipeline.limbus import LimbusView
 from eyeserver.service.core import NoActiveCalibrationError, Service
 from eyeserver.service.patients import (
+    EyeModelVersion,
     Patient,
     Patients,
     ReferencePose,
@@ -43,7 +44,7 @@ from eyeserver.service.reconstruction import limbus_views
 from eyeserver.service.storage import UnknownIdError
 
 __all__ = ["Deviation", "FitFunction", "PoseVerification", "Verdict", "deviation",
-           "gaze_angle_deg", "judge", "reference_radius"]
+           "gaze_angle_deg", "judge", "measurement_model"]
 
 class FitFunction(Protocol):
     """What fits an eye model to a cloud and, when given, the fringe images it came from
@@ -167,12 +168,21 @@ class _Observation:
                 "cloud_points": self.cloud_points, "fit": self.pose.to_dict()}
 
 
-def reference_radius(reference: ReferencePose | None) -> float | None:
-    """The globe radius fitted when a reference was captured (None for a planned one)."""
-    if reference is None or reference.evidence is None:
-        return None
-    radius = (reference.evidence.get("fit") or {}).get("globe_radius_mm")
-    return float(radius) if isinstance(radius, (int, float)) and math.isfinite(radius) else None
+def measurement_model(stored: EyeModelVersion | None, reference: ReferencePose | None
+                      ) -> EyeModel:
+    """The eye model a patient's eye is measured with: the stored version (population defaults
+    without one), holding the globe radius a captured ``reference`` was fitted with
+    where the model leaves the radius free — so that the fit's radius uncertainty (±0.15 mm
+    from the narrow band of sclera the lids leave) cannot move the centre between reference
+    and measurement."""
+    model = EyeModel.population() if stored is None else stored.model.to_eye_model()
+    fit = {} if reference is None or reference.evidence is None else \
+        reference.evidence.get("fit") or {}
+    held = fit.get("globe_radius_mm")
+    if isinstance(held, (int, float)) and math.isfinite(held) \
+            and model.globe_radius_mm is None and model.globe_semi_axes_mm is None:
+        model = replace(model, globe_radius_mm=float(held))
+    return model
 
 
 class PoseVerification:
@@ -201,30 +211,21 @@ class PoseVerification:
 
     def _observe(self, patient: Patient, actor: str, action: str, fraction: int,
                  reference: ReferencePose | None = None) -> _Observation:
-        """Capture, reconstruct and fit; a failure after the capture is audited with it.
-
-        A reference captured at set-up holds the globe radius fitted then: a model that leaves
-        the radius free keeps it, so that the fit's radius uncertainty (±0.15 mm from the
-        narrow band of sclera the lids leave) cannot move the centre between reference and
-        measurement.
-        """
+        """Capture, reconstruct and fit (with :func:`measurement_model`); a failure after the
+        capture is audited with it."""
         service = self.service
         if service.store.active_calibration() is None:  # before moving any hardware
             raise NoActiveCalibrationError(
                 "no calibration is active: import one (POST /api/v1/calibrations) and activate "
                 "it (POST /api/v1/calibrations/{id}/activate)")
         stored_model = self.patients.eye_model(patient.patient_id)
-        model = EyeModel.population() if stored_model is None else \
-            stored_model.model.to_eye_model()
-        held = reference_radius(reference)
-        if held is not None and model.globe_radius_mm is None and model.globe_semi_axes_mm is None:
-            model = replace(model, globe_radius_mm=held)
+        model = measurement_model(stored_model, reference)
         capture = service.capture(patient.unit)
         try:
             summary = service.reconstruct(capture.id)
             cloud = read_ply(service.cloud_path(capture.id))
             calibration = service.store.get_calibration(str(summary["calibration_id"]))
-            views = limbus_views(calibration.path, service.store.get_capture(capture.id).path)
+            views = limbus_views(calibration.path, capture.path)
             pose = self.fit(cloud, model, views)
         except EyeserverError as exc:
             service.audit.record(actor, action, patient.key, {

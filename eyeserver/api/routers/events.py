@@ -42,8 +42,7 @@ from fastapi import APIRouter, WebSocket
 from starlette.concurrency import run_in_threadpool
 
 import eyeserver
-from eyeserver.api.auth import websocket_caller
-from eyeserver.api.streaming import WS_TRY_AGAIN_LATER, stream
+from eyeserver.api.streaming import opened, stream
 from eyeserver.config import Settings
 from eyeserver.service.core import Service
 from eyeserver.service.events import event_time
@@ -55,13 +54,10 @@ router = APIRouter(tags=["events"])
 @router.websocket("/ws/events", name="events")
 async def stream_events(websocket: WebSocket) -> None:
     """Send a ``hello`` snapshot, then every event of the daemon until the client leaves."""
-    if await websocket_caller(websocket) is None:
-        return  # closed with 1008 and the reason
-    service = getattr(websocket.app.state, "service", None)
-    settings = websocket.app.state.settings
-    if not isinstance(service, Service) or not isinstance(settings, Settings):
-        await websocket.close(code=WS_TRY_AGAIN_LATER, reason="the daemon is not running")
+    found = await opened(websocket, "service", Service)
+    if found is None:
         return
+    service, settings = found
     # Subscribe before the snapshot: an event between the two is sent (again), never missed.
     with service.events.subscribe(settings.event_queue_size) as subscription:
         await websocket.accept()

@@ -26,10 +26,9 @@ from fastapi import APIRouter, Depends, HTTPException, Request, WebSocket
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
-from eyeserver.api.auth import OperatorDep, websocket_caller
+from eyeserver.api.auth import OperatorDep
 from eyeserver.api.schemas import ErrorResponse
-from eyeserver.api.streaming import WS_TRY_AGAIN_LATER, stream
-from eyeserver.config import Settings
+from eyeserver.api.streaming import opened, stream
 from eyeserver.service.patients import PATIENT_ID_PATTERN
 from eyeserver.service.tracking import TrackingControl
 
@@ -118,13 +117,10 @@ async def status(tracking: TrackingDep) -> TrackingStatus:
 @ws_router.websocket("/ws/pose", name="pose")
 async def stream_pose(websocket: WebSocket) -> None:
     """Send every processed frame's pose message until the client leaves."""
-    if await websocket_caller(websocket) is None:
-        return  # closed with 1008 and the reason
-    tracking = getattr(websocket.app.state, "tracking", None)
-    settings = websocket.app.state.settings
-    if not isinstance(tracking, TrackingControl) or not isinstance(settings, Settings):
-        await websocket.close(code=WS_TRY_AGAIN_LATER, reason="the daemon is not running")
+    found = await opened(websocket, "tracking", TrackingControl)
+    if found is None:
         return
+    tracking, settings = found
     clock = tracking.clock
 
     def stamped(message: dict[str, Any]) -> dict[str, Any]:
