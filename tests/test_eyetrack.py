@@ -22,7 +22,7 @@ from eyeserver.hardware.sim.scenes import SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.io.rig_file import rig_from_dict
 from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError, fit_eye
-from eyeserver.pipeline.eyetrack import WINDOW_QUANTUM_PX, eye_window, track_eye
+from eyeserver.pipeline.eyetrack import WINDOW_QUANTUM_PX, eye_window, pose_window, track_eye
 from eyeserver.pipeline.fusion import Part, fuse
 from eyeserver.pipeline.geometry import project
 from eyeserver.pipeline.limbus import LimbusView
@@ -223,6 +223,32 @@ def test_the_window_holds_the_eye_and_is_rounded_to_cache(
     assert eye_window(camera, np.add(CENTRE, [0.02, -0.02, 0.01]), RADIUS) == window
     with pytest.raises(ValueError, match="non-empty part"):
         cropped(camera, 0, 0, width + 1, height)
+
+
+def test_after_a_limbus_from_the_images_the_window_is_the_cap_about_the_gaze(
+        simulated_eye: tuple[dict[str, Any], dict[str, Any], tuple[float, float], float],
+        ) -> None:
+    cameras, *_ = simulated_eye
+    camera = next(iter(cameras.values()))
+    gaze = np.array([math.sin(math.radians(10.0)), 0.0, math.cos(math.radians(10.0))])
+    last = replace(_previous(CENTRE, gaze=(float(gaze[0]), 0.0, float(gaze[2]))),
+                   gaze_source="limbus (images)")
+    window = pose_window(camera, last)
+    front = eye_window(camera, CENTRE, RADIUS)
+    assert window is not None and front is not None
+    x0, y0, x1, y1 = window
+    assert (x1 - x0) * (y1 - y0) < 0.85 * (front[2] - front[0]) * (front[3] - front[1])
+    # The limbus after a 12° saccade either way still lies inside, with its sclera beside it.
+    for turn in (-12.0, 12.0):
+        a = math.radians(10.0 + turn)
+        g = np.array([math.sin(a), 0.0, math.cos(a)])
+        u, v = np.cross(g, [0.0, 1.0, 0.0]), np.array([0.0, 1.0, 0.0])
+        t = np.linspace(0.0, 2 * math.pi, 24)[:, None]
+        ring = CENTRE + 10.5 * g + 7.0 * (np.cos(t) * u + np.sin(t) * v)
+        uv = project(ring, camera.K, camera.dist, camera.R, camera.T)
+        assert np.all((uv[:, 0] >= x0) & (uv[:, 0] < x1) & (uv[:, 1] >= y0) & (uv[:, 1] < y1))
+    # Without a limbus from the images: the front of the globe about +Z.
+    assert pose_window(camera, replace(last, gaze_source="limbus")) == front
 
 
 # --- the session: the window and the warm fit after a pose, the whole image after a loss -----

@@ -191,6 +191,9 @@ WELL_SEEN_LIMBUS_POINTS = 100
 """The same when the limbus comes from the images: the sclera then only sets one number, the
 globe's depth behind the limbus, from the points clear of lids and limbus."""
 
+LIMBUS_FROM_IMAGES = "limbus (images)"
+"""The ``gaze_source`` of a pose whose limbus was found in the fringe images."""
+
 _VOXEL_MM = 0.5
 _LOCAL_MM = 6.0
 _HYPOTHESES = 400
@@ -815,7 +818,7 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     lever = depth * math.radians(limbus.gaze_sd_deg)
     centre_sd = np.sqrt(limbus.centre_sd_mm**2 / 3.0 + (globe.depth_sd_mm * g) ** 2
                         + lever**2 * (1.0 - g**2))
-    gaze = Gaze(g, limbus.gaze_sd_deg, "limbus (images)", limbus.centre, limbus.centre_sd_mm,
+    gaze = Gaze(g, limbus.gaze_sd_deg, LIMBUS_FROM_IMAGES, limbus.centre, limbus.centre_sd_mm,
                 limbus.radius)
     confidence = _confidence(globe.points, WELL_SEEN_LIMBUS_POINTS, globe.surface_mad_mm, gaze)
     return _pose(globe.centre, centre_sd, globe.radius, gaze, globe.surface_mad_mm,

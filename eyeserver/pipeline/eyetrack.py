@@ -6,8 +6,9 @@ and not at all when the eye turns (a globe turns about its own centre); its radi
 changes. So the global search of :func:`~eyeserver.pipeline.eyepose.fit_eye` (voxel means,
 normals, the Hough vote, the shell search) is not needed again:
 
-1. **Where to look** (:func:`eye_window`): the front of the globe and the lids around it,
-   projected into a camera, padded for motion and the band-pass's reach, rounded out to
+1. **Where to look** (:func:`eye_window`, :func:`pose_window`): the front of the globe and
+   the lids around it (once the limbus is found in the images, the cap about the gaze that
+   holds it), projected into a camera, padded for motion and the band-pass's reach, rounded out to
    :data:`WINDOW_QUANTUM_PX` so that cropped cameras can be cached per window
    (:func:`~eyeserver.pipeline.reconstruct.cropped`).
 2. **With the images** (``views`` of :func:`track_eye`): the limbus found in them from the last
@@ -45,6 +46,7 @@ import numpy as np
 import numpy.typing as npt
 
 from eyeserver.pipeline.eyepose import (
+    LIMBUS_FROM_IMAGES,
     MIN_SCLERA_POINTS,
     CloudLike,
     EyeModel,
@@ -63,7 +65,7 @@ from eyeserver.pipeline.geometry import project
 from eyeserver.pipeline.limbus import LimbusView
 from eyeserver.pipeline.reconstruct import CalibratedCamera
 
-__all__ = ["BAND_MM", "WINDOW_QUANTUM_PX", "eye_window", "track_eye"]
+__all__ = ["BAND_MM", "WINDOW_QUANTUM_PX", "eye_window", "pose_window", "track_eye"]
 
 F64 = npt.NDArray[np.float64]
 
@@ -84,6 +86,13 @@ Measured on the simulated eye: poses from windows of 65°, 50°, 40° and 30° w
 the printed 0.001 mm and 0.0001), the reconstruction 57, 42, 26 and 18 ms; 50° keeps room for
 the gaze to turn and for the cloud-only fit's lid shell."""
 
+LIMBUS_HALF_ANGLE_DEG = 35.0
+"""Once the last frame's limbus was found in the images, the window holds the cap within this
+angle of its gaze: the limbus after a saccade the limbus search follows (≤ 12°) and a ring of
+sclera beside it, all the pose from the images needs. Measured on four rendered saccades of 8°
+(one unit, radius held): poses from 50° about +Z and 35° or 40° about the last gaze within
+0.0004 mm and 0.001° of each other, the reconstruction 38–43, 25–45 and 20–28 ms."""
+
 MOTION_MM = 1.5
 """The window's allowance for the eye's motion since the last pose."""
 
@@ -97,12 +106,14 @@ _MAX_LID_POINTS = 4000
 
 
 def eye_window(camera: CalibratedCamera, centre_mm: npt.ArrayLike, radius_mm: float, *,
+               axis: npt.ArrayLike = (0.0, 0.0, 1.0),
+               half_angle_deg: float = FRONT_HALF_ANGLE_DEG,
                motion_mm: float = MOTION_MM, pad_periods: float = PAD_PERIODS,
                quantum_px: int = WINDOW_QUANTUM_PX) -> tuple[int, int, int, int] | None:
     """The image window ``(x0, y0, x1, y1)`` that holds the eye of a globe seen by ``camera``.
 
     The cap of the lid shell (the globe's radius plus :data:`LID_REACH_MM` and ``motion_mm``)
-    within :data:`FRONT_HALF_ANGLE_DEG` of +Z is projected; its bounding box is padded by
+    within ``half_angle_deg`` of ``axis`` is projected; its bounding box is padded by
     ``pad_periods`` fringe periods, rounded outwards to multiples of ``quantum_px`` and clipped
     to the image.
 
@@ -114,6 +125,10 @@ def eye_window(camera: CalibratedCamera, centre_mm: npt.ArrayLike, radius_mm: fl
         The globe's centre, WCS mm.
     radius_mm : float
         The globe's radius, mm.
+    axis : array_like, shape (3,)
+        The cap's axis (WCS; default +Z, towards the cameras).
+    half_angle_deg : float
+        The cap's half angle (default :data:`FRONT_HALF_ANGLE_DEG`).
     motion_mm, pad_periods : float
         Allowance for motion (mm) and padding (fringe periods).
     quantum_px : int
@@ -128,7 +143,8 @@ def eye_window(camera: CalibratedCamera, centre_mm: npt.ArrayLike, radius_mm: fl
     Raises
     ------
     ValueError
-        A centre that is not three finite numbers, or a radius that is not positive.
+        A centre that is not three finite numbers, a radius that is not positive, or a zero
+        axis.
     """
     centre = np.asarray(centre_mm, dtype=np.float64)
     if centre.shape != (3,) or not np.isfinite(centre).all():
@@ -137,11 +153,19 @@ def eye_window(camera: CalibratedCamera, centre_mm: npt.ArrayLike, radius_mm: fl
         raise ValueError(f"radius_mm must be positive, not {radius_mm}")
     if quantum_px < 1:
         raise ValueError(f"quantum_px must be at least 1, not {quantum_px}")
-    polar = np.radians(np.linspace(0.0, FRONT_HALF_ANGLE_DEG, 6))
+    pole = np.asarray(axis, dtype=np.float64)
+    if pole.shape != (3,) or not np.linalg.norm(pole) > 0:
+        raise ValueError(f"axis must be a non-zero 3-vector, not {axis!r}")
+    pole = pole / np.linalg.norm(pole)
+    polar = np.radians(np.linspace(0.0, half_angle_deg, 6))
     azimuth = np.radians(np.arange(0.0, 360.0, 15.0))
     p, a = np.meshgrid(polar, azimuth)
-    directions = np.stack([np.sin(p) * np.cos(a), np.sin(p) * np.sin(a), np.cos(p)],
-                          axis=-1).reshape(-1, 3)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(pole[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(pole, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(pole, u)
+    directions = (np.sin(p)[..., None] * (np.cos(a)[..., None] * u + np.sin(a)[..., None] * v)
+                  + np.cos(p)[..., None] * pole).reshape(-1, 3)
     reach = radius_mm + LID_REACH_MM + motion_mm
     points = centre + reach * directions
     uv = project(points, camera.K, camera.dist, camera.R, camera.T)
@@ -158,6 +182,16 @@ def eye_window(camera: CalibratedCamera, centre_mm: npt.ArrayLike, radius_mm: fl
     if x1 - x0 < q or y1 - y0 < q:
         return None
     return x0, y0, x1, y1
+
+
+def pose_window(camera: CalibratedCamera, pose: EyePose) -> tuple[int, int, int, int] | None:
+    """The :func:`eye_window` to reconstruct the frame after ``pose``'s in: about its gaze
+    (:data:`LIMBUS_HALF_ANGLE_DEG`) when its limbus came from the images, else the front of
+    the globe and the lids about +Z that the cloud-only fit needs."""
+    if pose.gaze_source == LIMBUS_FROM_IMAGES:
+        return eye_window(camera, pose.centre_mm, pose.globe_radius_mm, axis=pose.gaze,
+                          half_angle_deg=LIMBUS_HALF_ANGLE_DEG)
+    return eye_window(camera, pose.centre_mm, pose.globe_radius_mm)
 
 
 def _seen_shells(points: F64, centre: F64, radius: float) -> tuple[float, float]:

@@ -35,7 +35,7 @@ eye lost) or a pose whose gaze cannot be found (lids closed: a blink) gives ``po
 
 Once a frame gave a pose, the next ones are followed from it (the eye moves little in 40 ms):
 the reconstruction covers only a window around the eye in each camera
-(:meth:`RigReconstructor.focus`, :func:`~eyeserver.pipeline.eyetrack.eye_window`) and the
+(:meth:`RigReconstructor.focus`, :func:`~eyeserver.pipeline.eyetrack.pose_window`) and the
 globe is refitted from the last pose (:func:`~eyeserver.pipeline.eyetrack.track_eye`) instead
 of searched for; the global fit (:func:`~eyeserver.pipeline.eyepose.fit_eye`) comes back when
 the warm fit fails, and the whole image once the eye is lost. A blink keeps the last globe.
@@ -67,7 +67,7 @@ from eyeserver.errors import DeviceError, EyeserverError, StateConflictError
 from eyeserver.hardware.rig import AcquiredStep, Rig
 from eyeserver.io import PointCloud, RigSpec
 from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError, fit_eye
-from eyeserver.pipeline.eyetrack import eye_window, track_eye
+from eyeserver.pipeline.eyetrack import pose_window, track_eye
 from eyeserver.pipeline.fusion import Part, fuse
 from eyeserver.pipeline.limbus import LimbusView
 from eyeserver.pipeline.reconstruct import (
@@ -226,7 +226,7 @@ class RigReconstructor:
     without phase-to-height models.
 
     After :meth:`focus` on a pose, each camera's image is reconstructed only inside the window
-    around that eye (:func:`~eyeserver.pipeline.eyetrack.eye_window`), a few times fewer pixels
+    around that eye (:func:`~eyeserver.pipeline.eyetrack.pose_window`), a few times fewer pixels
     than the whole image; the cropped cameras are kept per window (windows are rounded to
     :data:`~eyeserver.pipeline.eyetrack.WINDOW_QUANTUM_PX`, so a still eye keeps one).
     """
@@ -252,7 +252,7 @@ class RigReconstructor:
         pose = self._pose
         if pose is None:
             return camera, image
-        window = eye_window(camera, pose.centre_mm, pose.globe_radius_mm)
+        window = pose_window(camera, pose)
         if window is None or window == (0, 0, camera.shape[1], camera.shape[0]):
             return camera, image
         key = (camera_id, window)
