@@ -366,7 +366,8 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
         return np.concatenate(out, axis=1)
 
     def residuals(params: F64) -> F64:
-        return rows(params[None])[0]
+        values: F64 = rows(params[None])[0]
+        return values
 
     def jacobian(params: F64) -> F64:
         nudged = np.vstack([params, params + np.diag(_STEPS)])
