@@ -30,7 +30,7 @@ from eyeserver.pipeline.reconstruct import cropped, strong_modulation, unit_clou
 from eyeserver.service.events import EventBus
 from eyeserver.service.patients import Tolerances
 from eyeserver.service.reconstruction import calibrated_cameras, z_range
-from eyeserver.service.tracking import FrameSet, TrackedCloud, TrackingSession
+from eyeserver.service.tracking import FrameSet, PoseFinder, TrackedCloud, TrackingSession
 
 CENTRE = np.array([0.4, -0.3, -10.0])
 RADIUS = 12.0
@@ -320,8 +320,9 @@ def test_the_session_follows_the_eye_in_its_window_and_looks_again_once_lost() -
     pipeline = _FocusingPipeline()
     clock = ManualClock()
     session = TrackingSession(
-        _ScriptSource(script), pipeline, pipeline.fit, track=pipeline.track,
-        model=EyeModel.population(), bus=EventBus(), clock=clock,
+        _ScriptSource(script),
+        PoseFinder(pipeline, pipeline.fit, EyeModel.population(), track=pipeline.track),
+        bus=EventBus(), clock=clock,
         reference={"centre_mm": list(CENTRE), "gaze": [0.0, 0.0, 1.0]},
         tolerances=Tolerances(translation_mm=0.5, gaze_deg=1.0, min_confidence=0.5))
     eyes = []
@@ -341,8 +342,9 @@ def test_without_a_warm_fit_every_frame_is_fitted_globally() -> None:
     pose = _previous(CENTRE)
     pipeline = _FocusingPipeline()
     session = TrackingSession(
-        _ScriptSource([{"fit": pose}] * 3), pipeline, pipeline.fit,
-        model=EyeModel.population(), bus=EventBus(), clock=ManualClock(),
+        _ScriptSource([{"fit": pose}] * 3), PoseFinder(pipeline, pipeline.fit,
+                                                       EyeModel.population()),
+        bus=EventBus(), clock=ManualClock(),
         reference={"centre_mm": list(CENTRE), "gaze": [0.0, 0.0, 1.0]},
         tolerances=Tolerances(translation_mm=0.5, gaze_deg=1.0, min_confidence=0.5))
     for _ in range(3):
@@ -357,8 +359,9 @@ def test_the_images_a_reconstruction_gives_go_to_the_fits() -> None:
     pipeline = _FocusingPipeline()
     pipeline.with_views = True
     session = TrackingSession(
-        _ScriptSource([{"fit": pose}, {"track": pose}]), pipeline, pipeline.fit,
-        track=pipeline.track, model=EyeModel.population(), bus=EventBus(), clock=ManualClock(),
+        _ScriptSource([{"fit": pose}, {"track": pose}]),
+        PoseFinder(pipeline, pipeline.fit, EyeModel.population(), track=pipeline.track),
+        bus=EventBus(), clock=ManualClock(),
         reference={"centre_mm": list(CENTRE), "gaze": [0.0, 0.0, 1.0]},
         tolerances=Tolerances(translation_mm=0.5, gaze_deg=1.0, min_confidence=0.5))
     for _ in range(2):

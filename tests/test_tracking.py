@@ -36,6 +36,7 @@ from eyeserver.service.patients import Tolerances
 from eyeserver.service.tracking import (
     FrameSet,
     LatestFrame,
+    PoseFinder,
     RigFrameSource,
     TrackingControl,
     TrackingSession,
@@ -120,8 +121,9 @@ def _session(clock: ManualClock, script: list[object], *, reconstruct_s: float =
              fit_s: float = 0.0, dwell_frames: int = 3, bus: EventBus | None = None
              ) -> TrackingSession:
     pipeline = ScriptedPipeline(clock, reconstruct_s, fit_s)
-    return TrackingSession(ScriptedSource(clock, script), pipeline.reconstruct, pipeline.fit,
-                           model=EyeModel.population(), reference=REFERENCE,
+    return TrackingSession(ScriptedSource(clock, script),
+                           PoseFinder(pipeline.reconstruct, pipeline.fit, EyeModel.population()),
+                           reference=REFERENCE,
                            tolerances=TOLERANCES, bus=bus or EventBus(), clock=clock,
                            dwell_frames=dwell_frames)
 
@@ -306,8 +308,8 @@ def tracking(app: FastAPI, base_url: str) -> TrackingControl:
     clock = ManualClock(1_000_000_000)
     pipeline = ScriptedPipeline(clock, reconstruct_s=0.012, fit_s=0.008)
     control.clock = clock
-    control.fit = pipeline.fit
-    control.reconstructor_factory = lambda service: pipeline.reconstruct
+    control.finder_factory = lambda service, model: PoseFinder(pipeline.reconstruct,
+                                                               pipeline.fit, model)
     control.source_factory = lambda service, units, c: ScriptedSource(c, pace_s=0.002)
     physicist = auth(PHYSICIST_TOKEN)
     for request in (

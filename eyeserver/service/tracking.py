@@ -2,10 +2,14 @@
 
 ::
 
-    RigFrameSource ─ acquisition thread ─► LatestFrame (1 slot) ─ processing thread ─► EventBus
-     (25 Hz, the patient's unit)           newest wins; a frame     reconstruct, fit,     "pose"
-                                           replaced unread is       deviation, BeamHold  messages
-                                           counted as dropped
+    RigFrameSource ─ acquisition ─► LatestFrame (1 slot) ─ processing ─► EventBus "pose"
+     (25 Hz, the patient's unit)    newest wins; a frame    thread:       messages
+                                    replaced unread is      deviation,
+                                    counted as dropped      BeamHold
+                                                             │    ▲ pose
+                                                             ▼    │
+                                                   worker process: reconstruct,
+                                                   follow or fit the eye
 
 One :class:`TrackingSession` follows one patient and fraction: the rig streams frame sets of the
 patient's unit (:attr:`~eyeserver.service.patients.Patient.unit`, the unit on the treated eye's
@@ -16,8 +20,11 @@ rig could not serve in time (an acquisition longer than a frame period) are coun
 Both show as gaps in the frame numbers :class:`~eyeserver.service.beamhold.BeamHold` sees, so
 neither is ever skipped silently.
 
-The processing thread reconstructs each frame set it takes with the active calibration (loaded
-once per session), fits the patient's eye model, compares the pose with the fraction's reference
+The processing thread has each frame set it takes reconstructed with the active calibration
+(loaded once per session) and the patient's eye model fitted to it — in a worker process of its
+own (:class:`~eyeserver.service.tracking_worker.PoseWorker`), so this work neither holds the
+GIL against acquisition and the event loop nor shares their core — compares the pose with the
+fraction's reference
 (:func:`~eyeserver.service.verification.deviation`, :func:`~eyeserver.service.verification.judge`),
 feeds :class:`BeamHold` and publishes one message per processed frame on
 :attr:`TrackingControl.messages`::
@@ -40,7 +47,8 @@ globe is refitted from the last pose (:func:`~eyeserver.pipeline.eyetrack.track_
 of searched for; the global fit (:func:`~eyeserver.pipeline.eyepose.fit_eye`) comes back when
 the warm fit fails, and the whole image once the eye is lost. A blink keeps the last globe.
 
-The clock, the frame source, the reconstruction and the fit are injected, so tests replay any
+The clock, the frame source and the pose finder (:class:`FindPose`: :class:`PoseFinder` runs
+the reconstruction and fits in this process) are injected, so tests replay any
 sequence exactly (:meth:`TrackingSession.acquire_once`, :meth:`TrackingSession.process_once`).
 While a session runs the daemon is in state ``tracking`` (captures get 409).
 """
@@ -66,8 +74,8 @@ from eyeserver.core.clock import Clock, MonotonicClock
 from eyeserver.errors import DeviceError, EyeserverError, StateConflictError
 from eyeserver.hardware.rig import AcquiredStep, Rig
 from eyeserver.io import PointCloud, RigSpec
-from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError, fit_eye
-from eyeserver.pipeline.eyetrack import pose_window, track_eye
+from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError
+from eyeserver.pipeline.eyetrack import pose_window
 from eyeserver.pipeline.fusion import Part, fuse
 from eyeserver.pipeline.limbus import LimbusView
 from eyeserver.pipeline.reconstruct import (
@@ -81,6 +89,7 @@ from eyeserver.service.core import NoActiveCalibrationError, Service
 from eyeserver.service.events import EventBus
 from eyeserver.service.patients import Patients, Tolerances
 from eyeserver.service.reconstruction import ReconstructionError, calibrated_cameras, z_range
+from eyeserver.service.tracking_worker import PoseWorker
 from eyeserver.service.verification import (
     FitFunction,
     deviation,
@@ -88,9 +97,9 @@ from eyeserver.service.verification import (
     measurement_model,
 )
 
-__all__ = ["CAMERA_RATE_HZ", "FocusingReconstructor", "FrameSet", "FrameSource", "LatestFrame",
-           "Reconstructor", "RigFrameSource", "RigReconstructor", "TrackFunction",
-           "TrackedCloud", "TrackingControl", "TrackingSession"]
+__all__ = ["CAMERA_RATE_HZ", "FindPose", "FocusingReconstructor", "FrameSet", "FrameSource",
+           "LatestFrame", "PoseFinder", "Reconstructor", "RigFrameSource", "RigReconstructor",
+           "TrackFunction", "TrackedCloud", "TrackingControl", "TrackingSession"]
 
 CAMERA_RATE_HZ = 25.0
 """The cameras' frame rate during live tracking."""
@@ -172,6 +181,62 @@ class FocusingReconstructor(Protocol):
     def focus(self, pose: EyePose | None) -> None:
         """Reconstruct only around ``pose``'s eye from now on; None: the whole images."""
         ...
+
+
+class FindPose(Protocol):
+    """Frame set and the last frame's pose (None: none yet, or the eye was lost) → this frame's
+    pose; raises :class:`~eyeserver.pipeline.eyepose.PoseError`,
+    :class:`~eyeserver.service.reconstruction.ReconstructionError` or :class:`ValueError` for
+    a frame without an eye (lost). :meth:`close` frees what it holds (a worker process)."""
+
+    def __call__(self, frame_set: FrameSet, previous: EyePose | None, /) -> EyePose: ...
+
+    def close(self) -> None: ...
+
+
+class PoseFinder:
+    """Reconstruct a frame set and find the eye in it, in this process (:class:`FindPose`).
+
+    A reconstruction that is a :class:`FocusingReconstructor` is focused on the last pose
+    first (None once the eye is lost: the whole images again). With a last pose and a
+    ``track``, the eye is followed from it
+    (:func:`~eyeserver.pipeline.eyetrack.track_eye`); a :class:`PoseError` there, or no last
+    pose, fits it with ``fit`` (:func:`~eyeserver.pipeline.eyepose.fit_eye`). Both get the
+    images the cloud came from where the reconstruction gives them (:class:`TrackedCloud`).
+
+    Parameters
+    ----------
+    reconstruct : Reconstructor
+        Frame set → cloud.
+    fit : FitFunction
+        Cloud, eye model (and images) → pose.
+    model : EyeModel
+        The patient's eye model.
+    track : TrackFunction, optional
+        Cloud, eye model, last pose (and images) → pose; None fits every frame with ``fit``.
+    """
+
+    def __init__(self, reconstruct: Reconstructor, fit: FitFunction, model: EyeModel,
+                 track: TrackFunction | None = None) -> None:
+        self.reconstruct = reconstruct
+        self.fit = fit
+        self.model = model
+        self.track = track
+
+    def __call__(self, frame_set: FrameSet, previous: EyePose | None) -> EyePose:
+        if isinstance(self.reconstruct, FocusingReconstructor):
+            self.reconstruct.focus(previous)
+        cloud = self.reconstruct(frame_set)
+        views = cloud.views if isinstance(cloud, TrackedCloud) else ()
+        if previous is not None and self.track is not None:
+            with contextlib.suppress(PoseError):
+                if views:
+                    return self.track(cloud, self.model, previous, views)
+                return self.track(cloud, self.model, previous)
+        return self.fit(cloud, self.model, views) if views else self.fit(cloud, self.model)
+
+    def close(self) -> None:
+        """Nothing to free in this process."""
 
 
 class RigFrameSource:
@@ -357,13 +422,10 @@ class TrackingSession:
     ----------
     source : FrameSource
         The frame sets at the camera rate.
-    reconstruct : Reconstructor
-        Frame set → cloud.
-    fit : FitFunction
-        Cloud, eye model → pose (:func:`~eyeserver.pipeline.eyepose.fit_eye`): the first
-        frame's, and whenever the eye is not followed.
-    model : EyeModel
-        The patient's eye model.
+    find : FindPose
+        Frame set and last pose → pose (:class:`PoseFinder` in this process, or
+        :class:`~eyeserver.service.tracking_worker.PoseWorker` in its own); closed when the
+        session ends.
     reference : dict
         The fraction's reference pose (``centre_mm``, ``gaze``, ``limbus_centre_mm``).
     tolerances : Tolerances
@@ -374,27 +436,15 @@ class TrackingSession:
         The rig's clock: frame times and latencies are on it.
     dwell_frames, hold_on_drop
         :class:`~eyeserver.service.beamhold.BeamHoldConfig`.
-    track : TrackFunction, optional
-        Cloud, eye model, last pose → pose (:func:`~eyeserver.pipeline.eyetrack.track_eye`):
-        every frame after one with a pose; a :class:`PoseError` falls back on ``fit``. None
-        fits every frame with ``fit``.
-
-    A reconstruction that is a :class:`FocusingReconstructor` is focused on the last pose
-    before each frame (None once the eye is lost: the whole images again).
     """
 
-    def __init__(self, source: FrameSource, reconstruct: Reconstructor, fit: FitFunction, *,
-                 model: EyeModel, reference: dict[str, Any], tolerances: Tolerances,
-                 bus: EventBus, clock: Clock, dwell_frames: int = 3,
-                 hold_on_drop: bool = True, info: dict[str, Any] | None = None,
-                 track: TrackFunction | None = None) -> None:
+    def __init__(self, source: FrameSource, find: FindPose, *, reference: dict[str, Any],
+                 tolerances: Tolerances, bus: EventBus, clock: Clock, dwell_frames: int = 3,
+                 hold_on_drop: bool = True, info: dict[str, Any] | None = None) -> None:
         self.source = source
-        self.reconstruct = reconstruct
-        self.fit = fit
-        self.track = track
+        self.find = find
         self.last_pose: EyePose | None = None
         """The last globe found (a blink's too); None before the first and once lost."""
-        self.model = model
         self.reference = reference
         self.tolerances = tolerances
         self.bus = bus
@@ -439,11 +489,8 @@ class TrackingSession:
         pose: EyePose | None = None
         error: str | None = None
         eye: EyeSeen = "visible"
-        previous = self.last_pose
-        if isinstance(self.reconstruct, FocusingReconstructor):
-            self.reconstruct.focus(previous)
         try:
-            pose = self._fit(self.reconstruct(frame_set), previous)
+            pose = self.find(frame_set, self.last_pose)
         except (PoseError, ReconstructionError, ValueError) as exc:
             eye, error = "lost", str(exc) or type(exc).__name__
         self.last_pose = pose
@@ -486,17 +533,6 @@ class TrackingSession:
             counters.last = message
         self.bus.publish("pose", **message)
         return message
-
-    def _fit(self, cloud: CloudLike, previous: EyePose | None) -> EyePose:
-        """Follow the eye from the last pose where there is one, else (or failing) fit it;
-        with the images the cloud came from, where the reconstruction gives them."""
-        views = cloud.views if isinstance(cloud, TrackedCloud) else ()
-        if previous is not None and self.track is not None:
-            with contextlib.suppress(PoseError):
-                if views:
-                    return self.track(cloud, self.model, previous, views)
-                return self.track(cloud, self.model, previous)
-        return self.fit(cloud, self.model, views) if views else self.fit(cloud, self.model)
 
     # --- threads ----------------------------------------------------------------------------
 
@@ -550,6 +586,10 @@ class TrackingSession:
         for thread in self._threads:
             if thread is not threading.current_thread():
                 thread.join(_JOIN_S)
+        try:
+            self.find.close()
+        except Exception:  # the session has ended either way; say why it did not close cleanly
+            _log.exception("closing the pose finder failed")
         self._done.set()
         try:
             if self._on_end is not None:
@@ -587,8 +627,8 @@ def _now_text() -> str:
 SourceFactory = Callable[[Service, list[str], Clock], FrameSource]
 """Builds the frame source of a session from the service, the unit ids and the clock."""
 
-ReconstructorFactory = Callable[[Service], Reconstructor]
-"""Builds the reconstruction of a session (the default loads the active calibration)."""
+FinderFactory = Callable[[Service, EyeModel], FindPose]
+"""Builds the pose finder of a session from the service and the patient's eye model."""
 
 
 def rig_source(service: Service, unit_ids: list[str], clock: Clock) -> FrameSource:
@@ -596,20 +636,27 @@ def rig_source(service: Service, unit_ids: list[str], clock: Clock) -> FrameSour
     return RigFrameSource(service.rig, unit_ids, clock)
 
 
-def active_reconstructor(service: Service) -> Reconstructor:
-    """A :class:`RigReconstructor` of the active calibration.
+def worker_finder(service: Service, model: EyeModel) -> FindPose:
+    """A started :class:`~eyeserver.service.tracking_worker.PoseWorker` on the active
+    calibration: reconstruction and fit in their own process.
 
     Raises
     ------
     NoActiveCalibrationError
         No calibration is active.
+    ReconstructionError
+        The active calibration has no phase-to-height models.
+    TrackingWorkerError
+        The worker process did not start.
     """
     active = service.store.active_calibration()
     if active is None:
         raise NoActiveCalibrationError(
             "no calibration is active: import one (POST /api/v1/calibrations) and activate "
             "it (POST /api/v1/calibrations/{id}/activate)")
-    return RigReconstructor(active.path, service.rig_spec())
+    worker = PoseWorker(active.path, service.rig_spec(), model)
+    worker.start()
+    return worker
 
 
 class TrackingControl:
@@ -623,25 +670,22 @@ class TrackingControl:
         Its patients (eye model, reference, tolerances, unit).
     clock : Clock, optional
         The rig's clock (default: the machine's monotonic clock, which the simulated room uses).
-    fit, track, source_factory, reconstructor_factory
-        Public attributes, so tests inject scripted ones (``track`` None: ``fit`` every frame).
+    source_factory, finder_factory
+        Public attributes, so tests inject scripted ones (the default finder is a
+        :class:`~eyeserver.service.tracking_worker.PoseWorker` on the active calibration).
 
     :attr:`messages` is the bus of pose messages (``/api/v1/ws/pose``); it outlives sessions, so
     a client stays connected from one session to the next.
     """
 
     def __init__(self, service: Service, patients: Patients, *,
-                 clock: Clock | None = None, fit: FitFunction = fit_eye,
-                 track: TrackFunction | None = track_eye,
-                 source_factory: SourceFactory = rig_source,
-                 reconstructor_factory: ReconstructorFactory = active_reconstructor) -> None:
+                 clock: Clock | None = None, source_factory: SourceFactory = rig_source,
+                 finder_factory: FinderFactory = worker_finder) -> None:
         self.service = service
         self.patients = patients
         self.clock: Clock = clock if clock is not None else MonotonicClock()
-        self.fit = fit
-        self.track = track
         self.source_factory = source_factory
-        self.reconstructor_factory = reconstructor_factory
+        self.finder_factory = finder_factory
         self.messages = EventBus()
         self._lock = threading.Lock()
         self._session: TrackingSession | None = None
@@ -678,19 +722,22 @@ class TrackingControl:
                 raise StateConflictError("cannot start tracking: the daemon is tracking")
             hold = ExitStack()
             hold.enter_context(service.operation("tracking", "live tracking"))
+            find: FindPose | None = None
             try:
-                reconstruct = self.reconstructor_factory(service)
                 source = self.source_factory(service, unit_ids, self.clock)
+                find = self.finder_factory(service, model)
                 session = TrackingSession(
-                    source, reconstruct, self.fit, model=model, reference=reference.pose,
+                    source, find, reference=reference.pose,
                     tolerances=patient.tolerances, bus=self.messages, clock=self.clock,
-                    dwell_frames=dwell_frames, hold_on_drop=hold_on_drop, track=self.track,
+                    dwell_frames=dwell_frames, hold_on_drop=hold_on_drop,
                     info={"patient_id": patient_id, "fraction": fraction,
                           "unit": patient.unit, "rate_hz": CAMERA_RATE_HZ,
                           "reference_version": reference.version,
                           "eye_model_version": None if stored_model is None
                           else stored_model.version})
             except BaseException:
+                if find is not None:
+                    find.close()
                 hold.close()
                 raise
             self._session, self._hold = session, hold

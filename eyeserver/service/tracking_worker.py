@@ -1,0 +1,216 @@
+"""Live tracking's reconstruction and fit in a process of their own.
+
+The daemon's process also drives the rig (the simulated room renders there), serves HTTP and
+feeds the WebSocket clients. Reconstruction and fit are numpy and SciPy work with many short
+Python steps between the array operations; in the daemon's process they would hold the GIL
+against acquisition and the event loop, and neither could use the machine's other core while
+the other runs. So :class:`PoseWorker` runs :class:`~eyeserver.service.tracking.PoseFinder`
+(:class:`~eyeserver.service.tracking.RigReconstructor` of the active calibration,
+:func:`~eyeserver.pipeline.eyetrack.track_eye`, :func:`~eyeserver.pipeline.eyepose.fit_eye`)
+in a child process (started with ``spawn``: the daemon has threads, and a forked child would
+inherit their locks):
+
+::
+
+    processing thread ── (frame set, last pose) ──► child: reconstruct, follow or fit the eye
+                      ◄── pose | "lost: why" | "failed: traceback" ──
+
+A frame set is two 640 × 512 images (≈ 1.3 MB pickled through a pipe, about a millisecond); the
+cropped cameras of the tracking window stay cached in the child. The child loads the
+calibration once, at the start, so a calibration that cannot reconstruct fails
+:meth:`PoseWorker.start` (the session does not start) rather than the first frame. The child
+ends when asked (:meth:`PoseWorker.close`), when the daemon's end of the pipe closes (the
+daemon died), and ignores Ctrl-C (the daemon decides when tracking ends). A child that dies is
+reported as :class:`TrackingWorkerError` on the next frame: the session ends with that error
+(and the beam controller, without messages, holds the beam).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import signal
+import traceback
+from multiprocessing import get_context
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+from eyeserver.errors import EyeserverError
+from eyeserver.io import RigSpec
+from eyeserver.pipeline.eyepose import EyeModel, EyePose, PoseError, fit_eye
+from eyeserver.pipeline.eyetrack import track_eye
+from eyeserver.service.reconstruction import ReconstructionError
+
+__all__ = ["START_TIMEOUT_S", "PoseWorker", "TrackingWorkerError"]
+
+START_TIMEOUT_S = 120.0
+"""How long the child may take to start (imports, the calibration's cameras): a few seconds."""
+
+_CLOSE_S = 5.0
+_log = logging.getLogger(__name__)
+
+
+class TrackingWorkerError(EyeserverError):
+    """The tracking worker process failed: it did not start, died, or a frame raised an
+    unexpected error in it (the child's traceback is in the message)."""
+
+
+def _serve(connection: Connection, calibration: str, rig: RigSpec, model: EyeModel) -> None:
+    """The child: load the calibration, then answer frame sets until told to stop."""
+    # Imported here: eyeserver.service.tracking imports this module.
+    from eyeserver.service.tracking import PoseFinder, RigReconstructor
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        finder = PoseFinder(RigReconstructor(calibration, rig), fit_eye, model, track=track_eye)
+    except ReconstructionError as exc:
+        connection.send(("unreconstructable", str(exc)))
+        return
+    except Exception as exc:
+        connection.send(("failed", _failure(exc)))
+        return
+    connection.send(("ready", None))
+    while True:
+        try:
+            request = connection.recv()
+        except (EOFError, OSError):
+            return  # the daemon went away
+        if request is None:
+            return
+        frame_set, previous = request
+        reply: tuple[str, Any]
+        try:
+            reply = ("pose", finder(frame_set, previous))
+        except (PoseError, ValueError) as exc:
+            reply = ("lost", str(exc) or type(exc).__name__)
+        except ReconstructionError as exc:
+            reply = ("unreconstructable", str(exc))
+        except Exception as exc:
+            reply = ("failed", _failure(exc))
+        connection.send(reply)
+
+
+def _failure(exc: Exception) -> tuple[str, str]:
+    """What the daemon says (the exception) and logs (its traceback in the child)."""
+    return f"{type(exc).__name__}: {exc}", traceback.format_exc()
+
+
+class PoseWorker:
+    """:class:`~eyeserver.service.tracking.FindPose` in a child process (see the module).
+
+    Parameters
+    ----------
+    calibration : path
+        The calibration directory (the active one).
+    rig : RigSpec
+        The rig it belongs to.
+    model : EyeModel
+        The patient's eye model (with the reference's radius held, where there is one).
+
+    Call :meth:`start` before the first frame and :meth:`close` after the last.
+    """
+
+    def __init__(self, calibration: str | Path, rig: RigSpec, model: EyeModel) -> None:
+        self._args = (str(calibration), rig, model)
+        self._connection: Connection | None = None
+        self._process: Any = None
+
+    def start(self, timeout_s: float = START_TIMEOUT_S) -> None:
+        """Start the child and wait until it has loaded the calibration.
+
+        Raises
+        ------
+        ReconstructionError
+            The calibration cannot reconstruct (no phase-to-height models).
+        TrackingWorkerError
+            The child did not start in ``timeout_s`` or failed to.
+        """
+        context = get_context("spawn")
+        ours, theirs = context.Pipe()
+        process = context.Process(target=_serve, args=(theirs, *self._args),
+                                  name="eyeserver-tracking", daemon=True)
+        process.start()
+        theirs.close()  # ours alone: the child's death then reads as EOF here
+        self._connection, self._process = ours, process
+        try:
+            kind, detail = self._receive(timeout_s, "to start")
+            if kind == "unreconstructable":
+                raise ReconstructionError(detail)
+            if kind != "ready":
+                raise TrackingWorkerError(
+                    f"the tracking worker failed to start: {self._failed(detail)}")
+        except BaseException:
+            self.close()
+            raise
+        _log.info("tracking worker started", extra={"pid": process.pid})
+
+    def _receive(self, timeout_s: float | None, what: str) -> tuple[str, Any]:
+        connection, process = self._connection, self._process
+        if connection is None:
+            raise TrackingWorkerError("the tracking worker is not running")
+        try:
+            if timeout_s is not None and not connection.poll(timeout_s):
+                raise TrackingWorkerError(
+                    f"the tracking worker (pid {process.pid}) took longer than {timeout_s:g} s "
+                    f"{what}")
+            reply: tuple[str, Any] = connection.recv()
+        except (EOFError, OSError):
+            process.join(1.0)
+            raise TrackingWorkerError(
+                f"the tracking worker (pid {process.pid}) ended unexpectedly (exit code "
+                f"{process.exitcode})") from None
+        return reply
+
+    def __call__(self, frame_set: Any, previous: EyePose | None) -> EyePose:
+        """The frame set's pose from the child.
+
+        Raises
+        ------
+        PoseError
+            No eye in the frame (or it was lost).
+        ReconstructionError
+            The frame set cannot be reconstructed.
+        TrackingWorkerError
+            The child is gone or failed unexpectedly.
+        """
+        if self._connection is None:
+            raise TrackingWorkerError("the tracking worker is not running")
+        try:
+            self._connection.send((frame_set, previous))
+        except (OSError, ValueError) as exc:
+            raise TrackingWorkerError(f"cannot reach the tracking worker: {exc}") from None
+        kind, detail = self._receive(None, "to answer")
+        if kind == "pose":
+            pose: EyePose = detail
+            return pose
+        if kind == "lost":
+            raise PoseError(detail)
+        if kind == "unreconstructable":
+            raise ReconstructionError(detail)
+        raise TrackingWorkerError(f"the tracking worker failed on frame "
+                                  f"{getattr(frame_set, 'frame', '?')}: {self._failed(detail)}")
+
+    @staticmethod
+    def _failed(detail: tuple[str, str]) -> str:
+        """Log the child's traceback; the one-line reason."""
+        reason, trace = detail
+        _log.error("tracking worker failed", extra={"reason": reason, "traceback": trace})
+        return reason
+
+    def close(self) -> None:
+        """Ask the child to end and wait for it (killed after a few seconds). Idempotent."""
+        connection, process = self._connection, self._process
+        self._connection = None
+        if connection is not None:
+            with contextlib.suppress(OSError, ValueError):
+                connection.send(None)
+            connection.close()
+        if process is not None:
+            process.join(_CLOSE_S)
+            if process.is_alive():
+                _log.warning("tracking worker did not end; killing it", extra={
+                    "pid": process.pid})
+                process.kill()
+                process.join(_CLOSE_S)
+            self._process = None

@@ -1,0 +1,119 @@
+"""Live tracking's worker process: the same poses as in the daemon's process, clear errors for a
+frame without an eye, a calibration that cannot reconstruct, and a worker that died."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from eyeserver.hardware.sim.config import load_room
+from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
+from eyeserver.hardware.sim.sessions import SimSession
+from eyeserver.io import RigSpec
+from eyeserver.io.rig_file import rig_from_dict
+from eyeserver.pipeline.eyepose import EyeModel, PoseError, fit_eye
+from eyeserver.pipeline.eyetrack import track_eye
+from eyeserver.service.reconstruction import ReconstructionError
+from eyeserver.service.tracking import FrameSet, PoseFinder, RigReconstructor
+from eyeserver.service.tracking_worker import PoseWorker, TrackingWorkerError
+
+MODEL = EyeModel(globe_radius_mm=12.0, cornea_radius_mm=7.8, limbus_diameter_mm=11.7)
+
+
+@pytest.fixture(scope="module")
+def frames() -> tuple[RigSpec, list[FrameSet]]:
+    """One unit's frame sets of the simulated eye: at rest, 4° to the side, and an empty room."""
+    with SimSession.open(load_room(None), seed=11) as session:
+        rig = rig_from_dict(session.rig.spec(), "<simulated rig>")
+        unit = session.rig.units[0].id
+        sets = []
+        for n, spec in enumerate([SceneSpec(kind="eye"),
+                                  SceneSpec(kind="eye", eye=EyeSpec(gaze_deg=(4.0, 0.0))),
+                                  SceneSpec(kind="empty")]):
+            session.room.set_scene(spec)
+            sets.append(FrameSet(n, n * 40_000_000, session.rig.acquire([unit])))
+    return rig, sets
+
+
+@pytest.fixture(scope="module")
+def worker(calibrated_rooms: Any, frames: tuple[RigSpec, list[FrameSet]]
+           ) -> Iterator[PoseWorker]:
+    _, caldir = calibrated_rooms("default")
+    started = PoseWorker(caldir, frames[0], MODEL)
+    started.start()
+    yield started
+    started.close()
+
+
+def test_the_worker_finds_the_poses_this_process_finds(
+        calibrated_rooms: Any, frames: tuple[RigSpec, list[FrameSet]],
+        worker: PoseWorker) -> None:
+    _, caldir = calibrated_rooms("default")
+    rig, (rest, turned, _) = frames
+    here = PoseFinder(RigReconstructor(caldir, rig), fit_eye, MODEL, track=track_eye)
+
+    first = worker(rest, None)
+    followed = worker(turned, first)  # followed from the first, in its window
+    assert first.gaze_source == followed.gaze_source == "limbus (images)"
+    for theirs, ours in ((first, here(rest, None)), (followed, here(turned, first))):
+        np.testing.assert_allclose(theirs.centre_mm, ours.centre_mm, atol=1e-9)
+        np.testing.assert_allclose(theirs.gaze, ours.gaze, atol=1e-12)
+        assert theirs.sclera_points == ours.sclera_points
+    # The 4° turn is seen (each gaze within the pose bench's p95 of 0.4°).
+    assert 3.0 < np.degrees(np.arccos(np.dot(first.gaze, followed.gaze))) < 5.0
+
+
+def test_a_frame_without_an_eye_is_a_pose_error_and_the_worker_goes_on(
+        frames: tuple[RigSpec, list[FrameSet]], worker: PoseWorker) -> None:
+    _, (rest, _, empty) = frames
+    with pytest.raises(PoseError):
+        worker(empty, None)
+    assert worker(rest, None).gaze_source == "limbus (images)"
+
+
+def test_an_unexpected_failure_in_the_worker_names_the_frame_and_the_cause(
+        frames: tuple[RigSpec, list[FrameSet]], worker: PoseWorker) -> None:
+    _, (rest, _, _) = frames
+    broken = FrameSet(7, 0, [object()])  # type: ignore[list-item]
+    reason = r"frame 7: AttributeError: .* no attribute 'frames'$"
+    with pytest.raises(TrackingWorkerError, match=reason):
+        worker(broken, None)
+    assert worker(rest, None).gaze_source == "limbus (images)"
+
+
+def test_a_calibration_without_phase_to_height_models_does_not_start(
+        calibrated_rooms: Any, frames: tuple[RigSpec, list[FrameSet]],
+        tmp_path: Path) -> None:
+    _, caldir = calibrated_rooms("default")
+    stereo_only = tmp_path / "calibration"
+    shutil.copytree(caldir, stereo_only)
+    document = json.loads((stereo_only / "calibration.json").read_text())
+    document["phase_to_height"] = None
+    (stereo_only / "calibration.json").write_text(json.dumps(document))
+    worker = PoseWorker(stereo_only, frames[0], MODEL)
+    with pytest.raises(ReconstructionError, match="phase-to-height"):
+        worker.start()
+    with pytest.raises(TrackingWorkerError, match="not running"):
+        worker(frames[1][0], None)
+
+
+def test_a_worker_that_died_is_reported_and_closing_stays_safe(
+        calibrated_rooms: Any, frames: tuple[RigSpec, list[FrameSet]]) -> None:
+    _, caldir = calibrated_rooms("default")
+    rig, (rest, _, _) = frames
+    worker = PoseWorker(caldir, rig, MODEL)
+    worker.start()
+    process = worker._process
+    process.kill()
+    process.join(10)
+    with pytest.raises(TrackingWorkerError, match=r"ended unexpectedly|cannot reach"):
+        worker(rest, None)
+    worker.close()
+    worker.close()
+    assert not process.is_alive()
