@@ -2,4 +2,5 @@
 
 from eyeserver.cli import main
 
-raise SystemExit(main())
+if __name__ == "__main__":  # not when a worker process (spawn) imports the main module
+    raise SystemExit(main())

@@ -59,7 +59,7 @@ from scipy.spatial import cKDTree
 
 from eyeserver.pipeline.demodulate import demodulate
 from eyeserver.pipeline.geometry import project
-from eyeserver.pipeline.reconstruct import CalibratedCamera
+from eyeserver.pipeline.reconstruct import CalibratedCamera, Phase
 
 __all__ = ["Globe", "Limbus", "LimbusNotFoundError", "LimbusView", "find_limbus", "fringe_free",
            "globe_on_limbus"]
@@ -119,10 +119,15 @@ class LimbusNotFoundError(ValueError):
 
 @dataclass(frozen=True)
 class LimbusView:
-    """One camera's fringe image with its calibration."""
+    """One camera's fringe image with its calibration.
+
+    ``flat``, where the reconstruction demodulated the image already: the image without its
+    fringe, ``I − B·cos φ`` (:func:`fringe_free` computes it otherwise).
+    """
 
     camera: CalibratedCamera
     image: npt.NDArray[Any]
+    flat: npt.NDArray[np.float32] | None = None
 
 
 @dataclass(frozen=True)
@@ -167,8 +172,21 @@ def fringe_free(camera: CalibratedCamera, image: npt.ArrayLike,
         x0, y0, x1, y1 = window
         pixels = pixels[y0:y1, x0:x1]
     result = demodulate(pixels, camera.carrier)
-    flat = pixels - result.modulation * np.cos(result.wrapped_phase)
-    return np.asarray(cv2.GaussianBlur(flat, (0, 0), 1.0), dtype=np.float32), (x0, y0)
+    return _smoothed(pixels - result.modulation * np.cos(result.wrapped_phase)), (x0, y0)
+
+
+def fringe_removed(camera: CalibratedCamera, image: npt.ArrayLike, phase: Phase) -> F32:
+    """``I − B·cos φ`` from the reconstruction's :func:`~eyeserver.pipeline.reconstruct.
+    camera_phase` of ``image`` (φ its phase relative to the reference, plus the reference's),
+    for :attr:`LimbusView.flat`."""
+    wrapped = phase.dphi + np.asarray(camera.reference_phase, dtype=np.float32)
+    return np.asarray(np.asarray(image, dtype=np.float32) - phase.modulation * np.cos(wrapped),
+                      dtype=np.float32)
+
+
+def _smoothed(flat: npt.ArrayLike) -> F32:
+    return np.asarray(cv2.GaussianBlur(np.asarray(flat, dtype=np.float32), (0, 0), 1.0),
+                      dtype=np.float32)
 
 
 def _cross(a: F64, b: F64) -> F64:
@@ -207,7 +225,11 @@ class _Image:
 
     def __init__(self, view: LimbusView, window: tuple[int, int, int, int] | None) -> None:
         self.camera = view.camera
-        self.flat, origin = fringe_free(view.camera, view.image, window)
+        if view.flat is None:
+            self.flat, origin = fringe_free(view.camera, view.image, window)
+        else:
+            x0, y0, x1, y1 = window or (0, 0, view.flat.shape[1], view.flat.shape[0])
+            self.flat, origin = _smoothed(view.flat[y0:y1, x0:x1]), (x0, y0)
         self.origin = np.asarray(origin, dtype=np.float64)
 
     def project_full(self, points: F64) -> F64:

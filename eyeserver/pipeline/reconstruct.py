@@ -786,9 +786,13 @@ def _contradicted(cloud: CameraCloud, cam: CalibratedCamera, other: CameraCloud,
 def unit_clouds(cam_a: CalibratedCamera, image_a: npt.ArrayLike, cam_b: CalibratedCamera,
                 image_b: npt.ArrayLike, z_range: tuple[float, float], *,
                 method: str = "multi-view", depth_prior_mm: float | None = None,
-                saturation_dn: float | None = None) -> tuple[CameraCloud, CameraCloud]:
+                saturation_dn: float | None = None, phases: tuple[Phase, Phase] | None = None,
+                ) -> tuple[CameraCloud, CameraCloud]:
     """Both cameras' points of one unit, each order fixed with the other camera, and each point
     checked against the other camera's own reconstruction.
+
+    ``phases``: the images' :func:`camera_phase` when the caller has them already (live
+    tracking reuses them for the limbus).
 
     A wrong order that happens to match the other camera's phase (an occlusion, a far surface
     behind an edge) is a point the other camera does not reconstruct there. The multi-view path
@@ -796,8 +800,8 @@ def unit_clouds(cam_a: CalibratedCamera, image_a: npt.ArrayLike, cam_b: Calibrat
     points beyond 1 mm to a few in ten thousand), at the price of the parts only one camera
     sees; the spatial path drops only the points the other camera contradicts.
     """
-    phase_a = camera_phase(cam_a, image_a, saturation_dn)
-    phase_b = camera_phase(cam_b, image_b, saturation_dn)
+    phase_a, phase_b = phases or (camera_phase(cam_a, image_a, saturation_dn),
+                                  camera_phase(cam_b, image_b, saturation_dn))
     cloud_a = camera_cloud(cam_a, phase_a, cam_b, phase_b, z_range, method=method,
                            depth_prior_mm=depth_prior_mm)
     cloud_b = camera_cloud(cam_b, phase_b, cam_a, phase_a, z_range, method=method,

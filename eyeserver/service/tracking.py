@@ -77,9 +77,10 @@ from eyeserver.io import PointCloud, RigSpec
 from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError
 from eyeserver.pipeline.eyetrack import pose_window
 from eyeserver.pipeline.fusion import Part, fuse
-from eyeserver.pipeline.limbus import LimbusView
+from eyeserver.pipeline.limbus import LimbusView, fringe_removed
 from eyeserver.pipeline.reconstruct import (
     CalibratedCamera,
+    camera_phase,
     cropped,
     strong_modulation,
     unit_clouds,
@@ -347,9 +348,16 @@ class RigReconstructor:
                 saturation = self._saturation or float(2 ** frame_a.meta.bit_depth - 1)
                 camera_a, image_a = self._view(a, np.asarray(frame_a.image))
                 camera_b, image_b = self._view(b, np.asarray(frame_b.image))
+                phases = (camera_phase(camera_a, image_a, saturation),
+                          camera_phase(camera_b, image_b, saturation))
                 cloud_a, cloud_b = unit_clouds(camera_a, image_a, camera_b, image_b,
-                                               self._limits, saturation_dn=saturation)
-                views += [LimbusView(camera_a, image_a), LimbusView(camera_b, image_b)]
+                                               self._limits, saturation_dn=saturation,
+                                               phases=phases)
+                # The limbus is looked for in the same demodulation, not in one of its own.
+                views += [LimbusView(camera, image, fringe_removed(camera, image, phase))
+                          for camera, image, phase in zip((camera_a, camera_b),
+                                                          (image_a, image_b), phases,
+                                                          strict=True)]
                 for camera_id, cloud in ((a, cloud_a), (b, cloud_b)):
                     parts.append(Part(cloud.points, cloud.quality,
                                       self._rig.camera_index(camera_id),
