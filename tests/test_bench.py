@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from eyeserver.bench import speed
+from eyeserver.bench import speed, tracking
 from eyeserver.bench.figures import FIGURES
 from eyeserver.bench.report import render, render_pose, render_speed
 from eyeserver.cli import main
@@ -60,12 +60,14 @@ def test_speed_bench_times_the_pipeline(calibrated_rooms: Any,
                                         capsys: pytest.CaptureFixture[str]) -> None:
     _, caldir = calibrated_rooms("default")
     report = _json(capsys, ["bench", "speed", "--json", "--frames", "2", "--calibration",
-                            str(caldir), "--api-requests", "2", "--tracking-seconds", "0"])
+                            str(caldir), "--api-requests", "2", "--tracking-seconds", "0",
+                            "--replay-seconds", "0"])
     assert report["frameset_2cam_ms"] > 0 and report["frameset_4cam_ms"] > 0
     assert set(report["reconstruction"]) == {"multi-view_2cam", "multi-view_4cam",
                                              "spatial_2cam", "spatial_4cam"}
     assert report["sim_render_2cam_ms"] > 0
     assert "tracking" not in report and "frame_to_pose_p99_ms" not in report  # skipped
+    assert "tracking_replay" not in report
     assert report["goals_ms"] == {"frameset_2cam_ms": 10.0, "frameset_4cam_ms": 20.0}
     for key in ("framesets_2cam_per_s", "framesets_4cam_per_s", "frameset_4cam_2threads_ms",
                 "framesets_4cam_2threads_per_s", "peak_rss_mib"):
@@ -186,3 +188,18 @@ def test_tracking_bench_measures_live_tracking(calibrated_rooms: Any,
     assert latency["end_to_end_p99"] >= latency["end_to_end_median"] > 0
     assert report["fits"]["with_pose"] > 0
     assert report["clients"]["count"] == 20 and report["clients"]["reader_messages_lost"] == 0
+
+
+def test_the_replay_bench_counts_every_frame_it_hands_the_tracking_worker(
+        calibrated_rooms: Any) -> None:
+    """Two seconds replayed: every frame is processed or dropped (counted), every processed
+    one of the visible eye has a pose (the figures are the bench's, not checked)."""
+    _, caldir = calibrated_rooms("default")
+    report = tracking.replayed(caldir, 2.0)
+    assert report["frames"] == 50 and report["error"] is None
+    assert report["processed"] + report["dropped"] == 50 and report["processed"] >= 2
+    assert report["with_pose"] == report["processed"]
+    latency = report["latency_ms"]
+    assert latency["p99"] >= latency["median"] > 0
+    assert report["first_frame_latency_ms"] > 0
+    assert "of 50 frames processed" in tracking.format_replayed(report)

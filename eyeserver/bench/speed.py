@@ -781,13 +781,15 @@ def traced_peak_mib(frameset: FrameSet, units: Sequence[UnitImages]) -> float:
 
 def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
         calibration: Path | None = None, room_file: Path | None = None,
-        api_requests: int = 10, tracking_seconds: int = 20) -> dict[str, Any]:
+        api_requests: int = 10, tracking_seconds: int = 20,
+        replay_seconds: int = 10) -> dict[str, Any]:
     """The whole speed report as one JSON-able document (``calibration``: a calibration of the
     simulated rig; made on the spot when not given). ``room_file`` is the file ``config`` came
     from (None: the default room), for the daemon of the API timings; ``api_requests`` requests
     of each kind are timed through the API (0: none); live tracking runs ``tracking_seconds``
     through a daemon (:mod:`eyeserver.bench.tracking`, 0: not run) for the frame → pose
-    latency."""
+    latency, and its pipeline alone on ``replay_seconds`` of frames rendered beforehand
+    (:func:`~eyeserver.bench.tracking.replayed`, 0: not run)."""
     from eyeserver.bench.api import api_latency
     from eyeserver.bench.simcal import calibrate_room
 
@@ -810,6 +812,12 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
             (work / "tracking").mkdir()
             live = tracking.run(tracking_seconds, calibration=calibration, room_file=room_file,
                                 work=work / "tracking", progress=progress)
+        alone = None
+        if replay_seconds:
+            from eyeserver.bench import tracking
+            progress(f"live tracking's pipeline alone, {replay_seconds} s replayed")
+            alone = tracking.replayed(calibration, replay_seconds, room_file=room_file,
+                                      progress=progress)
     rss_before_mib = peak_rss_mib()
     with _opencv_threads(1):
         reconstruction = pipeline(frameset, frames, progress)
@@ -875,6 +883,11 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
         report["frame_to_pose_p99_ms"] = latency["end_to_end_p99"]
         report["frame_to_pose_goal_p99_ms"] = TRACKING_GOAL_P99_MS
         report["tracking_processed_share"] = counted["processed_share"]
+    if alone is not None:
+        report["tracking_replay"] = alone
+        report["pipeline_frame_to_pose_median_ms"] = alone["latency_ms"]["median"]
+        report["pipeline_frame_to_pose_p99_ms"] = alone["latency_ms"]["p99"]
+        report["pipeline_processed_share"] = alone["processed_share"]
     report["duration_s"] = round(time.perf_counter() - started, 1)
     return report
 
@@ -1000,6 +1013,9 @@ def format_text(report: dict[str, Any]) -> str:
                      f"{'n/a' if share is None else f'{100 * share:.1f}'} % of the camera "
                      f"frames processed (goal 99 %), the rest dropped (newest frame wins) "
                      f"or missed, and counted")
+    if report.get("tracking_replay"):
+        from eyeserver.bench.tracking import format_replayed
+        lines.append(format_replayed(report["tracking_replay"]))
     lines.append("")
     lines.append(f"took {report['duration_s']} s")
     return "\n".join(lines)

@@ -24,6 +24,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -32,9 +33,19 @@ from websockets.sync.client import ClientConnection, connect
 
 from eyeserver.bench.daemon import DaemonError, DaemonProcess, zip_directory
 from eyeserver.bench.simcal import calibrate_room
+from eyeserver.core.clock import MonotonicClock
 from eyeserver.hardware.sim.config import load_room
+from eyeserver.hardware.sim.motion import MotionSpec
+from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
+from eyeserver.hardware.sim.sessions import SimSession
+from eyeserver.io.rig_file import rig_from_dict
+from eyeserver.pipeline.eyepose import EyeModel, fit_eye
+from eyeserver.service.events import EventBus
+from eyeserver.service.patients import Tolerances
+from eyeserver.service.tracking import FrameSet, PoseFinder, RigReconstructor, TrackingSession
+from eyeserver.service.tracking_worker import PoseWorker
 
-__all__ = ["format_text", "run"]
+__all__ = ["format_replayed", "format_text", "replayed", "run"]
 
 API = "/api/v1"
 RATE_HZ = 25.0
@@ -314,3 +325,121 @@ def format_text(report: dict[str, Any]) -> str:
     if report.get("error"):
         lines.append(f"  the session ended by itself: {report['error']}")
     return "\n".join(lines)
+
+
+# --- the pipeline alone: the moving eye rendered beforehand, replayed at the camera rate -----
+
+
+class _Replay:
+    """Frame sets rendered beforehand, handed out at ``RATE_HZ`` on the machine's monotonic
+    clock as if acquired now (mid-exposure time: when each is due)."""
+
+    def __init__(self, steps: list[Any], clock: MonotonicClock) -> None:
+        self._steps = steps
+        self._clock = clock
+        self._period_ns = round(1e9 / RATE_HZ)
+        self._start_ns: int | None = None
+        self._next = 0
+
+    @property
+    def missed(self) -> int:
+        return 0
+
+    def next_frame(self) -> FrameSet | None:
+        if self._next >= len(self._steps):
+            return None
+        now = self._clock.now_ns()
+        if self._start_ns is None:
+            self._start_ns = now
+        due_ns = self._start_ns + self._next * self._period_ns
+        if due_ns > now:
+            self._clock.sleep((due_ns - now) / 1e9)
+        frame = FrameSet(self._next, due_ns, self._steps[self._next])
+        self._next += 1
+        return frame
+
+
+class _Recorded(EventBus):
+    """An event bus that keeps what is published (no subscribers needed)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.messages: list[dict[str, Any]] = []
+
+    def publish(self, type: str, **data: Any) -> int:
+        self.messages.append(data)
+        return 0
+
+
+def replayed(calibration: Path, seconds: float = 10.0, *, room_file: Path | None = None,
+             progress: Progress = _quiet) -> dict[str, Any]:
+    """Live tracking's pipeline alone (the report, JSON-able).
+
+    ``seconds`` of the moving simulated eye (fixational drift) are rendered first, then handed
+    at 25 Hz from memory to a tracking session with its worker process
+    (:class:`~eyeserver.service.tracking_worker.PoseWorker`), as :mod:`eyeserver.service.
+    tracking` runs it in the daemon: what the reconstruction and fit achieve when the cameras
+    cost no CPU, as real ones cost none, while :func:`run` has the simulated room render each
+    frame on the same cores. No HTTP or WebSocket here: latency is to the message's publishing.
+    The reference is the global fit of the first frame (its radius held, as a captured
+    reference's is).
+    """
+    config = load_room(room_file)
+    count = max(1, round(seconds * RATE_HZ))
+    progress(f"rendering {count} frames of the moving eye to replay")
+    motion = MotionSpec(seed=1, drift_deg=0.02, saccade_rate_hz=0.0, blink_rate_hz=0.0)
+    with SimSession.open(config, seed=1) as session:
+        session.room.set_scene(SceneSpec(kind="eye", eye=EyeSpec(motion=motion)))
+        rig = rig_from_dict(session.rig.spec(), "<simulated rig>")
+        unit = session.rig.units[0].id
+        steps = []
+        for _ in range(count):
+            session.clock.advance(1.0 / RATE_HZ)
+            steps.append(session.rig.acquire([unit]))
+    first = PoseFinder(RigReconstructor(calibration, rig), fit_eye, EyeModel.population())(
+        FrameSet(0, 0, steps[0]), None)
+    model = replace(EyeModel.population(), globe_radius_mm=first.globe_radius_mm)
+    worker = PoseWorker(calibration, rig, model)
+    worker.start()
+    clock = MonotonicClock()
+    bus = _Recorded()
+    session_ = TrackingSession(
+        _Replay(steps, clock), worker,
+        reference={"centre_mm": list(first.centre_mm), "gaze": list(first.gaze)},
+        tolerances=Tolerances(), bus=bus, clock=clock)
+    progress(f"replaying them at {RATE_HZ:g} Hz through the tracking worker")
+    done = threading.Event()
+    session_.start(on_end=done.set)
+    done.wait(seconds + 60.0)
+    session_.stop()
+    status = session_.status()
+    # The first frame is searched for in the whole images (the global fit, ≈ 0.5 s); the
+    # figures are those of following the eye, from the next processed frame on.
+    steady = bus.messages[1:]
+    latency = [m["latency_ms"] for m in steady]
+    processing = [m["processing_ms"] for m in steady]
+    processed = len(bus.messages)
+    return {"seconds": count / RATE_HZ, "rate_hz": RATE_HZ, "frames": count,
+            "processed": processed, "processed_share": processed / count,
+            "dropped": status["frames_dropped"], "error": status["error"],
+            "with_pose": sum(1 for m in bus.messages if m["pose"] is not None),
+            "first_frame_latency_ms": bus.messages[0]["latency_ms"] if bus.messages else None,
+            "latency_ms": {"median": _percentile(latency, 50), "p99": _percentile(latency, 99)},
+            "processing_ms": {"median": _percentile(processing, 50),
+                              "p99": _percentile(processing, 99)}}
+
+
+def format_replayed(report: dict[str, Any]) -> str:
+    """The replay's figures, one line for people."""
+    latency = report["latency_ms"]
+    return (f"pipeline alone ({report['seconds']:g} s of the moving eye rendered beforehand, "
+            f"replayed at {report['rate_hz']:g} Hz): {report['processed']} of "
+            f"{report['frames']} frames processed ({100 * report['processed_share']:.1f} %), "
+            f"{report['with_pose']} with a pose; frame → pose "
+            f"{_ms_text(latency['median'])} median, {_ms_text(latency['p99'])} p99 (after the "
+            f"first frame's global fit, {_ms_text(report['first_frame_latency_ms'])}); "
+            f"processing {_ms_text(report['processing_ms']['median'])} median")
+
+
+def _ms_text(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.0f} ms"

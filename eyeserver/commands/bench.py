@@ -53,6 +53,10 @@ def add_parser(subparsers: Subparsers) -> None:
     speed.add_argument("--tracking-seconds", type=_non_negative_int, default=20, metavar="S",
                        help="live tracking through a daemon for the frame → pose latency, as "
                        "'eyeserver bench tracking' (default 20; 0 skips it)")
+    speed.add_argument("--replay-seconds", type=_non_negative_int, default=10, metavar="S",
+                       help="live tracking's pipeline alone: S seconds of the moving eye "
+                       "rendered beforehand, replayed at 25 Hz through the tracking worker "
+                       "(default 10; 0 skips it)")
     speed.add_argument("--calibration", type=Path, metavar="CALDIR",
                        help="a calibration of the simulated rig for the pipeline timings "
                        "(default: make one, ≈ 1 minute)")
@@ -108,7 +112,8 @@ def _speed(args: argparse.Namespace) -> int:
     report = speed.run(load_room(args.room), frames=args.frames, progress=_progress,
                        calibration=args.calibration, room_file=args.room,
                        api_requests=args.api_requests,
-                       tracking_seconds=args.tracking_seconds)
+                       tracking_seconds=args.tracking_seconds,
+                       replay_seconds=args.replay_seconds)
     print(json.dumps(report, indent=1) if args.json else speed.format_text(report))
     return 0
 
