@@ -117,3 +117,18 @@ def test_a_worker_that_died_is_reported_and_closing_stays_safe(
     worker.close()
     worker.close()
     assert not process.is_alive()
+
+
+def test_a_frame_that_takes_too_long_stops_the_worker(
+        calibrated_rooms: Any, frames: tuple[RigSpec, list[FrameSet]]) -> None:
+    _, caldir = calibrated_rooms("default")
+    rig, (rest, _, _) = frames
+    worker = PoseWorker(caldir, rig, MODEL)
+    worker.start()
+    process = worker._process
+    worker.frame_timeout_s = 0.001  # no frame is that fast: a hung child, as far as we know
+    with pytest.raises(TrackingWorkerError, match=r"took longer than 0\.001 s to answer"):
+        worker(rest, None)
+    assert not process.is_alive()
+    with pytest.raises(TrackingWorkerError, match="not running"):
+        worker(rest, None)

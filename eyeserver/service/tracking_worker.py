@@ -42,10 +42,14 @@ from eyeserver.pipeline.eyepose import EyeModel, EyePose, PoseError, fit_eye
 from eyeserver.pipeline.eyetrack import track_eye
 from eyeserver.service.reconstruction import ReconstructionError
 
-__all__ = ["START_TIMEOUT_S", "PoseWorker", "TrackingWorkerError"]
+__all__ = ["FRAME_TIMEOUT_S", "START_TIMEOUT_S", "PoseWorker", "TrackingWorkerError"]
 
 START_TIMEOUT_S = 120.0
 """How long the child may take to start (imports, the calibration's cameras): a few seconds."""
+
+FRAME_TIMEOUT_S = 30.0
+"""Longest a frame may take in the child (the global fit of a whole image takes about a second):
+a child that hangs ends the session with :class:`TrackingWorkerError` instead of stalling it."""
 
 _CLOSE_S = 5.0
 _log = logging.getLogger(__name__)
@@ -113,6 +117,7 @@ class PoseWorker:
 
     def __init__(self, calibration: str | Path, rig: RigSpec, model: EyeModel) -> None:
         self._args = (str(calibration), rig, model)
+        self.frame_timeout_s = FRAME_TIMEOUT_S
         self._connection: Connection | None = None
         self._process: Any = None
 
@@ -172,7 +177,8 @@ class PoseWorker:
         ReconstructionError
             The frame set cannot be reconstructed.
         TrackingWorkerError
-            The child is gone or failed unexpectedly.
+            The child is gone, failed unexpectedly, or took longer than
+            :attr:`frame_timeout_s` (the child is then stopped).
         """
         if self._connection is None:
             raise TrackingWorkerError("the tracking worker is not running")
@@ -180,7 +186,11 @@ class PoseWorker:
             self._connection.send((frame_set, previous))
         except (OSError, ValueError) as exc:
             raise TrackingWorkerError(f"cannot reach the tracking worker: {exc}") from None
-        kind, detail = self._receive(None, "to answer")
+        try:
+            kind, detail = self._receive(self.frame_timeout_s, "to answer")
+        except TrackingWorkerError:
+            self.close()  # a late answer would be taken for the next frame's
+            raise
         if kind == "pose":
             pose: EyePose = detail
             return pose
