@@ -89,9 +89,9 @@ the gaze to turn and for the cloud-only fit's lid shell."""
 LIMBUS_HALF_ANGLE_DEG = 35.0
 """Once the last frame's limbus was found in the images, the window holds the cap within this
 angle of its gaze: the limbus after a saccade the limbus search follows (≤ 12°) and a ring of
-sclera beside it, all the pose from the images needs. Measured on four rendered saccades of 8°
+sclera beside it, all the pose from the images needs. Measured on three rendered saccades of 8°
 (one unit, radius held): poses from 50° about +Z and 35° or 40° about the last gaze within
-0.0004 mm and 0.001° of each other, the reconstruction 38–43, 25–45 and 20–28 ms."""
+0.0004 mm and 0.001° of each other, the reconstruction 38–43, 25–45 and 20–26 ms."""
 
 MOTION_MM = 1.5
 """The window's allowance for the eye's motion since the last pose."""
