@@ -148,6 +148,11 @@ class Settings(BaseSettings):
     ``job_queue``
         Long jobs (batch reconstructions, calibration solves) that may wait while one runs;
         one more is refused with HTTP 503. Default ``8``.
+    ``tracking_workers``
+        Worker processes that reconstruct and fit live tracking's frames, each on the next
+        frame while the others work. Default ``1``: on two cores a second one made tracking
+        slower (the libraries' own threads already use both); try more only with cores to
+        spare, measured with ``eyeserver bench speed --replay-workers N``.
     ``tokens``
         The bearer tokens the API accepts. In the file, named tokens as an array of tables
         (``[[tokens]]`` with ``name``, ``role``, ``token``); in ``EYESERVER_TOKENS``,
@@ -234,6 +239,12 @@ class Settings(BaseSettings):
         ge=1,
         description="Reconstructions that may wait while one runs; one more is refused with "
         "HTTP 503.",
+    )
+    tracking_workers: int = Field(
+        default=1,
+        ge=1,
+        le=8,
+        description="Worker processes for live tracking's frames, each on its own frames.",
     )
     job_queue: int = Field(
         default=8,

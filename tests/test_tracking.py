@@ -174,6 +174,64 @@ def test_a_session_processes_only_the_newest_frame_and_reports_the_drops() -> No
     assert session.process_once() is None  # nothing new: nothing is processed twice
 
 
+def test_a_pose_that_comes_after_a_newer_frames_is_dropped_not_published() -> None:
+    # Two finders at work: frame 1's pose is published before frame 0's arrives.
+    clock = ManualClock(1_000_000_000)
+    bus = EventBus()
+    session = _session(clock, [_pose(centre=(0.0, 0.0, 0.0)), _pose(centre=(0.1, 0.0, 0.0))],
+                       bus=bus)
+    first, second = session.source.next_frame(), session.source.next_frame()
+    assert first is not None and second is not None
+    newer = session.process(second)
+    assert newer is not None and newer["frame"] == 1
+    assert session.process(first) is None  # too late: the beam hold saw frame 1 already
+    status = session.status()
+    assert (status["frames_processed"], status["frames_dropped"]) == (1, 1)
+    assert session.last_pose is not None and session.last_pose.centre_mm[0] == 0.1
+
+
+def test_several_finders_share_the_frames_and_publish_them_in_order() -> None:
+    clock = ManualClock(1_000_000_000)
+    pipeline = ScriptedPipeline(clock)
+    used: list[int] = []
+    closed: list[int] = []
+
+    class Finder(PoseFinder):
+        def __init__(self, number: int) -> None:
+            super().__init__(pipeline.reconstruct, pipeline.fit, EyeModel.population())
+            self.number = number
+
+        def __call__(self, frame_set: FrameSet, previous: EyePose | None) -> EyePose:
+            used.append(self.number)
+            time.sleep(0.002 * (1 + frame_set.frame % 3))  # real time: uneven, overlapping
+            return super().__call__(frame_set, previous)
+
+        def close(self) -> None:
+            closed.append(self.number)
+
+    frames = 60
+    published: list[dict[str, Any]] = []
+
+    class Recorded(EventBus):
+        def publish(self, type: str, **data: Any) -> int:
+            published.append(data)
+            return 0
+
+    session = TrackingSession(ScriptedSource(clock, count=frames, pace_s=0.001),
+                              [Finder(0), Finder(1)], reference=REFERENCE,
+                              tolerances=TOLERANCES, bus=Recorded(), clock=clock)
+    done = threading.Event()
+    session.start(on_end=done.set)
+    assert done.wait(TIMEOUT_S)
+    status = session.status()
+    numbers = [m["frame"] for m in published]
+    assert numbers == sorted(set(numbers))  # in order, none twice
+    assert status["frames_processed"] == len(published)
+    assert status["frames_processed"] + status["frames_dropped"] == frames
+    assert set(used) == {0, 1} and sorted(closed) == [0, 1]
+    assert status["running"] is False and status["error"] is None
+
+
 def test_beam_hold_rises_on_the_first_out_of_tolerance_frame_and_falls_after_the_dwell(
 ) -> None:
     clock = ManualClock()
@@ -397,6 +455,26 @@ def test_tracking_starts_streams_and_stops_through_the_api(
     assert frames == sorted(frames)
     assert _post(base_url, "/tracking/stop").status_code == 409
     assert _post(base_url, "/captures", {"unit": "left"}).status_code == 201
+
+
+def test_tracking_with_two_workers_publishes_in_order(
+    base_url: str, tracking: TrackingControl
+) -> None:
+    tracking.workers = 2
+    try:
+        with _connect(base_url) as ws:
+            started = _post(base_url, "/tracking/start", {"patient_id": "P-T1", "fraction": 1})
+            assert started.status_code == 201, started.text
+            assert started.json()["workers"] == 2
+            messages = [_recv(ws) for _ in range(20)]
+            stopped = _post(base_url, "/tracking/stop")
+    finally:
+        tracking.workers = 1
+    assert stopped.status_code == 200 and stopped.json()["error"] is None
+    frames = [m["frame"] for m in messages if m["type"] == "pose"]
+    assert len(frames) >= 10 and frames == sorted(set(frames))
+    with pytest.raises(ValueError, match="workers"):
+        TrackingControl(tracking.service, tracking.patients, workers=0)
 
 
 def test_tracking_needs_an_operator_a_patient_and_a_reference(

@@ -782,14 +782,15 @@ def traced_peak_mib(frameset: FrameSet, units: Sequence[UnitImages]) -> float:
 def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
         calibration: Path | None = None, room_file: Path | None = None,
         api_requests: int = 10, tracking_seconds: int = 20,
-        replay_seconds: int = 10) -> dict[str, Any]:
+        replay_seconds: int = 10, replay_workers: int = 1) -> dict[str, Any]:
     """The whole speed report as one JSON-able document (``calibration``: a calibration of the
     simulated rig; made on the spot when not given). ``room_file`` is the file ``config`` came
     from (None: the default room), for the daemon of the API timings; ``api_requests`` requests
     of each kind are timed through the API (0: none); live tracking runs ``tracking_seconds``
     through a daemon (:mod:`eyeserver.bench.tracking`, 0: not run) for the frame → pose
     latency, and its pipeline alone on ``replay_seconds`` of frames rendered beforehand
-    (:func:`~eyeserver.bench.tracking.replayed`, 0: not run)."""
+    (:func:`~eyeserver.bench.tracking.replayed` with ``replay_workers`` worker processes, 0:
+    not run)."""
     from eyeserver.bench.api import api_latency
     from eyeserver.bench.simcal import calibrate_room
 
@@ -817,7 +818,7 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
             from eyeserver.bench import tracking
             progress(f"live tracking's pipeline alone, {replay_seconds} s replayed")
             alone = tracking.replayed(calibration, replay_seconds, room_file=room_file,
-                                      progress=progress)
+                                      workers=replay_workers, progress=progress)
     rss_before_mib = peak_rss_mib()
     with _opencv_threads(1):
         reconstruction = pipeline(frameset, frames, progress)

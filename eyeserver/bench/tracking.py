@@ -372,7 +372,7 @@ class _Recorded(EventBus):
 
 
 def replayed(calibration: Path, seconds: float = 10.0, *, room_file: Path | None = None,
-             progress: Progress = _quiet) -> dict[str, Any]:
+             workers: int = 1, progress: Progress = _quiet) -> dict[str, Any]:
     """Live tracking's pipeline alone (the report, JSON-able).
 
     ``seconds`` of the moving simulated eye (fixational drift) are rendered first, then handed
@@ -382,7 +382,8 @@ def replayed(calibration: Path, seconds: float = 10.0, *, room_file: Path | None
     cost no CPU, as real ones cost none, while :func:`run` has the simulated room render each
     frame on the same cores. No HTTP or WebSocket here: latency is to the message's publishing.
     The reference is the global fit of the first frame (its radius held, as a captured
-    reference's is).
+    reference's is). ``workers``: worker processes, each on its own frames (the daemon's
+    ``tracking_workers``).
     """
     config = load_room(room_file)
     count = max(1, round(seconds * RATE_HZ))
@@ -399,12 +400,13 @@ def replayed(calibration: Path, seconds: float = 10.0, *, room_file: Path | None
     first = PoseFinder(RigReconstructor(calibration, rig), fit_eye, EyeModel.population())(
         FrameSet(0, 0, steps[0]), None)
     model = replace(EyeModel.population(), globe_radius_mm=first.globe_radius_mm)
-    worker = PoseWorker(calibration, rig, model)
-    worker.start()
+    finders = [PoseWorker(calibration, rig, model) for _ in range(workers)]
+    for finder in finders:
+        finder.start()
     clock = MonotonicClock()
     bus = _Recorded()
     session_ = TrackingSession(
-        _Replay(steps, clock), worker,
+        _Replay(steps, clock), finders,
         reference={"centre_mm": list(first.centre_mm), "gaze": list(first.gaze)},
         tolerances=Tolerances(), bus=bus, clock=clock)
     progress(f"replaying them at {RATE_HZ:g} Hz through the tracking worker")
@@ -420,6 +422,7 @@ def replayed(calibration: Path, seconds: float = 10.0, *, room_file: Path | None
     processing = [m["processing_ms"] for m in steady]
     processed = len(bus.messages)
     return {"seconds": count / RATE_HZ, "rate_hz": RATE_HZ, "frames": count,
+            "workers": len(finders),
             "processed": processed, "processed_share": processed / count,
             "dropped": status["frames_dropped"], "error": status["error"],
             "with_pose": sum(1 for m in bus.messages if m["pose"] is not None),
@@ -433,7 +436,8 @@ def format_replayed(report: dict[str, Any]) -> str:
     """The replay's figures, one line for people."""
     latency = report["latency_ms"]
     return (f"pipeline alone ({report['seconds']:g} s of the moving eye rendered beforehand, "
-            f"replayed at {report['rate_hz']:g} Hz): {report['processed']} of "
+            f"replayed at {report['rate_hz']:g} Hz, {report['workers']} worker"
+            f"{'s' if report['workers'] > 1 else ''}): {report['processed']} of "
             f"{report['frames']} frames processed ({100 * report['processed_share']:.1f} %), "
             f"{report['with_pose']} with a pose; frame → pose "
             f"{_ms_text(latency['median'])} median, {_ms_text(latency['p99'])} p99 (after the "

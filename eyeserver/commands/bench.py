@@ -57,6 +57,9 @@ def add_parser(subparsers: Subparsers) -> None:
                        help="live tracking's pipeline alone: S seconds of the moving eye "
                        "rendered beforehand, replayed at 25 Hz through the tracking worker "
                        "(default 10; 0 skips it)")
+    speed.add_argument("--replay-workers", type=_positive_int, default=1, metavar="N",
+                       help="tracking worker processes in the replay, each on its own frames "
+                       "(the daemon's tracking_workers; default 1)")
     speed.add_argument("--calibration", type=Path, metavar="CALDIR",
                        help="a calibration of the simulated rig for the pipeline timings "
                        "(default: make one, ≈ 1 minute)")
@@ -113,7 +116,8 @@ def _speed(args: argparse.Namespace) -> int:
                        calibration=args.calibration, room_file=args.room,
                        api_requests=args.api_requests,
                        tracking_seconds=args.tracking_seconds,
-                       replay_seconds=args.replay_seconds)
+                       replay_seconds=args.replay_seconds,
+                       replay_workers=args.replay_workers)
     print(json.dumps(report, indent=1) if args.json else speed.format_text(report))
     return 0
 

@@ -350,7 +350,8 @@ def _edges(image: _Image, centre: F64, normal: F64, radius: float, reach: float
     rows = np.arange(len(k))
     before, at, after = rise[rows, k - 1], rise[rows, k], rise[rows, k + 1]
     curvature = before - 2 * at + after
-    shift = np.where(np.abs(curvature) > 1e-9, 0.5 * (before - after) / curvature, 0.0)
+    curved = np.abs(curvature) > 1e-9
+    shift = np.where(curved, 0.5 * (before - after) / np.where(curved, curvature, 1.0), 0.0)
     position = offsets[k] + 0.5 * np.clip(shift, -1.0, 1.0)
     edge = uv + position[:, None] * outward
     return angles[found], edge[found]

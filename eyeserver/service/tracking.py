@@ -395,6 +395,11 @@ class LatestFrame:
             item, self._item = self._item, None
             return item
 
+    def count_dropped(self) -> None:
+        """Count a frame set that was taken but whose result came too late to be used."""
+        with self._condition:
+            self.dropped += 1
+
     def close(self) -> None:
         """Wake a waiting :meth:`take`; what is in the slot can still be taken."""
         with self._condition:
@@ -430,10 +435,10 @@ class TrackingSession:
     ----------
     source : FrameSource
         The frame sets at the camera rate.
-    find : FindPose
+    find : FindPose or sequence of FindPose
         Frame set and last pose → pose (:class:`PoseFinder` in this process, or
-        :class:`~eyeserver.service.tracking_worker.PoseWorker` in its own); closed when the
-        session ends.
+        :class:`~eyeserver.service.tracking_worker.PoseWorker` in its own); several work on
+        successive frames at once, a processing thread each; closed when the session ends.
     reference : dict
         The fraction's reference pose (``centre_mm``, ``gaze``, ``limbus_centre_mm``).
     tolerances : Tolerances
@@ -446,11 +451,14 @@ class TrackingSession:
         :class:`~eyeserver.service.beamhold.BeamHoldConfig`.
     """
 
-    def __init__(self, source: FrameSource, find: FindPose, *, reference: dict[str, Any],
-                 tolerances: Tolerances, bus: EventBus, clock: Clock, dwell_frames: int = 3,
-                 hold_on_drop: bool = True, info: dict[str, Any] | None = None) -> None:
+    def __init__(self, source: FrameSource, find: FindPose | Sequence[FindPose], *,
+                 reference: dict[str, Any], tolerances: Tolerances, bus: EventBus, clock: Clock,
+                 dwell_frames: int = 3, hold_on_drop: bool = True,
+                 info: dict[str, Any] | None = None) -> None:
         self.source = source
-        self.find = find
+        self.finders: list[FindPose] = list(find) if isinstance(find, Sequence) else [find]
+        if not self.finders:
+            raise ValueError("a tracking session needs at least one pose finder")
         self.last_pose: EyePose | None = None
         """The last globe found (a blink's too); None before the first and once lost."""
         self.reference = reference
@@ -466,8 +474,11 @@ class TrackingSession:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._on_end: Callable[[], None] | None = None
-        self._done = threading.Event()  # both threads have finished
+        self._done = threading.Event()  # all threads have finished
         self._ended = threading.Event()  # ... and on_end has run
+        self._publishing = threading.Lock()  # the last pose, the beam hold, the order
+        self._last_frame = -1
+        self._processing = 0  # processing threads still at work
 
     # --- one step at a time (the threads loop these; tests call them directly) -------------
 
@@ -491,16 +502,34 @@ class TrackingSession:
             return None
         return self.process(frame_set)
 
-    def process(self, frame_set: FrameSet) -> dict[str, Any]:
-        """Reconstruct, fit, compare, update the beam hold and publish one frame's message."""
+    def process(self, frame_set: FrameSet, find: FindPose | None = None
+                ) -> dict[str, Any] | None:
+        """Reconstruct, fit, compare, update the beam hold and publish one frame's message.
+
+        ``find`` is the finder to use (default the first). With several at work, a frame whose
+        pose comes after a newer frame's was published is not used (None; counted as dropped):
+        the beam hold sees the frames in order.
+        """
         started_ns = self.clock.now_ns()
         pose: EyePose | None = None
         error: str | None = None
         eye: EyeSeen = "visible"
+        with self._publishing:
+            previous = self.last_pose
         try:
-            pose = self.find(frame_set, self.last_pose)
+            pose = (find or self.finders[0])(frame_set, previous)
         except (PoseError, ReconstructionError, ValueError) as exc:
             eye, error = "lost", str(exc) or type(exc).__name__
+        with self._publishing:
+            if frame_set.frame <= self._last_frame:
+                self.slot.count_dropped()
+                return None
+            self._last_frame = frame_set.frame
+            return self._publish(frame_set, pose, eye, error, started_ns)
+
+    def _publish(self, frame_set: FrameSet, pose: EyePose | None, eye: EyeSeen,
+                 error: str | None, started_ns: int) -> dict[str, Any]:
+        """The rest of :meth:`process`, in frame order."""
         self.last_pose = pose
         if pose is not None and pose.gaze_source == "none":
             # A globe without limbus or cornea: the lids cover the front of the eye.
@@ -545,13 +574,15 @@ class TrackingSession:
     # --- threads ----------------------------------------------------------------------------
 
     def start(self, on_end: Callable[[], None] | None = None) -> None:
-        """Run acquisition and processing on their own threads until :meth:`stop` or the
-        source ends; ``on_end`` is called once both have finished."""
+        """Run acquisition and processing (a thread per pose finder) on their own threads until
+        :meth:`stop` or the source ends; ``on_end`` is called once all have finished."""
         self._on_end = on_end
+        self._processing = len(self.finders)
         self._threads = [threading.Thread(target=self._acquire_loop, name="tracking-acquisition",
                                           daemon=True),
-                         threading.Thread(target=self._process_loop, name="tracking-processing",
-                                          daemon=True)]
+                         *(threading.Thread(target=self._process_loop, args=(finder,),
+                                            name=f"tracking-processing-{n}", daemon=True)
+                           for n, finder in enumerate(self.finders))]
         for thread in self._threads:
             thread.start()
 
@@ -571,7 +602,7 @@ class TrackingSession:
         finally:
             self.slot.close()
 
-    def _process_loop(self) -> None:
+    def _process_loop(self, finder: FindPose) -> None:
         try:
             while True:
                 frame_set = self.slot.take(None)
@@ -579,25 +610,31 @@ class TrackingSession:
                     break  # closed and empty
                 if self._stop.is_set():
                     break
-                self.process(frame_set)
+                self.process(frame_set, finder)
         except Exception as exc:
             _log.exception("tracking processing failed")
             with self._counters.lock:
                 self._counters.error = f"{type(exc).__name__}: {exc}"
             self._stop.set()
+            self.slot.close()  # the other processing threads end too
         finally:
             with self._counters.lock:
-                self._counters.stopped = _now_text()
-            threading.Thread(target=self._finish, name="tracking-end", daemon=True).start()
+                self._processing -= 1
+                last = self._processing == 0
+                if last:
+                    self._counters.stopped = _now_text()
+            if last:
+                threading.Thread(target=self._finish, name="tracking-end", daemon=True).start()
 
     def _finish(self) -> None:
         for thread in self._threads:
             if thread is not threading.current_thread():
                 thread.join(_JOIN_S)
-        try:
-            self.find.close()
-        except Exception:  # the session has ended either way; say why it did not close cleanly
-            _log.exception("closing the pose finder failed")
+        for finder in self.finders:
+            try:
+                finder.close()
+            except Exception:  # the session has ended either way; say why it did not close
+                _log.exception("closing a pose finder failed")
         self._done.set()
         try:
             if self._on_end is not None:
@@ -606,7 +643,7 @@ class TrackingSession:
             self._ended.set()
 
     def stop(self, timeout_s: float = _JOIN_S) -> None:
-        """Ask both threads to end and wait for them (a frame being processed finishes)."""
+        """Ask the threads to end and wait for them (frames being processed finish)."""
         self._stop.set()
         self.slot.close()
         self._ended.wait(timeout_s)
@@ -678,6 +715,9 @@ class TrackingControl:
         Its patients (eye model, reference, tolerances, unit).
     clock : Clock, optional
         The rig's clock (default: the machine's monotonic clock, which the simulated room uses).
+    workers : int
+        Pose finders per session, each on its own frames (default 1; the setting
+        ``tracking_workers``).
     source_factory, finder_factory
         Public attributes, so tests inject scripted ones (the default finder is a
         :class:`~eyeserver.service.tracking_worker.PoseWorker` on the active calibration).
@@ -687,11 +727,15 @@ class TrackingControl:
     """
 
     def __init__(self, service: Service, patients: Patients, *,
-                 clock: Clock | None = None, source_factory: SourceFactory = rig_source,
+                 clock: Clock | None = None, workers: int = 1,
+                 source_factory: SourceFactory = rig_source,
                  finder_factory: FinderFactory = worker_finder) -> None:
         self.service = service
         self.patients = patients
         self.clock: Clock = clock if clock is not None else MonotonicClock()
+        self.workers = workers
+        if self.workers < 1:
+            raise ValueError(f"workers must be at least 1, not {self.workers}")
         self.source_factory = source_factory
         self.finder_factory = finder_factory
         self.messages = EventBus()
@@ -730,22 +774,24 @@ class TrackingControl:
                 raise StateConflictError("cannot start tracking: the daemon is tracking")
             hold = ExitStack()
             hold.enter_context(service.operation("tracking", "live tracking"))
-            find: FindPose | None = None
+            finders: list[FindPose] = []
             try:
                 source = self.source_factory(service, unit_ids, self.clock)
-                find = self.finder_factory(service, model)
+                for _ in range(self.workers):
+                    finders.append(self.finder_factory(service, model))
                 session = TrackingSession(
-                    source, find, reference=reference.pose,
+                    source, finders, reference=reference.pose,
                     tolerances=patient.tolerances, bus=self.messages, clock=self.clock,
                     dwell_frames=dwell_frames, hold_on_drop=hold_on_drop,
                     info={"patient_id": patient_id, "fraction": fraction,
                           "unit": patient.unit, "rate_hz": CAMERA_RATE_HZ,
+                          "workers": self.workers,
                           "reference_version": reference.version,
                           "eye_model_version": None if stored_model is None
                           else stored_model.version})
             except BaseException:
-                if find is not None:
-                    find.close()
+                for finder in finders:
+                    finder.close()
                 hold.close()
                 raise
             self._session, self._hold = session, hold
