@@ -434,10 +434,10 @@ def replayed(calibration: Path, seconds: float = 10.0, *, room_file: Path | None
 
 def format_replayed(report: dict[str, Any]) -> str:
     """The replay's figures, one line for people."""
-    latency = report["latency_ms"]
+    latency, workers = report["latency_ms"], report.get("workers", 1)
     return (f"pipeline alone ({report['seconds']:g} s of the moving eye rendered beforehand, "
-            f"replayed at {report['rate_hz']:g} Hz, {report['workers']} worker"
-            f"{'s' if report['workers'] > 1 else ''}): {report['processed']} of "
+            f"replayed at {report['rate_hz']:g} Hz, {workers} worker"
+            f"{'s' if workers > 1 else ''}): {report['processed']} of "
             f"{report['frames']} frames processed ({100 * report['processed_share']:.1f} %), "
             f"{report['with_pose']} with a pose; frame → pose "
             f"{_ms_text(latency['median'])} median, {_ms_text(latency['p99'])} p99 (after the "
