@@ -23,8 +23,10 @@ neither is ever skipped silently.
 The processing thread has each frame set it takes reconstructed with the active calibration
 (loaded once per session) and the patient's eye model fitted to it — in a worker process of its
 own (:class:`~eyeserver.service.tracking_worker.PoseWorker`), so this work neither holds the
-GIL against acquisition and the event loop nor shares their core — compares the pose with the
-fraction's reference
+GIL against acquisition and the event loop nor shares their core (with several workers, a
+processing thread each takes the newest frame when its worker is free, and a pose that comes
+after a newer frame's was published is dropped and counted, so frames are judged in order) —
+compares the pose with the fraction's reference
 (:func:`~eyeserver.service.verification.deviation`, :func:`~eyeserver.service.verification.judge`),
 feeds :class:`BeamHold` and publishes one message per processed frame on
 :attr:`TrackingControl.messages`::
