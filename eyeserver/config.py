@@ -150,9 +150,9 @@ class Settings(BaseSettings):
         one more is refused with HTTP 503. Default ``8``.
     ``tracking_workers``
         Worker processes that reconstruct and fit live tracking's frames, each on the next
-        frame while the others work. Default ``1``: on two cores a second one made tracking
-        slower (the libraries' own threads already use both); try more only with cores to
-        spare, measured with ``eyeserver bench speed --replay-workers N``.
+        frame while the others work. Default ``2``: on two cores, with the simulated room
+        rendering on them too, two processed 62 % of the frames against 38 % for one
+        (``eyeserver bench tracking --workers N`` measures it).
     ``tokens``
         The bearer tokens the API accepts. In the file, named tokens as an array of tables
         (``[[tokens]]`` with ``name``, ``role``, ``token``); in ``EYESERVER_TOKENS``,
@@ -241,7 +241,7 @@ class Settings(BaseSettings):
         "HTTP 503.",
     )
     tracking_workers: int = Field(
-        default=1,
+        default=2,
         ge=1,
         le=8,
         description="Worker processes for live tracking's frames, each on its own frames.",

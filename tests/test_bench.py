@@ -196,7 +196,7 @@ def test_the_replay_bench_counts_every_frame_it_hands_the_tracking_worker(
     one of the visible eye has a pose (the figures are the bench's, not checked)."""
     _, caldir = calibrated_rooms("default")
     report = tracking.replayed(caldir, 2.0)
-    assert report["frames"] == 50 and report["error"] is None and report["workers"] == 1
+    assert report["frames"] == 50 and report["error"] is None and report["workers"] == 2
     assert report["processed"] + report["dropped"] == 50 and report["processed"] >= 2
     assert report["with_pose"] == report["processed"]
     latency = report["latency_ms"]

@@ -366,8 +366,8 @@ def tracking(app: FastAPI, base_url: str) -> TrackingControl:
     clock = ManualClock(1_000_000_000)
     pipeline = ScriptedPipeline(clock, reconstruct_s=0.012, fit_s=0.008)
     control.clock = clock
-    control.finder_factory = lambda service, model: PoseFinder(pipeline.reconstruct,
-                                                               pipeline.fit, model)
+    control.finder_factory = lambda service, model, workers: PoseFinder(pipeline.reconstruct,
+                                                                        pipeline.fit, model)
     control.source_factory = lambda service, units, c: ScriptedSource(c, pace_s=0.002)
     physicist = auth(PHYSICIST_TOKEN)
     for request in (
@@ -460,7 +460,7 @@ def test_tracking_starts_streams_and_stops_through_the_api(
 def test_tracking_with_two_workers_publishes_in_order(
     base_url: str, tracking: TrackingControl
 ) -> None:
-    tracking.workers = 2
+    original, tracking.workers = tracking.workers, 2
     try:
         with _connect(base_url) as ws:
             started = _post(base_url, "/tracking/start", {"patient_id": "P-T1", "fraction": 1})
@@ -469,7 +469,7 @@ def test_tracking_with_two_workers_publishes_in_order(
             messages = [_recv(ws) for _ in range(20)]
             stopped = _post(base_url, "/tracking/stop")
     finally:
-        tracking.workers = 1
+        tracking.workers = original
     assert stopped.status_code == 200 and stopped.json()["error"] is None
     frames = [m["frame"] for m in messages if m["type"] == "pose"]
     assert len(frames) >= 10 and frames == sorted(set(frames))

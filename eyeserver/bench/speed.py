@@ -782,7 +782,7 @@ def traced_peak_mib(frameset: FrameSet, units: Sequence[UnitImages]) -> float:
 def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
         calibration: Path | None = None, room_file: Path | None = None,
         api_requests: int = 10, tracking_seconds: int = 20,
-        replay_seconds: int = 10, replay_workers: int = 1) -> dict[str, Any]:
+        replay_seconds: int = 10, replay_workers: int = 2) -> dict[str, Any]:
     """The whole speed report as one JSON-able document (``calibration``: a calibration of the
     simulated rig; made on the spot when not given). ``room_file`` is the file ``config`` came
     from (None: the default room), for the daemon of the API timings; ``api_requests`` requests

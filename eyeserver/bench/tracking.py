@@ -108,16 +108,19 @@ def _percentile(values: list[float], q: float) -> float | None:
 
 
 def run(seconds: float = 60.0, *, calibration: Path | None = None,
-        room_file: Path | None = None, work: Path | None = None,
+        room_file: Path | None = None, work: Path | None = None, workers: int = 2,
         progress: Progress = _quiet) -> dict[str, Any]:
-    """Track for ``seconds`` on a daemon on loopback and measure; the report (JSON-able)."""
+    """Track for ``seconds`` on a daemon on loopback (``workers``: its ``tracking_workers``)
+    and measure; the report (JSON-able)."""
     with tempfile.TemporaryDirectory(prefix="eyeserver-bench-tracking-") as scratch:
         base = work or Path(scratch)
         if calibration is None:
             progress("calibrating the simulated rig (≈ 1 minute)")
             calibration = calibrate_room(load_room(room_file), base / "cal", seed=0,
                                          progress=progress)
-        env = {} if room_file is None else {"EYESERVER_ROOM_FILE": str(room_file)}
+        env = {"EYESERVER_TRACKING_WORKERS": str(workers)}
+        if room_file is not None:
+            env["EYESERVER_ROOM_FILE"] = str(room_file)
         with DaemonProcess(base / "daemon-data", log=base / "daemon.log", env=env) as daemon:
             return _run(daemon, seconds, calibration, progress)
 
@@ -372,7 +375,7 @@ class _Recorded(EventBus):
 
 
 def replayed(calibration: Path, seconds: float = 10.0, *, room_file: Path | None = None,
-             workers: int = 1, progress: Progress = _quiet) -> dict[str, Any]:
+             workers: int = 2, progress: Progress = _quiet) -> dict[str, Any]:
     """Live tracking's pipeline alone (the report, JSON-able).
 
     ``seconds`` of the moving simulated eye (fixational drift) are rendered first, then handed
@@ -400,7 +403,7 @@ def replayed(calibration: Path, seconds: float = 10.0, *, room_file: Path | None
     first = PoseFinder(RigReconstructor(calibration, rig), fit_eye, EyeModel.population())(
         FrameSet(0, 0, steps[0]), None)
     model = replace(EyeModel.population(), globe_radius_mm=first.globe_radius_mm)
-    finders = [PoseWorker(calibration, rig, model) for _ in range(workers)]
+    finders = [PoseWorker(calibration, rig, model, share=workers) for _ in range(workers)]
     for finder in finders:
         finder.start()
     clock = MonotonicClock()

@@ -57,9 +57,9 @@ def add_parser(subparsers: Subparsers) -> None:
                        help="live tracking's pipeline alone: S seconds of the moving eye "
                        "rendered beforehand, replayed at 25 Hz through the tracking worker "
                        "(default 10; 0 skips it)")
-    speed.add_argument("--replay-workers", type=_positive_int, default=1, metavar="N",
+    speed.add_argument("--replay-workers", type=_positive_int, default=2, metavar="N",
                        help="tracking worker processes in the replay, each on its own frames "
-                       "(the daemon's tracking_workers; default 1)")
+                       "(the daemon's tracking_workers; default 2)")
     speed.add_argument("--calibration", type=Path, metavar="CALDIR",
                        help="a calibration of the simulated rig for the pipeline timings "
                        "(default: make one, ≈ 1 minute)")
@@ -105,6 +105,9 @@ def add_parser(subparsers: Subparsers) -> None:
     tracking.add_argument("--calibration", type=Path, metavar="CALDIR",
                           help="use this calibration of the simulated rig instead of making one")
     tracking.add_argument("--room", type=Path, metavar="FILE", help="room file (default room)")
+    tracking.add_argument("--workers", type=_positive_int, default=2, metavar="N",
+                          help="the daemon's tracking worker processes (setting "
+                          "tracking_workers; default 2)")
     tracking.set_defaults(handler=_tracking)
 
 
@@ -153,6 +156,6 @@ def _tracking(args: argparse.Namespace) -> int:
     from eyeserver.bench import tracking
 
     report = tracking.run(args.seconds, calibration=args.calibration, room_file=args.room,
-                          progress=_progress)
+                          workers=args.workers, progress=_progress)
     print(json.dumps(report, indent=1) if args.json else tracking.format_text(report))
     return 0

@@ -611,6 +611,7 @@ class TrackingSession:
                 if frame_set is None:
                     break  # closed and empty
                 if self._stop.is_set():
+                    self.slot.count_dropped()  # taken, but the session is ending
                     break
                 self.process(frame_set, finder)
         except Exception as exc:
@@ -674,8 +675,9 @@ def _now_text() -> str:
 SourceFactory = Callable[[Service, list[str], Clock], FrameSource]
 """Builds the frame source of a session from the service, the unit ids and the clock."""
 
-FinderFactory = Callable[[Service, EyeModel], FindPose]
-"""Builds the pose finder of a session from the service and the patient's eye model."""
+FinderFactory = Callable[[Service, EyeModel, int], FindPose]
+"""Builds a pose finder of a session from the service, the patient's eye model and how many
+finders the session has."""
 
 
 def rig_source(service: Service, unit_ids: list[str], clock: Clock) -> FrameSource:
@@ -683,9 +685,9 @@ def rig_source(service: Service, unit_ids: list[str], clock: Clock) -> FrameSour
     return RigFrameSource(service.rig, unit_ids, clock)
 
 
-def worker_finder(service: Service, model: EyeModel) -> FindPose:
+def worker_finder(service: Service, model: EyeModel, workers: int = 1) -> FindPose:
     """A started :class:`~eyeserver.service.tracking_worker.PoseWorker` on the active
-    calibration: reconstruction and fit in their own process.
+    calibration: reconstruction and fit in their own process (one of ``workers``).
 
     Raises
     ------
@@ -701,7 +703,7 @@ def worker_finder(service: Service, model: EyeModel) -> FindPose:
         raise NoActiveCalibrationError(
             "no calibration is active: import one (POST /api/v1/calibrations) and activate "
             "it (POST /api/v1/calibrations/{id}/activate)")
-    worker = PoseWorker(active.path, service.rig_spec(), model)
+    worker = PoseWorker(active.path, service.rig_spec(), model, share=workers)
     worker.start()
     return worker
 
@@ -718,7 +720,7 @@ class TrackingControl:
     clock : Clock, optional
         The rig's clock (default: the machine's monotonic clock, which the simulated room uses).
     workers : int
-        Pose finders per session, each on its own frames (default 1; the setting
+        Pose finders per session, each on its own frames (default 2; the setting
         ``tracking_workers``).
     source_factory, finder_factory
         Public attributes, so tests inject scripted ones (the default finder is a
@@ -729,7 +731,7 @@ class TrackingControl:
     """
 
     def __init__(self, service: Service, patients: Patients, *,
-                 clock: Clock | None = None, workers: int = 1,
+                 clock: Clock | None = None, workers: int = 2,
                  source_factory: SourceFactory = rig_source,
                  finder_factory: FinderFactory = worker_finder) -> None:
         self.service = service
@@ -780,7 +782,7 @@ class TrackingControl:
             try:
                 source = self.source_factory(service, unit_ids, self.clock)
                 for _ in range(self.workers):
-                    finders.append(self.finder_factory(service, model))
+                    finders.append(self.finder_factory(service, model, self.workers))
                 session = TrackingSession(
                     source, finders, reference=reference.pose,
                     tolerances=patient.tolerances, bus=self.messages, clock=self.clock,
