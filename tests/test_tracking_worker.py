@@ -103,13 +103,18 @@ def test_a_calibration_without_phase_to_height_models_does_not_start(
         worker(frames[1][0], None)
 
 
-def test_a_worker_that_died_is_reported_and_closing_stays_safe(
-        calibrated_rooms: Any, frames: tuple[RigSpec, list[FrameSet]]) -> None:
+def _started(calibrated_rooms: Any, rig: RigSpec) -> tuple[PoseWorker, Any]:
+    """A worker of its own (the test ends it) and its child process."""
     _, caldir = calibrated_rooms("default")
-    rig, (rest, _, _) = frames
     worker = PoseWorker(caldir, rig, MODEL)
     worker.start()
-    process = worker._process
+    return worker, worker._process
+
+
+def test_a_worker_that_died_is_reported_and_closing_stays_safe(
+        calibrated_rooms: Any, frames: tuple[RigSpec, list[FrameSet]]) -> None:
+    rig, (rest, _, _) = frames
+    worker, process = _started(calibrated_rooms, rig)
     process.kill()
     process.join(10)
     with pytest.raises(TrackingWorkerError, match=r"ended unexpectedly|cannot reach"):
@@ -121,11 +126,8 @@ def test_a_worker_that_died_is_reported_and_closing_stays_safe(
 
 def test_a_frame_that_takes_too_long_stops_the_worker(
         calibrated_rooms: Any, frames: tuple[RigSpec, list[FrameSet]]) -> None:
-    _, caldir = calibrated_rooms("default")
     rig, (rest, _, _) = frames
-    worker = PoseWorker(caldir, rig, MODEL)
-    worker.start()
-    process = worker._process
+    worker, process = _started(calibrated_rooms, rig)
     worker.frame_timeout_s = 0.001  # no frame is that fast: a hung child, as far as we know
     with pytest.raises(TrackingWorkerError, match=r"took longer than 0\.001 s to answer"):
         worker(rest, None)

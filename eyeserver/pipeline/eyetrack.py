@@ -62,7 +62,10 @@ from eyeserver.pipeline.eyepose import (
     pose_on_limbus,
 )
 from eyeserver.pipeline.geometry import project
-from eyeserver.pipeline.limbus import LimbusView
+from eyeserver.pipeline.limbus import (
+    LimbusView,
+    _basis,  # the limbus circle's frame, shared, not copied
+)
 from eyeserver.pipeline.reconstruct import CalibratedCamera
 
 __all__ = ["BAND_MM", "WINDOW_QUANTUM_PX", "eye_window", "pose_window", "track_eye"]
@@ -160,10 +163,7 @@ def eye_window(camera: CalibratedCamera, centre_mm: npt.ArrayLike, radius_mm: fl
     polar = np.radians(np.linspace(0.0, half_angle_deg, 6))
     azimuth = np.radians(np.arange(0.0, 360.0, 15.0))
     p, a = np.meshgrid(polar, azimuth)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(pole[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = np.cross(pole, helper)
-    u /= np.linalg.norm(u)
-    v = np.cross(pole, u)
+    u, v = _basis(pole)
     directions = (np.sin(p)[..., None] * (np.cos(a)[..., None] * u + np.sin(a)[..., None] * v)
                   + np.cos(p)[..., None] * pole).reshape(-1, 3)
     reach = radius_mm + LID_REACH_MM + motion_mm
