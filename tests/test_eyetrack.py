@@ -26,7 +26,13 @@ from eyeserver.pipeline.eyetrack import WINDOW_QUANTUM_PX, eye_window, pose_wind
 from eyeserver.pipeline.fusion import Part, fuse
 from eyeserver.pipeline.geometry import project
 from eyeserver.pipeline.limbus import LimbusView
-from eyeserver.pipeline.reconstruct import cropped, strong_modulation, unit_clouds
+from eyeserver.pipeline.reconstruct import (
+    camera_phase,
+    cropped,
+    decimated,
+    strong_modulation,
+    unit_clouds,
+)
 from eyeserver.service.events import EventBus
 from eyeserver.service.patients import Tolerances
 from eyeserver.service.reconstruction import calibrated_cameras, z_range
@@ -157,6 +163,44 @@ def test_a_window_of_the_images_reconstructs_the_same_points(
         assert len(common) > 0.5 * inner.sum() and len(common) > 5000
         gap = np.linalg.norm(full.points[in_full] - part.points[inner][in_part], axis=1)
         assert float(np.max(gap)) < 0.01, float(np.max(gap))
+
+
+def test_a_decimated_window_reconstructs_its_pixels_points(
+        simulated_eye: tuple[dict[str, Any], dict[str, Any], tuple[float, float], float],
+        ) -> None:
+    """Live tracking reconstructs every second pixel of the window, demodulated whole."""
+    cameras, frames, limits, full_scale = simulated_eye
+    a, b = list(frames)[:2]
+    crops, phases = [], []
+    for camera_id in (a, b):
+        camera, image = cameras[camera_id], np.asarray(frames[camera_id].image)
+        window = eye_window(camera, (0.0, 0.0, -10.0), 12.0)
+        assert window is not None
+        x0, y0, x1, y1 = window
+        crop = cropped(camera, *window, strong_modulation=strong_modulation(camera, image))
+        crops.append(crop)
+        phases.append(camera_phase(crop, image[y0:y1, x0:x1], full_scale))
+    full = unit_clouds(crops[0], None, crops[1], None, limits, phases=(phases[0], phases[1]))
+    halves = [decimated(crop, 2) for crop in crops]
+    half = unit_clouds(halves[0], None, halves[1], None, limits,
+                       phases=(phases[0].decimated(2), phases[1].decimated(2)))
+    for crop, small, whole, part in zip(crops, halves, full, half, strict=True):
+        assert small.spacing_px == 2 and small.shape == crop.x[::2, ::2].shape
+        assert np.allclose(small.x, crop.x[::2, ::2], atol=1e-12)
+        assert np.allclose(small.y, crop.y[::2, ::2], atol=1e-12)
+        row, col = np.divmod(part.pixels, small.shape[1])
+        at = 2 * row * crop.shape[1] + 2 * col
+        common, in_whole, in_part = np.intersect1d(whole.pixels, at, return_indices=True)
+        # A quarter of the points, each the full window's point at its pixel (the filters that
+        # judge patches keep a few more or fewer at their edges: 94 % of them in common).
+        assert 0.2 * len(whole.points) < len(part.points) < 0.3 * len(whole.points)
+        assert len(common) > 0.9 * len(part.points)
+        gap = np.linalg.norm(whole.points[in_whole] - part.points[in_part], axis=1)
+        assert float(np.max(gap)) < 1e-6, float(np.max(gap))
+    with pytest.raises(ValueError, match="at least 1"):
+        decimated(crops[0], 0)
+    with pytest.raises(ValueError, match="images or their phases"):
+        unit_clouds(crops[0], None, crops[1], None, limits)
 
 
 def _unit_cloud(cameras: list[Any], images: list[npt.NDArray[Any]],

@@ -76,7 +76,8 @@ SATURATED_SHARE = 0.3
 """Pixels whose surrounding period is saturated over more than this share are masked."""
 COARSE_STRIDE = 3
 """The multi-view candidates are evaluated on every third pixel in each direction (odd, so the
-grid's pixel centres coincide with ``cv2.resize``'s sample positions)."""
+grid's pixel centres coincide with ``cv2.resize``'s sample positions); of a :func:`decimated`
+camera's pixels, so its grid is as much coarser on the image."""
 VOTE_SIZE = 3
 """Side of the median vote on the coarse grid's fringe orders (9 full-resolution pixels each)."""
 AGREEMENT_MM = 0.3
@@ -158,6 +159,10 @@ class CalibratedCamera:
     """The modulation of the image's strong fringes the mask's threshold is relative to
     (:data:`MODULATION_FRACTION`); None: each image's own 95th percentile. A window of an image
     (:func:`cropped`) takes the whole image's, so that it masks the same pixels."""
+    spacing_px: int = 1
+    """Image pixels between two neighbouring pixels of this camera: 1, or the factor of
+    :func:`decimated`. The filters' sizes in pixels (:data:`SPECKLE_PX` and its kin) are
+    given for spacing 1 and scaled by it, so that they keep their size on the object."""
     x: F64 = field(init=False, repr=False)
     y: F64 = field(init=False, repr=False)
     rays: F64 = field(init=False, repr=False)
@@ -250,7 +255,39 @@ def cropped(camera: CalibratedCamera, x0: int, y0: int, x1: int, y1: int, *,
                             np.ascontiguousarray(camera.reference_phase[y0:y1, x0:x1]),
                             camera.border_px,
                             camera.strong_modulation if strong_modulation is None
-                            else strong_modulation)
+                            else strong_modulation, camera.spacing_px)
+
+
+def decimated(camera: CalibratedCamera, factor: int) -> CalibratedCamera:
+    """The camera of every ``factor``-th pixel of ``camera``'s images, in both directions.
+
+    Pixel ``(i, j)`` of it is ``camera``'s pixel ``(factor·i, factor·j)``: K's rows scale by
+    ``1/factor``, so every pixel keeps its undistorted normalised coordinates, its ray and its
+    phase-to-height model, and a point reconstructed from it is the one ``camera`` gives at that
+    pixel. Pair it with :meth:`Phase.decimated` of the full image's phase: demodulation needs
+    the full image (the carrier is only a few pixels long), the orders and points do not.
+
+    Raises
+    ------
+    ValueError
+        A factor below 1.
+    """
+    if factor < 1:
+        raise ValueError(f"factor must be at least 1, not {factor}")
+    if factor == 1:
+        return camera
+    K = camera.K.copy()
+    K[:2] /= factor
+    return CalibratedCamera(camera.camera_id, K, camera.dist, camera.R, camera.T, camera.model,
+                            camera.carrier,
+                            np.ascontiguousarray(camera.reference_phase[::factor, ::factor]),
+                            camera.border_px, camera.strong_modulation,
+                            camera.spacing_px * factor)
+
+
+def _area_px(camera: CalibratedCamera, pixels: int) -> int:
+    """A pixel count given for image pixels, in ``camera``'s pixels (:attr:`spacing_px`)."""
+    return max(1, round(pixels / camera.spacing_px**2))
 
 
 def strong_modulation(camera: CalibratedCamera, image: npt.ArrayLike) -> float:
@@ -280,6 +317,16 @@ class Phase:
             self._pinhole = np.asarray(cv2.remap(stack, map_x, map_y, cv2.INTER_LINEAR,
                                                  borderMode=cv2.BORDER_CONSTANT, borderValue=0))
         return self._pinhole
+
+    def decimated(self, factor: int) -> Phase:
+        """Every ``factor``-th pixel in both directions: the phase of :func:`decimated`'s
+        camera (samples, not averages: a wrapped phase cannot be averaged)."""
+        if factor == 1:
+            return self
+        pick = (slice(None, None, factor), slice(None, None, factor))
+        return Phase(np.ascontiguousarray(self.dphi[pick]),
+                     np.ascontiguousarray(self.modulation[pick]),
+                     np.ascontiguousarray(self.valid[pick]))
 
 
 ORDER_SOURCES = ("multi-view", "spatial + multi-view", "spatial + depth prior", "depth prior")
@@ -530,7 +577,8 @@ def spatial_order(cam_a: CalibratedCamera, phase_a: Phase, grid: GridOrder | Non
         majority = support >= np.maximum(MIN_REGION_VOTES, 0.6 * table.sum(axis=1))
         offset = np.where(majority, table.argmax(axis=1) + low, 0)
         decided[majority] = 1
-    undecided = np.flatnonzero((decided == 0) & (sizes >= MIN_REGION_PX))
+    min_region = _area_px(cam_a, MIN_REGION_PX)
+    undecided = np.flatnonzero((decided == 0) & (sizes >= min_region))
     undecided = undecided[undecided > 0]
     if depth_prior_mm is not None and undecided.size:
         # The offset that puts the region's median pixel nearest the prior height.
@@ -544,7 +592,7 @@ def spatial_order(cam_a: CalibratedCamera, phase_a: Phase, grid: GridOrder | Non
         best = np.nanargmin(np.abs(np.where(np.isfinite(z), z, np.inf) - depth_prior_mm), axis=1)
         offset[undecided] = ks[best]
         decided[undecided] = 2
-    keep = (decided[region] > 0) & (sizes[region] >= MIN_REGION_PX)
+    keep = (decided[region] > 0) & (sizes[region] >= min_region)
     return (pixels[keep].astype(np.intp), steps[keep] + offset[region[keep]],
             decided[region[keep]] == 1)
 
@@ -572,9 +620,11 @@ def _points(camera: CalibratedCamera, phase: Phase, pixels: npt.NDArray[np.intp]
 
 
 def _despeckle(pixels: npt.NDArray[np.intp], z: F64, shape: tuple[int, int],
-               min_px: int | tuple[int, ...] = SPECKLE_PX) -> Bool:
-    """Which points lie in a patch of continuous depth of at least ``min_px`` pixels (several
-    sizes give an (N, sizes) array from one depth image).
+               min_px: int | tuple[int, ...] = SPECKLE_PX, step_mm: float = SPECKLE_STEP_MM,
+               ) -> Bool:
+    """Which points lie in a patch of continuous depth (neighbours less than ``step_mm``
+    apart) of at least ``min_px`` pixels (several sizes give an (N, sizes) array from one depth
+    image).
 
     ``cv2.filterSpeckles`` (written for disparity maps) does the region growing; it takes 16-bit
     integers, so heights go in as hundredths of a millimetre.
@@ -587,7 +637,7 @@ def _despeckle(pixels: npt.NDArray[np.intp], z: F64, shape: tuple[int, int],
     kept = []
     for size in sizes:
         filtered = depth.copy() if len(sizes) > 1 else depth
-        cv2.filterSpeckles(filtered, int(invalid), size, int(SPECKLE_STEP_MM * 100))
+        cv2.filterSpeckles(filtered, int(invalid), size, round(step_mm * 100))
         kept.append(finite & (filtered.ravel()[pixels] != invalid))
     return np.asarray(kept[0] if isinstance(min_px, int) else np.stack(kept, axis=1))
 
@@ -629,7 +679,8 @@ def _patch_confirmed(cloud: CameraCloud, candidate: Bool, cam: CalibratedCamera,
     cost = _mismatch(cam, other, view, pixels, np.where(inside, z_near, z_range[0]))
     judged = (cost < np.pi) & inside
     around = np.full(len(cloud.pixels), np.nan)
-    around[index] = _surroundings(cloud, candidate, cam.shape)
+    around[index] = _surroundings(cloud, candidate, cam.shape,
+                                  max(1, round(PATCH_RING_PX / cam.spacing_px)))
     for label in range(1, count):
         members = patch == label
         own_median = float(np.median(own[members]))
@@ -661,9 +712,10 @@ def _shifted_heights(cam: CalibratedCamera, x: F64, y: F64, absolute: F64,
     return np.asarray(z), np.asarray(inside)
 
 
-def _surroundings(cloud: CameraCloud, candidate: Bool, shape: tuple[int, int]) -> F64:
+def _surroundings(cloud: CameraCloud, candidate: Bool, shape: tuple[int, int],
+                  ring_px: int = PATCH_RING_PX) -> F64:
     """For each ``candidate`` point: the mean height of the cloud's other points (not
-    ``candidate``) within :data:`PATCH_RING_PX` of it (a square), NaN where there are none.
+    ``candidate``) within ``ring_px`` of it (a square), NaN where there are none.
 
     A mean rather than a median (OpenCV has no masked median): the surroundings of a patch are
     one surface or two (the lids and the skin), a fringe's depth from a wrong order. Box sums
@@ -671,7 +723,7 @@ def _surroundings(cloud: CameraCloud, candidate: Bool, shape: tuple[int, int]) -
     """
     pixels = cloud.pixels[candidate]
     rows, cols = np.divmod(pixels, shape[1])
-    r = PATCH_RING_PX
+    r = ring_px
     top, left = max(0, int(rows.min()) - r), max(0, int(cols.min()) - r)
     bottom, right = min(shape[0], int(rows.max()) + r + 1), min(shape[1], int(cols.max()) + r + 1)
     full = np.full(shape, np.nan, np.float32)
@@ -700,7 +752,7 @@ def _fits_surroundings(cam: CalibratedCamera, x: F64, y: F64, absolute: F64, z: 
     image border with its true surroundings gone from the other camera's view.)
     """
     seen = np.isfinite(around)
-    if seen.sum() < PATCH_RING_MIN_PX:
+    if seen.sum() < _area_px(cam, PATCH_RING_MIN_PX):
         return True
     z_far, inside = _shifted_heights(cam, x[seen], y[seen], absolute[seen], PATCH_FAR_ORDERS,
                                      z_range)
@@ -783,8 +835,9 @@ def _contradicted(cloud: CameraCloud, cam: CalibratedCamera, other: CameraCloud,
         return known, known & (np.abs(seen - z) >= AGREEMENT_MM)
 
 
-def unit_clouds(cam_a: CalibratedCamera, image_a: npt.ArrayLike, cam_b: CalibratedCamera,
-                image_b: npt.ArrayLike, z_range: tuple[float, float], *,
+def unit_clouds(cam_a: CalibratedCamera, image_a: npt.ArrayLike | None,
+                cam_b: CalibratedCamera, image_b: npt.ArrayLike | None,
+                z_range: tuple[float, float], *,
                 method: str = "multi-view", depth_prior_mm: float | None = None,
                 saturation_dn: float | None = None, phases: tuple[Phase, Phase] | None = None,
                 ) -> tuple[CameraCloud, CameraCloud]:
@@ -792,7 +845,8 @@ def unit_clouds(cam_a: CalibratedCamera, image_a: npt.ArrayLike, cam_b: Calibrat
     checked against the other camera's own reconstruction.
 
     ``phases``: the images' :func:`camera_phase` when the caller has them already (live
-    tracking reuses them for the limbus).
+    tracking reuses them for the limbus, and reconstructs :func:`decimated` cameras from their
+    :meth:`Phase.decimated`); the images are then not read (they may be None).
 
     A wrong order that happens to match the other camera's phase (an occlusion, a far surface
     behind an edge) is a point the other camera does not reconstruct there. The multi-view path
@@ -800,8 +854,12 @@ def unit_clouds(cam_a: CalibratedCamera, image_a: npt.ArrayLike, cam_b: Calibrat
     points beyond 1 mm to a few in ten thousand), at the price of the parts only one camera
     sees; the spatial path drops only the points the other camera contradicts.
     """
-    phase_a, phase_b = phases or (camera_phase(cam_a, image_a, saturation_dn),
-                                  camera_phase(cam_b, image_b, saturation_dn))
+    if phases is None:
+        if image_a is None or image_b is None:
+            raise ValueError("unit_clouds needs the images or their phases")
+        phases = (camera_phase(cam_a, image_a, saturation_dn),
+                  camera_phase(cam_b, image_b, saturation_dn))
+    phase_a, phase_b = phases
     cloud_a = camera_cloud(cam_a, phase_a, cam_b, phase_b, z_range, method=method,
                            depth_prior_mm=depth_prior_mm)
     cloud_b = camera_cloud(cam_b, phase_b, cam_a, phase_a, z_range, method=method,
@@ -822,7 +880,9 @@ def _despeckled(cloud: CameraCloud, shape: tuple[int, int], cam: CalibratedCamer
     z = cloud.points[:, 2]
     if cam is None or other is None or phase_other is None or z_range is None:
         return cloud.subset(_despeckle(cloud.pixels, z, shape))
-    kept = _despeckle(cloud.pixels, z, shape, (SPECKLE_PX, MIN_PATCH_PX))
+    kept = _despeckle(cloud.pixels, z, shape, (_area_px(cam, SPECKLE_PX),
+                                               _area_px(cam, MIN_PATCH_PX)),
+                      SPECKLE_STEP_MM * cam.spacing_px)
     large, small = kept[:, 0], kept[:, 1] & ~kept[:, 0]
     return cloud.subset(large | _patch_confirmed(cloud, small, cam, other, phase_other,
                                                  z_range))
