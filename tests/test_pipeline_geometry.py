@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -45,3 +46,22 @@ def test_grid_matches_pointwise_and_rejects_bad_sizes() -> None:
         pixel_grid_normalised(0, 10, cam.K, cam.dist)
     with pytest.raises(ValueError, match="u and v"):
         undistorted_normalised(np.zeros(3), np.zeros(4), cam.K, cam.dist)
+
+
+@pytest.mark.parametrize("dist", [
+    [-0.2, 0.1, 0.002, -0.001], [-0.2, 0.1, 0.002, -0.001, 0.05],
+    [-0.2, 0.1, 0.002, -0.001, 0.05, 0.01, -0.02, 0.03],
+    [-0.2, 0.1, 0.002, -0.001, 0.05, 0.01, -0.02, 0.03, 0.0, 0.0, 0.0, 0.0],
+    [-0.2, 0.1, 0.002, -0.001, 0.05, 0.01, -0.02, 0.03, 0.001, -0.002, 0.0, 0.0]],
+    ids=["4", "5", "8 rational", "12 thin prism zero", "12 thin prism"])
+def test_project_is_opencvs_projection(dist: list[float]) -> None:
+    rng = np.random.default_rng(3)
+    R, _ = cv2.Rodrigues(np.array([0.1, -0.2, 0.05]))
+    T = np.array([1.0, -2.0, 150.0])
+    K = np.array([[1500.0, 0.0, 320.0], [0.0, 1480.0, 256.0], [0.0, 0.0, 1.0]])
+    points = rng.uniform(-20.0, 20.0, (500, 3))
+    expected, _ = cv2.projectPoints(points.reshape(-1, 1, 3), cv2.Rodrigues(R)[0], T, K,
+                                    np.array(dist))
+    uv = project(points, K, np.array(dist), R, T)
+    assert uv.shape == (500, 2)
+    assert np.max(np.abs(uv - expected.reshape(-1, 2))) < 1e-9

@@ -71,8 +71,42 @@ def intersect_plane_z(centre: F64, directions: F64, z: F64) -> F64:
     return np.asarray(centre + t[..., None] * directions, dtype=np.float64)
 
 
+_NUMPY_DISTORTION = 8
+"""Distortion models up to this many coefficients (k1, k2, p1, p2[, k3[, k4, k5, k6]]) are
+projected in NumPy; longer ones (thin prism, tilted sensor) by ``cv2.projectPoints``."""
+
+
 def project(points: F64, K: F64, dist: F64, R: F64, T: F64) -> F64:
-    """Pixel ``(u, v)`` of world points ``(N, 3)`` through a calibrated camera."""
+    """Pixel ``(u, v)`` of world points ``(N, 3)`` through a calibrated camera.
+
+    OpenCV's pinhole and distortion model (K's skew ignored, as OpenCV does), written out in
+    NumPy for models of up to :data:`_NUMPY_DISTORTION` coefficients: for 2,500 points (the
+    limbus fit's batched circles, ≈ 30 calls a tracked frame) ``cv2.projectPoints`` with its
+    ``cv2.Rodrigues`` took 0.5 ms on one thread (1 ms with OpenCV's thread pool), NumPy
+    0.17 ms; the two agree to 1e-9 px (tests). Points behind the camera are projected as
+    OpenCV does (through the centre), not masked.
+    """
+    coefficients = np.asarray(dist, dtype=np.float64).ravel()
+    if coefficients.size > _NUMPY_DISTORTION and np.any(coefficients[_NUMPY_DISTORTION:]):
+        return _project_cv2(points, K, coefficients, R, T)
+    k = np.zeros(_NUMPY_DISTORTION)
+    k[:min(coefficients.size, _NUMPY_DISTORTION)] = coefficients[:_NUMPY_DISTORTION]
+    k1, k2, p1, p2, k3, k4, k5, k6 = k
+    K = np.asarray(K, dtype=np.float64)
+    local = np.asarray(points, dtype=np.float64).reshape(-1, 3) @ np.asarray(
+        R, dtype=np.float64).T + np.asarray(T, dtype=np.float64).ravel()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inverse = np.where(local[:, 2] != 0, 1.0 / local[:, 2], 1.0)
+        x, y = local[:, 0] * inverse, local[:, 1] * inverse
+        r2 = x * x + y * y
+        radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+        xy = x * y
+        xd = x * radial + 2 * p1 * xy + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * xy
+    return np.stack([K[0, 0] * xd + K[0, 2], K[1, 1] * yd + K[1, 2]], axis=-1)
+
+
+def _project_cv2(points: F64, K: F64, dist: F64, R: F64, T: F64) -> F64:
     rvec, _ = cv2.Rodrigues(np.asarray(R, dtype=np.float64))
     uv, _ = cv2.projectPoints(np.asarray(points, dtype=np.float64).reshape(-1, 1, 3), rvec,
                               np.asarray(T, dtype=np.float64), np.asarray(K, dtype=np.float64),

@@ -37,6 +37,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+import cv2
 from threadpoolctl import threadpool_limits
 
 from eyeserver.errors import EyeserverError
@@ -74,6 +75,8 @@ def _serve(connection: Connection, calibration: str, rig: RigSpec, model: EyeMod
     # measured on 2 cores, 10 s replayed at 25 Hz, two workers processed 52 % of the frames
     # with a BLAS thread per core each, 92 % with one BLAS thread each.
     threadpool_limits(limits=blas_threads, user_api="blas")
+    # OpenCV's own thread pool likewise (threadpoolctl does not reach it).
+    cv2.setNumThreads(blas_threads)
     try:
         finder = PoseFinder(RigReconstructor(calibration, rig), fit_eye, model, track=track_eye)
     except ReconstructionError as exc:
