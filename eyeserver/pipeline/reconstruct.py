@@ -45,7 +45,7 @@ multi-view system. Optics Express 24(18), 20253–20269.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 
 import cv2
 import numpy as np
@@ -163,15 +163,18 @@ class CalibratedCamera:
     """Image pixels between two neighbouring pixels of this camera: 1, or the factor of
     :func:`decimated`. The filters' sizes in pixels (:data:`SPECKLE_PX` and its kin) are
     given for spacing 1 and scaled by it, so that they keep their size on the object."""
+    grid: InitVar[tuple[F64, F64] | None] = None
+    """The undistorted normalised coordinates ``(x, y)`` of the pixels when known (a window or
+    a decimation of another camera's: sliced, not computed again); None: computed."""
     x: F64 = field(init=False, repr=False)
     y: F64 = field(init=False, repr=False)
     rays: F64 = field(init=False, repr=False)
     _pinhole_maps: tuple[F32, F32] | None = field(default=None, init=False, repr=False)
     _towards: dict[str, tuple[F64, F64]] = field(default_factory=dict, init=False, repr=False)
 
-    def __post_init__(self) -> None:
+    def __post_init__(self, grid: tuple[F64, F64] | None) -> None:
         height, width = self.reference_phase.shape
-        x, y = pixel_grid_normalised(width, height, self.K, self.dist)
+        x, y = grid or pixel_grid_normalised(width, height, self.K, self.dist)
         # Contiguous, so that the many ``x.ravel()[pixels]`` look-ups index a view instead of
         # copying the whole grid each time (2.6 MB, ≈ 0.1 ms a copy).
         self.x, self.y = np.ascontiguousarray(x), np.ascontiguousarray(y)
@@ -255,7 +258,8 @@ def cropped(camera: CalibratedCamera, x0: int, y0: int, x1: int, y1: int, *,
                             np.ascontiguousarray(camera.reference_phase[y0:y1, x0:x1]),
                             camera.border_px,
                             camera.strong_modulation if strong_modulation is None
-                            else strong_modulation, camera.spacing_px)
+                            else strong_modulation, camera.spacing_px,
+                            (camera.x[y0:y1, x0:x1], camera.y[y0:y1, x0:x1]))
 
 
 def decimated(camera: CalibratedCamera, factor: int) -> CalibratedCamera:
@@ -282,7 +286,8 @@ def decimated(camera: CalibratedCamera, factor: int) -> CalibratedCamera:
                             camera.carrier,
                             np.ascontiguousarray(camera.reference_phase[::factor, ::factor]),
                             camera.border_px, camera.strong_modulation,
-                            camera.spacing_px * factor)
+                            camera.spacing_px * factor,
+                            (camera.x[::factor, ::factor], camera.y[::factor, ::factor]))
 
 
 def _area_px(camera: CalibratedCamera, pixels: int) -> int:
