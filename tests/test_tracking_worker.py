@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import shutil
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,8 @@ from eyeserver.io import RigSpec
 from eyeserver.io.rig_file import rig_from_dict
 from eyeserver.pipeline.eyepose import EyeModel, PoseError, fit_eye
 from eyeserver.pipeline.eyetrack import track_eye
+from eyeserver.pipeline.reconstruct import strong_modulation
+from eyeserver.service import tracking
 from eyeserver.service.reconstruction import ReconstructionError
 from eyeserver.service.tracking import FrameSet, PoseFinder, RigReconstructor
 from eyeserver.service.tracking_worker import PoseWorker, TrackingWorkerError
@@ -134,3 +137,32 @@ def test_a_frame_that_takes_too_long_stops_the_worker(
     assert not process.is_alive()
     with pytest.raises(TrackingWorkerError, match="not running"):
         worker(rest, None)
+
+
+def test_windows_take_the_whole_images_fringe_strength_measured_once_per_camera(
+        calibrated_rooms: Any, frames: tuple[RigSpec, list[FrameSet]],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    _, caldir = calibrated_rooms("default")
+    rig, (rest, _, _) = frames
+    measured: list[float] = []
+
+    def counted(camera: Any, image: Any) -> float:
+        measured.append(strong_modulation(camera, image))
+        return measured[-1]
+
+    monkeypatch.setattr(tracking, "strong_modulation", counted)
+    after_whole = RigReconstructor(caldir, rig)
+    pose = fit_eye(cloud := after_whole(rest), MODEL, cloud.views)
+    moved = replace(pose, centre_mm=tuple(np.add(pose.centre_mm, (3.0, 2.0, 0.0))))
+    windowed = []
+    for focus in (pose, moved):  # two windows: both from the whole image's demodulation
+        after_whole.focus(focus)
+        windowed.append(after_whole(rest))
+    assert measured == []
+    # Without a whole image first, the first window's frame is demodulated whole, once per
+    # camera, and gives the same strength: the same clouds.
+    windows_only = RigReconstructor(caldir, rig)
+    for focus, expected in zip((pose, moved), windowed, strict=True):
+        windows_only.focus(focus)
+        np.testing.assert_array_equal(windows_only(rest).points, expected.points)
+    assert len(measured) == 2

@@ -296,9 +296,14 @@ def _area_px(camera: CalibratedCamera, pixels: int) -> int:
 
 
 def strong_modulation(camera: CalibratedCamera, image: npt.ArrayLike) -> float:
-    """The modulation of ``image``'s strong fringes (its 95th percentile), what
+    """The modulation of ``image``'s strong fringes (:func:`fringe_strength`), what
     :func:`camera_phase` masks weak fringes against."""
-    return float(np.percentile(demodulate(np.asarray(image), camera.carrier).modulation, 95))
+    return fringe_strength(demodulate(np.asarray(image), camera.carrier).modulation)
+
+
+def fringe_strength(modulation: npt.ArrayLike) -> float:
+    """The strong fringes' modulation of a demodulated image: its 95th percentile."""
+    return float(np.percentile(np.asarray(modulation), 95))
 
 
 @dataclass
@@ -384,7 +389,7 @@ def camera_phase(camera: CalibratedCamera, image: npt.ArrayLike,
     pixels = np.asarray(image)
     result = demodulate(pixels, camera.carrier)
     dphi = phase_difference(result.wrapped_phase, camera.reference_phase)
-    strong = (float(np.percentile(result.modulation, 95)) if camera.strong_modulation is None
+    strong = (fringe_strength(result.modulation) if camera.strong_modulation is None
               else camera.strong_modulation)
     b = camera.border_px
     valid = (result.modulation > MODULATION_FRACTION * strong) & border_mask(dphi.shape, b)

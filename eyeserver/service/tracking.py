@@ -85,6 +85,7 @@ from eyeserver.pipeline.reconstruct import (
     camera_phase,
     cropped,
     decimated,
+    fringe_strength,
     strong_modulation,
     unit_clouds,
 )
@@ -305,7 +306,12 @@ class RigReconstructor:
     than the whole image, and on every :data:`WINDOW_DECIMATION`-th pixel of it (demodulated and
     searched for the limbus at full resolution); the cropped cameras are kept per window
     (windows are rounded to :data:`~eyeserver.pipeline.eyetrack.WINDOW_QUANTUM_PX`, so a still
-    eye keeps one).
+    eye keeps one). A window masks weak fringes against the whole image's strong ones
+    (:func:`~eyeserver.pipeline.reconstruct.strong_modulation`), measured once per camera and
+    reconstructor — from the last whole image reconstructed, else the first windowed frame's
+    image: a new window then costs no demodulation of the whole image (7 ms a camera). One
+    reconstructor serves one tracking session, during which the daemon refuses device
+    settings, so the projectors' intensity cannot change under it.
     """
 
     def __init__(self, calibration: str | Path, rig: RigSpec, bit_depth: int | None = None
@@ -318,6 +324,7 @@ class RigReconstructor:
         self._pose: EyePose | None = None
         self._cropped: dict[tuple[str, tuple[int, int, int, int]],
                             tuple[CalibratedCamera, CalibratedCamera]] = {}
+        self._strong: dict[str, float] = {}
 
     def focus(self, pose: EyePose | None) -> None:
         """Reconstruct only around ``pose``'s eye from now on; None: the whole images."""
@@ -340,9 +347,10 @@ class RigReconstructor:
             if len(self._cropped) >= _MAX_WINDOWS:
                 self._cropped.clear()  # an eye that wandered far: start the cache anew
             # The whole image's fringe strength, so the window masks what the whole image
-            # would (a window's own is the eye's alone): measured once per window.
-            window_camera = cropped(camera, *window,
-                                    strong_modulation=strong_modulation(camera, image))
+            # would (a window's own is the eye's alone).
+            if camera_id not in self._strong:
+                self._strong[camera_id] = strong_modulation(camera, image)
+            window_camera = cropped(camera, *window, strong_modulation=self._strong[camera_id])
             self._cropped[key] = (window_camera, decimated(window_camera, WINDOW_DECIMATION))
         x0, y0, x1, y1 = window
         return *self._cropped[key], image[y0:y1, x0:x1]
@@ -365,6 +373,10 @@ class RigReconstructor:
                 camera_b, points_b, image_b = self._view(b, np.asarray(frame_b.image))
                 phases = (camera_phase(camera_a, image_a, saturation),
                           camera_phase(camera_b, image_b, saturation))
+                for camera_id, camera, phase in ((a, camera_a, phases[0]),
+                                                 (b, camera_b, phases[1])):
+                    if camera is self._cameras[camera_id]:  # the whole image
+                        self._strong[camera_id] = fringe_strength(phase.modulation)
                 factor_a = points_a.spacing_px // camera_a.spacing_px
                 factor_b = points_b.spacing_px // camera_b.spacing_px
                 cloud_a, cloud_b = unit_clouds(points_a, None, points_b, None, self._limits,
