@@ -40,6 +40,7 @@ from eyeserver.service.tracking import (
     RigFrameSource,
     TrackingControl,
     TrackingSession,
+    start_pose,
 )
 from tests.apiclient import API, OPERATOR_TOKEN, PHYSICIST_TOKEN, auth, test_settings
 from tests.liveserver import live_server
@@ -230,6 +231,33 @@ def test_several_finders_share_the_frames_and_publish_them_in_order() -> None:
     assert status["frames_processed"] + status["frames_dropped"] == frames
     assert set(used) == {0, 1} and sorted(closed) == [0, 1]
     assert status["running"] is False and status["error"] is None
+
+
+def test_the_first_frame_is_looked_for_where_the_reference_expects_the_eye() -> None:
+    clock = ManualClock(1_000_000_000)
+    moved, lost = _pose((0.3, 0.0, -10.0)), PoseError("no sclera")
+    script: list[object] = [_pose(), moved, lost, _pose()]
+    pipeline = ScriptedPipeline(clock)
+    given: list[EyePose | None] = []
+
+    def find(frame_set: FrameSet, previous: EyePose | None) -> EyePose:
+        given.append(previous)
+        return pipeline.fit(pipeline.reconstruct(frame_set), EyeModel.population())
+
+    held = EyeModel(globe_radius_mm=11.5)
+    expected = start_pose(REFERENCE, held)
+    assert expected is not None and start_pose(REFERENCE, EyeModel.population()) is None
+    assert expected.centre_mm == (0.0, 0.0, -10.0) and expected.gaze == (0.0, 0.0, 1.0)
+    assert expected.globe_radius_mm == 11.5 and expected.gaze_source == "limbus (images)"
+    session = TrackingSession(ScriptedSource(clock, script), find, reference=REFERENCE,
+                              tolerances=TOLERANCES, bus=EventBus(), clock=clock,
+                              expected=expected)
+    for _ in script:
+        session.acquire_once()
+        session.process_once()
+    # From the reference's pose first, then from each last pose; once a processed frame lost
+    # the eye, not from the reference again (it may not be there): the global fit.
+    assert given == [expected, script[0], moved, None]
 
 
 def test_beam_hold_rises_on_the_first_out_of_tolerance_frame_and_falls_after_the_dwell(

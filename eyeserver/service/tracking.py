@@ -76,7 +76,13 @@ from eyeserver.core.clock import Clock, MonotonicClock
 from eyeserver.errors import DeviceError, EyeserverError, StateConflictError
 from eyeserver.hardware.rig import AcquiredStep, Rig
 from eyeserver.io import PointCloud, RigSpec
-from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError
+from eyeserver.pipeline.eyepose import (
+    LIMBUS_FROM_IMAGES,
+    CloudLike,
+    EyeModel,
+    EyePose,
+    PoseError,
+)
 from eyeserver.pipeline.eyetrack import pose_window
 from eyeserver.pipeline.fusion import Part, fuse
 from eyeserver.pipeline.limbus import LimbusView, fringe_removed
@@ -104,7 +110,7 @@ from eyeserver.service.verification import (
 
 __all__ = ["CAMERA_RATE_HZ", "FindPose", "FocusingReconstructor", "FrameSet", "FrameSource",
            "LatestFrame", "PoseFinder", "Reconstructor", "RigFrameSource", "RigReconstructor",
-           "TrackFunction", "TrackedCloud", "TrackingControl", "TrackingSession"]
+           "TrackFunction", "TrackedCloud", "TrackingControl", "TrackingSession", "start_pose"]
 
 CAMERA_RATE_HZ = 25.0
 """The cameras' frame rate during live tracking."""
@@ -457,6 +463,35 @@ class _Counters:
     lock: threading.Lock = field(default_factory=threading.Lock)
 
 
+def start_pose(reference: dict[str, Any], model: EyeModel) -> EyePose | None:
+    """The pose tracking looks for the eye from while it knows none: the reference's globe
+    centre and gaze, with the model's radius, as if its limbus had been found in the images —
+    so the first frame is followed from it in the cap about the reference gaze
+    (:func:`~eyeserver.pipeline.eyetrack.track_eye`, ≈ 30 ms) instead of fitted in the whole
+    images (:func:`~eyeserver.pipeline.eyepose.fit_eye`, ≈ 0.7 s, 18 camera frames): the patient
+    was set up there. Where the eye is not there (no limbus near it, too little sclera near the
+    sphere), the finder falls back on the global fit of that frame's cloud, and the next frames
+    on the global fit of the whole images (:class:`TrackingSession`).
+
+    None when the model leaves the radius free (no captured reference holds it): tracking
+    holds the radius of the pose it starts from, which must then be a fitted one.
+    """
+    if model.globe_radius_mm is None:
+        return None
+    return EyePose(centre_mm=_triple(reference["centre_mm"]), centre_sd_mm=(0.0, 0.0, 0.0),
+                   globe_radius_mm=float(model.globe_radius_mm),
+                   limbus_centre_mm=None if reference.get("limbus_centre_mm") is None
+                   else _triple(reference["limbus_centre_mm"]),
+                   limbus_sd_mm=None, gaze=_triple(reference["gaze"]), gaze_sd_deg=0.0,
+                   torsion_deg=None, surface_mad_mm=0.0, sclera_points=0, confidence=0.0,
+                   gaze_source=LIMBUS_FROM_IMAGES)
+
+
+def _triple(values: Sequence[float]) -> tuple[float, float, float]:
+    x, y, z = (float(v) for v in values)
+    return x, y, z
+
+
 class TrackingSession:
     """Live tracking of one patient's eye for one fraction (see the module docstring).
 
@@ -478,18 +513,24 @@ class TrackingSession:
         The rig's clock: frame times and latencies are on it.
     dwell_frames, hold_on_drop
         :class:`~eyeserver.service.beamhold.BeamHoldConfig`.
+    expected : EyePose, optional
+        Where the eye is looked for until the first frame is processed (:func:`start_pose` of
+        the reference); None, or once a frame was processed without a pose (the eye lost, or
+        not where it should be), the frames without a last pose get the global fit.
     """
 
     def __init__(self, source: FrameSource, find: FindPose | Sequence[FindPose], *,
                  reference: dict[str, Any], tolerances: Tolerances, bus: EventBus, clock: Clock,
                  dwell_frames: int = 3, hold_on_drop: bool = True,
-                 info: dict[str, Any] | None = None) -> None:
+                 info: dict[str, Any] | None = None, expected: EyePose | None = None,
+                 ) -> None:
         self.source = source
         self.finders: list[FindPose] = list(find) if isinstance(find, Sequence) else [find]
         if not self.finders:
             raise ValueError("a tracking session needs at least one pose finder")
         self.last_pose: EyePose | None = None
         """The last globe found (a blink's too); None before the first and once lost."""
+        self.expected = expected
         self.reference = reference
         self.tolerances = tolerances
         self.bus = bus
@@ -545,6 +586,8 @@ class TrackingSession:
         eye: EyeSeen = "visible"
         with self._publishing:
             previous = self.last_pose
+            if previous is None and self._last_frame < 0:
+                previous = self.expected  # nothing processed yet: where the eye should be
         try:
             pose = (find or self.finders[0])(frame_set, previous)
         except (PoseError, ReconstructionError, ValueError) as exc:
@@ -814,6 +857,7 @@ class TrackingControl:
                     source, finders, reference=reference.pose,
                     tolerances=patient.tolerances, bus=self.messages, clock=self.clock,
                     dwell_frames=dwell_frames, hold_on_drop=hold_on_drop,
+                    expected=start_pose(reference.pose, model),
                     info={"patient_id": patient_id, "fraction": fraction,
                           "unit": patient.unit, "rate_hz": CAMERA_RATE_HZ,
                           "workers": self.workers,
