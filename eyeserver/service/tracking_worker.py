@@ -59,6 +59,11 @@ _CLOSE_S = 5.0
 _log = logging.getLogger(__name__)
 
 
+WORKER_NICENESS = 5
+"""Tracking workers run this much nicer than the daemon, so that acquisition (the simulated
+room's rendering, a driver's frame handling) and the API come first on a busy machine."""
+
+
 class TrackingWorkerError(EyeserverError):
     """The tracking worker process failed: it did not start, died, or a frame raised an
     unexpected error in it (the child's traceback is in the message)."""
@@ -77,6 +82,10 @@ def _serve(connection: Connection, calibration: str, rig: RigSpec, model: EyeMod
     threadpool_limits(limits=blas_threads, user_api="blas")
     # OpenCV's own thread pool likewise (threadpoolctl does not reach it).
     cv2.setNumThreads(blas_threads)
+    # Below the daemon: acquisition must not wait for the workers (it lets the next frame
+    # wait for them instead).
+    with contextlib.suppress(OSError):
+        os.nice(WORKER_NICENESS)
     try:
         finder = PoseFinder(RigReconstructor(calibration, rig), fit_eye, model, track=track_eye)
     except ReconstructionError as exc:
