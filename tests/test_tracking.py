@@ -236,7 +236,7 @@ def test_several_finders_share_the_frames_and_publish_them_in_order() -> None:
 def test_the_first_frame_is_looked_for_where_the_reference_expects_the_eye() -> None:
     clock = ManualClock(1_000_000_000)
     moved, lost = _pose((0.3, 0.0, -10.0)), PoseError("no sclera")
-    script: list[object] = [_pose(), moved, lost, _pose()]
+    script: list[object] = [_pose(gaze_source="limbus (images)"), moved, lost, _pose()]
     pipeline = ScriptedPipeline(clock)
     given: list[EyePose | None] = []
 
@@ -258,6 +258,19 @@ def test_the_first_frame_is_looked_for_where_the_reference_expects_the_eye() -> 
     # From the reference's pose first, then from each last pose; once a processed frame lost
     # the eye, not from the reference again (it may not be there): the global fit.
     assert given == [expected, script[0], moved, None]
+
+    # A first pose without the limbus from the images (the cloud-only warm fit, which locks on
+    # to what lies near a guess) or no pose at all from the expected one: that frame again,
+    # with the global fit.
+    for first in (_pose(), PoseError("no sclera near the sphere")):
+        given.clear()
+        session = TrackingSession(ScriptedSource(clock, [first, _pose()]), find,
+                                  reference=REFERENCE, tolerances=TOLERANCES, bus=EventBus(),
+                                  clock=clock, expected=expected)
+        session.acquire_once()
+        message = session.process_once()
+        assert given == [expected, None]
+        assert message is not None and (message["pose"] is None) == isinstance(first, Exception)
 
 
 def test_beam_hold_rises_on_the_first_out_of_tolerance_frame_and_falls_after_the_dwell(

@@ -13,17 +13,27 @@ from typing import Any
 import numpy as np
 import pytest
 
+from eyeserver.core.clock import ManualClock
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
+from eyeserver.hardware.sim.truth import room_truth
 from eyeserver.io import RigSpec
 from eyeserver.io.rig_file import rig_from_dict
 from eyeserver.pipeline.eyepose import EyeModel, PoseError, fit_eye
 from eyeserver.pipeline.eyetrack import track_eye
 from eyeserver.pipeline.reconstruct import strong_modulation
 from eyeserver.service import tracking
+from eyeserver.service.events import EventBus
+from eyeserver.service.patients import Tolerances
 from eyeserver.service.reconstruction import ReconstructionError
-from eyeserver.service.tracking import FrameSet, PoseFinder, RigReconstructor
+from eyeserver.service.tracking import (
+    FrameSet,
+    PoseFinder,
+    RigReconstructor,
+    TrackingSession,
+    start_pose,
+)
 from eyeserver.service.tracking_worker import PoseWorker, TrackingWorkerError
 
 MODEL = EyeModel(globe_radius_mm=12.0, cornea_radius_mm=7.8, limbus_diameter_mm=11.7)
@@ -166,3 +176,44 @@ def test_windows_take_the_whole_images_fringe_strength_measured_once_per_camera(
         windows_only.focus(focus)
         np.testing.assert_array_equal(windows_only(rest).points, expected.points)
     assert len(measured) == 2
+
+
+def test_an_eye_away_from_the_reference_is_found_where_it_is(calibrated_rooms: Any) -> None:
+    """The first frame is followed from the reference's pose; an eye 4 mm away is not locked on
+    to near the reference by the cloud-only warm fit, it gets the global fit."""
+    _, caldir = calibrated_rooms("default")
+    with SimSession.open(load_room(None), seed=5) as session:
+        rig = rig_from_dict(session.rig.spec(), "<simulated rig>")
+        session.room.set_scene(SceneSpec(kind="eye", position_mm=(4.0, 0.0, -10.0)))
+        frame = FrameSet(0, 0, session.rig.acquire([session.rig.units[0].id]))
+        truth = room_truth(session.room)["eye"]
+    reference = {"centre_mm": [0.0, 0.0, -10.0], "gaze": [0.0, 0.0, 1.0]}
+    published: list[dict[str, Any]] = []
+
+    class Recorded(EventBus):
+        def publish(self, type: str, **data: Any) -> int:
+            published.append(data)
+            return 0
+
+    clock = ManualClock(0)
+    finder = PoseFinder(RigReconstructor(caldir, rig), fit_eye, MODEL, track=track_eye)
+    tracking_session = TrackingSession(
+        _OneFrame(frame), finder, reference=reference, tolerances=Tolerances(),
+        bus=Recorded(), clock=clock, expected=start_pose(reference, MODEL))
+    tracking_session.acquire_once()
+    tracking_session.process_once()
+    pose = published[0]["pose"]
+    assert pose is not None
+    assert np.linalg.norm(np.subtract(pose["centre_mm"], truth["centre_mm"])) < 0.2
+    assert published[0]["deviation"]["length_mm"] > 3.5 and published[0]["beam_hold"]
+
+
+class _OneFrame:
+    missed = 0
+
+    def __init__(self, frame: FrameSet) -> None:
+        self.frame: FrameSet | None = frame
+
+    def next_frame(self) -> FrameSet | None:
+        frame, self.frame = self.frame, None
+        return frame

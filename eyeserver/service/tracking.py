@@ -469,9 +469,8 @@ def start_pose(reference: dict[str, Any], model: EyeModel) -> EyePose | None:
     so the first frame is followed from it in the cap about the reference gaze
     (:func:`~eyeserver.pipeline.eyetrack.track_eye`, ≈ 30 ms) instead of fitted in the whole
     images (:func:`~eyeserver.pipeline.eyepose.fit_eye`, ≈ 0.7 s, 18 camera frames): the patient
-    was set up there. Where the eye is not there (no limbus near it, too little sclera near the
-    sphere), the finder falls back on the global fit of that frame's cloud, and the next frames
-    on the global fit of the whole images (:class:`TrackingSession`).
+    was set up there. Where the limbus is not found near it, the frame gets the global fit of
+    the whole images (:class:`TrackingSession`).
 
     None when the model leaves the radius free (no captured reference holds it): tracking
     holds the radius of the pose it starts from, which must then be a fitted one.
@@ -515,8 +514,9 @@ class TrackingSession:
         :class:`~eyeserver.service.beamhold.BeamHoldConfig`.
     expected : EyePose, optional
         Where the eye is looked for until the first frame is processed (:func:`start_pose` of
-        the reference); None, or once a frame was processed without a pose (the eye lost, or
-        not where it should be), the frames without a last pose get the global fit.
+        the reference): a pose followed from it counts only if its limbus was found in the
+        images, else that frame gets the global fit too. After that, or without it, a frame
+        with no last pose (the eye lost) gets the global fit.
     """
 
     def __init__(self, source: FrameSource, find: FindPose | Sequence[FindPose], *,
@@ -584,12 +584,22 @@ class TrackingSession:
         pose: EyePose | None = None
         error: str | None = None
         eye: EyeSeen = "visible"
+        finder = find or self.finders[0]
         with self._publishing:
             previous = self.last_pose
-            if previous is None and self._last_frame < 0:
-                previous = self.expected  # nothing processed yet: where the eye should be
+            # Nothing processed yet: first where the eye should be.
+            expected = self.expected if previous is None and self._last_frame < 0 else None
         try:
-            pose = (find or self.finders[0])(frame_set, previous)
+            if expected is not None:
+                with contextlib.suppress(PoseError):
+                    found = finder(frame_set, expected)
+                    # Only a limbus found in the images is trusted from a guess: the cloud-only
+                    # warm fit locks on to whatever lies near it (measured: an eye 3–4 mm from
+                    # the reference came out near the reference, 15–25° off).
+                    if found.gaze_source == LIMBUS_FROM_IMAGES:
+                        pose = found
+            if pose is None:
+                pose = finder(frame_set, previous)
         except (PoseError, ReconstructionError, ValueError) as exc:
             eye, error = "lost", str(exc) or type(exc).__name__
         with self._publishing:
