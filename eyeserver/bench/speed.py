@@ -791,6 +791,7 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
     latency, and its pipeline alone on ``replay_seconds`` of frames rendered beforehand
     (:func:`~eyeserver.bench.tracking.replayed` with ``replay_workers`` worker processes, 0:
     not run)."""
+    from eyeserver.bench import tracking
     from eyeserver.bench.api import api_latency
     from eyeserver.bench.simcal import calibrate_room
 
@@ -808,14 +809,12 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
             api = api_latency(calibration, work, api_requests, room_file, progress)
         live = None
         if tracking_seconds:
-            from eyeserver.bench import tracking
             progress(f"live tracking for {tracking_seconds} s (frame → pose latency)")
             (work / "tracking").mkdir()
             live = tracking.run(tracking_seconds, calibration=calibration, room_file=room_file,
                                 work=work / "tracking", progress=progress)
         alone = None
         if replay_seconds:
-            from eyeserver.bench import tracking
             progress(f"live tracking's pipeline alone, {replay_seconds} s replayed")
             alone = tracking.replayed(calibration, replay_seconds, room_file=room_file,
                                       workers=replay_workers, progress=progress)
