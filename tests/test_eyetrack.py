@@ -376,7 +376,9 @@ def test_the_session_follows_the_eye_in_its_window_and_looks_again_once_lost() -
         assert message is not None
         eyes.append(message["eye"])
 
-    assert pipeline.focused == [None, first, second, third, blink, None]
+    # A failed warm fit is followed by the whole images' global fit (the eye may have left the
+    # window).
+    assert pipeline.focused == [None, first, second, None, third, blink, None, None]
     assert pipeline.calls == ["fit", "track", "track", "fit", "track", "track", "fit", "fit"]
     assert eyes == ["visible", "visible", "visible", "blink", "lost", "visible"]
     assert session.last_pose == first
@@ -399,7 +401,7 @@ def test_without_a_warm_fit_every_frame_is_fitted_globally() -> None:
 
 
 def test_the_images_a_reconstruction_gives_go_to_the_fits() -> None:
-    pose = _previous(CENTRE)
+    pose = replace(_previous(CENTRE), gaze_source="limbus (images)")
     pipeline = _FocusingPipeline()
     pipeline.with_views = True
     session = TrackingSession(
@@ -412,6 +414,45 @@ def test_the_images_a_reconstruction_gives_go_to_the_fits() -> None:
         session.acquire_once()
         session.process_once()
     assert pipeline.calls == ["fit", "track"] and pipeline.views == [2, 2]
+
+
+def test_with_images_a_followed_pose_counts_only_with_the_limbus_found_in_them() -> None:
+    # The cloud-only warm fit locks on to what lies near the last pose: an eye that moved away
+    # while its limbus was not seen would be reported where it was. So with images, a followed
+    # pose stands only with its limbus from them (or as a blink); otherwise that frame gets
+    # the global fit of the whole images.
+    start = _previous(CENTRE)
+    on_limbus = replace(_previous(np.add(CENTRE, [0.01, 0.0, 0.0])),
+                        gaze_source="limbus (images)")
+    cloud_only = _previous(np.add(CENTRE, [0.02, 0.0, 0.0]))  # gaze_source "limbus" (cloud)
+    moved = replace(_previous(np.add(CENTRE, [3.0, 0.0, 0.0])), gaze_source="limbus (images)")
+    blink = replace(start, gaze_source="none")
+    script: list[dict[str, object]] = [
+        {"fit": start},                                # 0: the global fit
+        {"track": on_limbus},                          # 1: followed, limbus from the images
+        {"track": cloud_only, "fit": moved},           # 2: not confirmed: the global fit
+        {"track": blink},                              # 3: the lids closed: a blink
+        {"track": PoseError("lost"), "fit": moved},    # 4: not followed: the global fit
+    ]
+    pipeline = _FocusingPipeline()
+    pipeline.with_views = True
+    session = TrackingSession(
+        _ScriptSource(script),
+        PoseFinder(pipeline, pipeline.fit, EyeModel.population(), track=pipeline.track),
+        bus=EventBus(), clock=ManualClock(),
+        reference={"centre_mm": list(CENTRE), "gaze": [0.0, 0.0, 1.0]},
+        tolerances=Tolerances(translation_mm=0.5, gaze_deg=1.0, min_confidence=0.0))
+    messages = []
+    for _ in script:
+        session.acquire_once()
+        message = session.process_once()
+        assert message is not None
+        messages.append(message)
+    assert pipeline.calls == ["fit", "track", "track", "fit", "track", "track", "fit"]
+    assert pipeline.focused == [None, start, on_limbus, None, moved, blink, None]
+    assert [m["eye"] for m in messages] == ["visible", "visible", "visible", "blink", "visible"]
+    assert messages[2]["pose"]["centre_mm"] == pytest.approx(list(moved.centre_mm))
+    assert messages[2]["beam_hold"] and messages[2]["deviation"]["length_mm"] == pytest.approx(3)
 
 
 class _ScriptSource:

@@ -46,8 +46,9 @@ Once a frame gave a pose, the next ones are followed from it (the eye moves litt
 the reconstruction covers only a window around the eye in each camera
 (:meth:`RigReconstructor.focus`, :func:`~eyeserver.pipeline.eyetrack.pose_window`) and the
 globe is refitted from the last pose (:func:`~eyeserver.pipeline.eyetrack.track_eye`) instead
-of searched for; the global fit (:func:`~eyeserver.pipeline.eyepose.fit_eye`) comes back when
-the warm fit fails, and the whole image once the eye is lost. A blink keeps the last globe.
+of searched for; the global fit (:func:`~eyeserver.pipeline.eyepose.fit_eye`) of the whole
+images comes back when the warm fit fails or does not find the limbus in the images
+(:class:`PoseFinder`), and once the eye is lost. A blink keeps the last globe.
 
 The clock, the frame source and the pose finder (:class:`FindPose`: :class:`PoseFinder` runs
 the reconstruction and fits in this process) are injected, so tests replay any
@@ -214,12 +215,17 @@ class FindPose(Protocol):
 class PoseFinder:
     """Reconstruct a frame set and find the eye in it, in this process (:class:`FindPose`).
 
-    A reconstruction that is a :class:`FocusingReconstructor` is focused on the last pose
-    first (None once the eye is lost: the whole images again). With a last pose and a
-    ``track``, the eye is followed from it
-    (:func:`~eyeserver.pipeline.eyetrack.track_eye`); a :class:`PoseError` there, or no last
-    pose, fits it with ``fit`` (:func:`~eyeserver.pipeline.eyepose.fit_eye`). Both get the
-    images the cloud came from where the reconstruction gives them (:class:`TrackedCloud`).
+    With a last pose and a ``track``, the eye is followed from it
+    (:func:`~eyeserver.pipeline.eyetrack.track_eye`), in the window around it where the
+    reconstruction is a :class:`FocusingReconstructor`. Where the reconstruction gives the
+    images the cloud came from (:class:`TrackedCloud`), a followed pose counts only when its
+    limbus was found in them (or the lids cover the eye: a blink): the cloud-only warm fit
+    locks on to whatever lies near the last pose, so an eye that moved more than about a
+    millimetre while its limbus was not seen would be reported near where it was (measured: an
+    eye 4 mm away came out 4.3 mm off, with no error). Such a frame, one where following fails
+    (:class:`PoseError`) and one with no last pose get the global fit ``fit``
+    (:func:`~eyeserver.pipeline.eyepose.fit_eye`) of the whole images. Without a ``track``
+    every frame gets ``fit``, in the window around the last pose.
 
     Parameters
     ----------
@@ -241,19 +247,36 @@ class PoseFinder:
         self.track = track
 
     def __call__(self, frame_set: FrameSet, previous: EyePose | None) -> EyePose:
-        if isinstance(self.reconstruct, FocusingReconstructor):
-            self.reconstruct.focus(previous)
-        cloud = self.reconstruct(frame_set)
-        views = cloud.views if isinstance(cloud, TrackedCloud) else ()
+        cloud = self._cloud(frame_set, previous)
         if previous is not None and self.track is not None:
+            views = _views(cloud)
             with contextlib.suppress(PoseError):
-                if views:
-                    return self.track(cloud, self.model, previous, views)
-                return self.track(cloud, self.model, previous)
+                pose = (self.track(cloud, self.model, previous, views) if views
+                        else self.track(cloud, self.model, previous))
+                if not views or pose.gaze_source in _CONFIRMED:
+                    return pose
+            if isinstance(self.reconstruct, FocusingReconstructor):
+                cloud = self._cloud(frame_set, None)  # the eye may have left the window
+        views = _views(cloud)
         return self.fit(cloud, self.model, views) if views else self.fit(cloud, self.model)
+
+    def _cloud(self, frame_set: FrameSet, focus: EyePose | None) -> CloudLike:
+        if isinstance(self.reconstruct, FocusingReconstructor):
+            self.reconstruct.focus(focus)
+        return self.reconstruct(frame_set)
 
     def close(self) -> None:
         """Nothing to free in this process."""
+
+
+_CONFIRMED = (LIMBUS_FROM_IMAGES, "none")
+"""The gaze sources of a followed pose that are not the cloud-only warm fit's guess: the
+limbus found in the images, or none at all (the lids closed: the beam is held and the next
+frame must find the limbus)."""
+
+
+def _views(cloud: CloudLike) -> tuple[LimbusView, ...]:
+    return cloud.views if isinstance(cloud, TrackedCloud) else ()
 
 
 class RigFrameSource:
@@ -470,7 +493,7 @@ def start_pose(reference: dict[str, Any], model: EyeModel) -> EyePose | None:
     (:func:`~eyeserver.pipeline.eyetrack.track_eye`, ≈ 30 ms) instead of fitted in the whole
     images (:func:`~eyeserver.pipeline.eyepose.fit_eye`, ≈ 0.7 s, 18 camera frames): the patient
     was set up there. Where the limbus is not found near it, the frame gets the global fit of
-    the whole images (:class:`TrackingSession`).
+    the whole images (:class:`PoseFinder`).
 
     None when the model leaves the radius free (no captured reference holds it): tracking
     holds the radius of the pose it starts from, which must then be a fitted one.
@@ -513,10 +536,10 @@ class TrackingSession:
     dwell_frames, hold_on_drop
         :class:`~eyeserver.service.beamhold.BeamHoldConfig`.
     expected : EyePose, optional
-        Where the eye is looked for until the first frame is processed (:func:`start_pose` of
-        the reference): a pose followed from it counts only if its limbus was found in the
-        images, else that frame gets the global fit too. After that, or without it, a frame
-        with no last pose (the eye lost) gets the global fit.
+        The last pose until the first frame is processed (:func:`start_pose` of the
+        reference): the first frame is followed from where the eye should be, like any other
+        (:class:`PoseFinder`). After that, or without it, a frame with no last pose (the eye
+        lost) gets the global fit.
     """
 
     def __init__(self, source: FrameSource, find: FindPose | Sequence[FindPose], *,
@@ -587,19 +610,10 @@ class TrackingSession:
         finder = find or self.finders[0]
         with self._publishing:
             previous = self.last_pose
-            # Nothing processed yet: first where the eye should be.
-            expected = self.expected if previous is None and self._last_frame < 0 else None
+            if previous is None and self._last_frame < 0:
+                previous = self.expected  # nothing processed yet: where the eye should be
         try:
-            if expected is not None:
-                with contextlib.suppress(PoseError):
-                    found = finder(frame_set, expected)
-                    # Only a limbus found in the images is trusted from a guess: the cloud-only
-                    # warm fit locks on to whatever lies near it (measured: an eye 3–4 mm from
-                    # the reference came out near the reference, 15–25° off).
-                    if found.gaze_source == LIMBUS_FROM_IMAGES:
-                        pose = found
-            if pose is None:
-                pose = finder(frame_set, previous)
+            pose = finder(frame_set, previous)
         except (PoseError, ReconstructionError, ValueError) as exc:
             eye, error = "lost", str(exc) or type(exc).__name__
         with self._publishing:
