@@ -32,6 +32,7 @@ from eyeserver.hardware.registry import (
 )
 from eyeserver.hardware.rig import HardwareConfig, Rig, Unit, build_rig
 from eyeserver.hardware.sim.drivers import (
+    LINK_BYTES_PER_S,
     SIM_WIRING,
     SimCamera,
     SimProjector,
@@ -83,7 +84,8 @@ class FakeRoom:
                exposure_us: float, gain_db: float, rng: np.random.Generator) -> np.ndarray:
         with self._lock:
             self.renders.append({"camera": camera_id, "t_s": t_s, "projectors": dict(projectors),
-                                 "exposure_us": exposure_us, "gain_db": gain_db})
+                                 "exposure_us": exposure_us, "gain_db": gain_db,
+                                 "rendered_ns": self.clock.now_ns()})
         width, height, bit_depth = self.camera_format(camera_id)
         level = BACKGROUND_DN + FRINGE_DN * sum(projectors.values())
         image = level + rng.normal(0.0, 2.0, (height, width))
@@ -523,6 +525,23 @@ def test_acquire_times_mid_exposure(open_rig: Rig, room: FakeRoom) -> None:
     assert step.frames["S2"].meta.t_ns == START_NS + 5_000_000  # default 10 ms exposure
     assert room.renders[0]["t_s"] == pytest.approx(1.004)
     assert room.renders[0]["exposure_us"] == 8_000.0
+
+
+def test_a_pulse_scheduled_ahead_is_rendered_at_once_and_delivered_when_a_camera_would(
+        open_rig: Rig, room: FakeRoom) -> None:
+    at_ns = START_NS + 40_000_000
+    (step,) = open_rig.acquire(["left"], at_ns=at_ns)
+    assert step.pulse.t_ns == at_ns
+    assert [step.frames[c].meta.t_ns for c in ("S1", "S2")] == [at_ns + 5_000_000] * 2
+    assert [r["t_s"] for r in room.renders] == pytest.approx([1.045, 1.045])
+    assert room.renders[0]["rendered_ns"] == START_NS  # before its pulse: ahead
+    # Delivered at the end of the 10 ms exposure plus the transfer over the link, not sooner.
+    transfer_ns = round(1e9 * 32 * 24 / LINK_BYTES_PER_S)
+    assert room.clock.now_ns() == at_ns + 10_000_000 + transfer_ns
+    # A moment already past fires now.
+    now = room.clock.now_ns()
+    (late,) = open_rig.acquire(["left"], at_ns=START_NS)
+    assert late.pulse.t_ns == now
 
 
 def test_acquire_one_unit_and_bad_unit_lists(open_rig: Rig) -> None:

@@ -350,37 +350,48 @@ def test_low_confidence_holds_the_beam() -> None:
 
 
 class _FakeRig:
-    """Acquires at once, or taking ``busy_s`` of the clock; frames mid-exposure 1 ms after."""
+    """Pulses at the scheduled time (now if that has passed), takes ``busy_s`` of the clock to
+    deliver (the simulated room's rendering) and no less than 4 ms after the pulse (exposure
+    and transfer); frames mid-exposure 1 and 3 ms after the pulse."""
 
     def __init__(self, clock: ManualClock, busy_s: list[float]) -> None:
         self.clock = clock
         self.busy_s = busy_s
-        self.calls: list[int] = []
+        self.calls: list[tuple[float, float]] = []  # (called, pulse) ms after the start
 
-    def acquire(self, unit_ids: list[str]) -> list[AcquiredStep]:
+    def acquire(self, unit_ids: list[str], *, at_ns: int | None = None) -> list[AcquiredStep]:
         now = self.clock.now_ns()
-        self.calls.append(now)
+        pulse = now if at_ns is None else max(now, at_ns)
+        self.calls.append(((now - START_NS) / 1e6, (pulse - START_NS) / 1e6))
         step = TriggerStep(projectors=("P1",), cameras=("S1", "S2"))
         frames = {c: Frame(np.zeros((2, 2), np.uint8),
-                           FrameMeta(c, len(self.calls), now + 1_000_000 + k * 2_000_000,
+                           FrameMeta(c, len(self.calls), pulse + 1_000_000 + k * 2_000_000,
                                      2000.0, 0.0, 0, 8))
                   for k, c in enumerate(("S1", "S2"))}
         self.clock.advance(self.busy_s[len(self.calls) - 1])
-        return [AcquiredStep(TriggerPulse(len(self.calls), now, step), frames)]
+        self.clock.sleep(max(0.0, (pulse + 4_000_000 - self.clock.now_ns()) / 1e9))
+        return [AcquiredStep(TriggerPulse(len(self.calls), pulse, step), frames)]
 
 
-def test_the_rig_source_paces_at_the_camera_rate_and_counts_missed_frames() -> None:
-    clock = ManualClock(10_000_000_000)
+START_NS = 10_000_000_000
+
+
+def test_the_rig_source_schedules_frames_at_the_camera_rate_and_counts_missed_ones() -> None:
+    clock = ManualClock(START_NS)
     rig = _FakeRig(clock, [0.010, 0.010, 0.130, 0.010, 0.010])
     source = RigFrameSource(rig, ["left"], clock)  # type: ignore[arg-type]
     frames = [source.next_frame() for _ in range(5)]
 
-    assert [f.frame for f in frames if f] == [0, 1, 2, 5, 6]  # frames 3 and 4 were missed
-    assert source.missed == 2
-    # Frame 5 is acquired at once, 10 ms late (within half a period); frame 6 on time.
-    assert [(t - 10_000_000_000) / 1e6 for t in rig.calls] == [0.0, 40.0, 80.0, 210.0, 240.0]
-    first = frames[0]
-    assert first is not None and first.t_ns == 10_000_000_000 + 2_000_000  # mean mid-exposure
+    assert [f.frame for f in frames if f] == [0, 1, 2, 4, 5]  # frame 3 was missed
+    assert source.missed == 1
+    # Each pulse is scheduled for its due time as soon as the last frames arrived (so the room
+    # can render ahead); frame 4, due at 160 ms, is fired at once, 14 ms late (within half a
+    # period), frame 5 on time again.
+    assert rig.calls == [(0.0, 0.0), (10.0, 40.0), (44.0, 80.0), (174.0, 174.0),
+                         (184.0, 200.0)]
+    first, late = frames[0], frames[3]
+    assert first is not None and first.t_ns == START_NS + 2_000_000  # mean mid-exposure
+    assert late is not None and late.t_ns == START_NS + 176_000_000
 
 
 # --- the API and the pose stream over a real server ------------------------------------------

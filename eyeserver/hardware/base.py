@@ -274,12 +274,17 @@ class Trigger(Device):
         self._apply_sequence(steps)
         self._sequence = steps
 
-    def fire(self) -> TriggerPulse:
-        """Fire one software trigger pulse (the next step of the sequence) and return it."""
+    def fire(self, at_ns: int | None = None) -> TriggerPulse:
+        """Fire one software trigger pulse (the next step of the sequence) and return it.
+
+        ``at_ns`` times the pulse for that moment of the trigger's clock instead of now (a
+        pulse scheduled ahead, which the controller's own timer fires then: the frames' times
+        are exact, not a sleep's); a moment already past fires now.
+        """
         self._require_open()
         if not self._sequence:
             raise DeviceValueError(self.id, "no sequence set; call set_sequence() first")
-        return self._fire()
+        return self._fire(at_ns)
 
     @abc.abstractmethod
     def _apply_rate_hz(self, value: float) -> None: ...
@@ -288,7 +293,7 @@ class Trigger(Device):
     def _apply_sequence(self, steps: tuple[TriggerStep, ...]) -> None: ...
 
     @abc.abstractmethod
-    def _fire(self) -> TriggerPulse: ...
+    def _fire(self, at_ns: int | None) -> TriggerPulse: ...
 
     @abc.abstractmethod
     def start(self) -> None:

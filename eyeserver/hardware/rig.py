@@ -258,7 +258,8 @@ class Rig:
     def __exit__(self, *exc_info: object) -> None:
         self.close()
 
-    def acquire(self, unit_ids: Sequence[str], timeout_s: float = 2.0) -> list[AcquiredStep]:
+    def acquire(self, unit_ids: Sequence[str], timeout_s: float = 2.0, *,
+                at_ns: int | None = None) -> list[AcquiredStep]:
         """Capture one interleaved frame set: one trigger pulse per unit, in the order given.
 
         Pulse ``n`` lights only unit ``n``'s projector and exposes only its cameras; the frames
@@ -271,6 +272,10 @@ class Rig:
             Units to capture, each at most once.
         timeout_s : float
             Longest wait for each camera's frame, seconds.
+        at_ns : int, optional
+            Time the first pulse for this moment of the trigger's clock instead of now
+            (:meth:`~eyeserver.hardware.base.Trigger.fire`): frames at a steady rate, with
+            exact times. The call returns once the frames have arrived.
 
         Returns
         -------
@@ -295,7 +300,7 @@ class Rig:
         steps = [TriggerStep(projectors=(unit.projector.id,),
                              cameras=tuple(c.id for c in unit.cameras))
                  for unit in (self._unit_by_id[u] for u in unit_ids)]
-        return self._run(steps, timeout_s)
+        return self._run(steps, timeout_s, at_ns)
 
     def acquire_unlit(self, timeout_s: float = 2.0) -> AcquiredStep:
         """Capture every camera on one pulse that lights no projector (chessboards in room light).
@@ -310,15 +315,16 @@ class Rig:
         step = TriggerStep(projectors=(), cameras=tuple(c.id for c in self._cameras))
         return self._run([step], timeout_s)[0]
 
-    def _run(self, steps: Sequence[TriggerStep], timeout_s: float) -> list[AcquiredStep]:
+    def _run(self, steps: Sequence[TriggerStep], timeout_s: float, at_ns: int | None = None,
+             ) -> list[AcquiredStep]:
         if timeout_s <= 0:
             raise ValueError(f"timeout_s must be positive, not {timeout_s}")
         with self._lock:
             # Setting the sequence restarts it, so pulse n is step n.
             self._trigger.set_sequence(steps)
             acquired: list[AcquiredStep] = []
-            for _ in steps:
-                pulse = self._trigger.fire()
+            for n, _ in enumerate(steps):
+                pulse = self._trigger.fire(at_ns if n == 0 else None)
                 frames = {camera_id: self._camera_by_id[camera_id].read_frame(timeout_s)
                           for camera_id in pulse.step.cameras}
                 acquired.append(AcquiredStep(pulse=pulse, frames=frames))

@@ -282,9 +282,12 @@ def _views(cloud: CloudLike) -> tuple[LimbusView, ...]:
 class RigFrameSource:
     """Frame sets of some units of the rig, paced at ``rate_hz`` on ``clock``.
 
-    Frame ``n`` is due at ``start + n / rate_hz``; an acquisition that overruns its period
-    makes the frames whose time has passed *missed* (counted in :attr:`missed`), so the frame
-    numbers keep counting camera periods.
+    Frame ``n`` is due at ``start + n / rate_hz``: its pulse is scheduled for that moment as
+    soon as the last frame set has arrived (:meth:`~eyeserver.hardware.rig.Rig.acquire` with
+    ``at_ns``), so the frames come at a steady rate with exact times, and the simulated room
+    renders each before it is due, as a camera's frame costs the host nothing. An acquisition
+    that overruns its period makes the frames whose time has passed *missed* (counted in
+    :attr:`missed`), so the frame numbers keep counting camera periods.
     """
 
     def __init__(self, rig: Rig, unit_ids: Sequence[str], clock: Clock,
@@ -314,9 +317,7 @@ class RigFrameSource:
             self._missed += int(late)
             self._next += int(late)
             due_ns += int(late) * self._period_ns
-        if due_ns > now:
-            clock.sleep((due_ns - now) / 1e9)
-        steps = self._rig.acquire(self._unit_ids)
+        steps = self._rig.acquire(self._unit_ids, at_ns=due_ns)
         times = [f.meta.t_ns for step in steps for f in step.frames.values()]
         frame = FrameSet(self._next, round(sum(times) / len(times)), steps)
         self._next += 1

@@ -138,6 +138,10 @@ class RenderSource(Protocol):
         ...
 
 
+LINK_BYTES_PER_S = 115e6
+"""A simulated camera's link: GigE Vision's ≈ 115 MB/s of image data (1 Gb/s less framing)."""
+
+
 @dataclass(frozen=True)
 class _Exposure:
     """What a camera latched when a pulse exposed it; rendered later, when the frame is read."""
@@ -312,7 +316,12 @@ class SimCamera(_SimFaults, Camera):
     -----
     A pulse latches the exposure, gain and lit projectors at its own time; the image is rendered
     by :meth:`read_frame` at mid-exposure, ``t = pulse + exposure / 2``, so the cost of rendering
-    falls on the reader, as the cost of a transfer would. The noise comes from the camera's own
+    falls on the reader, as the cost of a transfer would. A frame is never returned before a
+    real camera's could be: the end of its exposure plus its transfer over the link
+    (:data:`LINK_BYTES_PER_S`, ≈ 3 ms for 640 × 512 at 8 bits), waited for on the room's clock
+    after rendering. So a pulse scheduled ahead (:meth:`~eyeserver.hardware.base.Trigger.fire`
+    with ``at_ns``) is rendered before it is due and its frame delivered when a camera would
+    deliver it. The noise comes from the camera's own
     generator seeded with ``[room.seed, camera index]``, so a seed reproduces a sequence of reads
     exactly. One reader at a time.
     """
@@ -334,6 +343,7 @@ class SimCamera(_SimFaults, Camera):
         self._queue_size = int(queue_size)
         self._rng = np.random.default_rng([int(wiring.room.seed), camera_ids.index(device_id)])
         self._dtype = np.dtype(np.uint8 if self.bit_depth == 8 else np.uint16)
+        self._transfer_ns = round(1e9 * width * height * self._dtype.itemsize / LINK_BYTES_PER_S)
         self._state_lock = threading.Lock()
         self._read_lock = threading.Lock()
         # None is a wake-up call for a blocked reader; the bound on exposures is kept by
@@ -479,6 +489,10 @@ class SimCamera(_SimFaults, Camera):
             raise DeviceError(self.id, f"the room rendered a {image.dtype} image of shape "
                                        f"{image.shape}, expected {self._dtype} of shape "
                                        f"{(self.height, self.width)}")
+        clock = self._wiring.clock
+        ready_ns = exposure.pulse.t_ns + round(exposure.exposure_us * 1000.0) + self._transfer_ns
+        if ready_ns > clock.now_ns():  # rendered before a camera would have sent it
+            clock.sleep((ready_ns - clock.now_ns()) / 1e9)
         with self._state_lock:
             counter = self._frame_counter
             self._frame_counter += 1
@@ -599,13 +613,16 @@ class SimTrigger(_SimFaults, Trigger):
             self._sequence = steps
             self._position = 0
 
-    def _fire(self) -> TriggerPulse:
+    def _fire(self, at_ns: int | None) -> TriggerPulse:
         with self._fire_lock:
             self._check_connected()
             step = self._sequence[self._position % len(self._sequence)]
             self._position += 1
-            pulse = TriggerPulse(index=self._pulse_index, t_ns=self._wiring.clock.now_ns(),
-                                 step=step)
+            now_ns = self._wiring.clock.now_ns()
+            # A pulse scheduled ahead is announced to the cameras now, so that the room can be
+            # rendered before the frame is due, as a camera's frame costs the host nothing.
+            t_ns = now_ns if at_ns is None else max(now_ns, int(at_ns))
+            pulse = TriggerPulse(index=self._pulse_index, t_ns=t_ns, step=step)
             self._pulse_index += 1
             self._wiring.publish(pulse)
             return pulse
