@@ -207,9 +207,11 @@ class Renderer:
 
         The static part (``built.static``) is rendered once and cached. Each frame re-casts,
         through the whole scene, only the pixels whose camera ray meets a moving part's bounding
-        sphere, or whose static point could be shadowed by it (its ray to a projector passes
-        through the sphere); everywhere else the moving parts cannot change the light. Both
-        tests run only over the pixels that meet ``built.envelope``, found once per static part.
+        sphere. A static point whose ray to a projector passes through the sphere can only fall
+        into a moving part's shadow: there the moving parts alone are tested for blocking that
+        ray, and its static value kept or darkened (half the re-cast rays on the simulated eye,
+        measured). Everywhere else the moving parts cannot change the light. Both tests run only
+        over the pixels that meet ``built.envelope``, found once per static part.
         """
         if built.static is None or built.static_key is None or built.envelope is None:
             raise ValueError("the scene has no static part to cache")
@@ -217,34 +219,59 @@ class Renderer:
         sources = [AMBIENT, *projectors]
         static = self._static_part(camera_id, built, sources)
         rays = cam.rays().reshape(-1, 3)
-        dynamic: list[npt.NDArray[np.intp]] = []
+        moving = Scene([body for body in built.scene.bodies
+                        if not any(body is other for other in built.static.bodies)])
+        seen: list[npt.NDArray[np.intp]] = []
+        shaded: dict[str, list[npt.NDArray[np.intp]]] = {source: [] for source in sources[1:]}
         for centre, radius in built.moving_bounds:
             along = static.view_rays @ (centre - cam.centre)
             rel = centre - cam.centre
             near = (along > 0) & (float(rel @ rel) - along**2 < radius**2)
-            dynamic.append(static.view_idx[near])
+            seen.append(static.view_idx[near])
             for source in sources[1:]:
                 # Closest approach of the bound's centre to each segment projector → point.
                 seg = static.shadow_seg[source]
                 rel = centre - self.projectors[source].centre
                 frac = np.clip((seg @ rel) / static.shadow_len2[source], 0.0, 1.0)
                 gap = rel - frac[:, None] * seg
-                near = np.einsum("ij,ij->i", gap, gap) < radius**2
-                dynamic.append(static.shadow_idx[source][near])
+                shaded[source].append(np.flatnonzero(np.einsum("ij,ij->i", gap, gap)
+                                                      < radius**2))
         # A boolean union is several times faster than np.unique on these index lists.
         changed = np.zeros(rays.shape[0], dtype=bool)
-        for part_idx in dynamic:
+        for part_idx in seen:
             changed[part_idx] = True
         idx = np.flatnonzero(changed)
         fresh = self._shade_sources(cam, built.scene, rays[idx], sources) if idx.size else {}
         images: dict[str, F32] = {}
         for source in sources:
             values = static.values[source].copy()
+            if source != AMBIENT and shaded[source]:
+                values[self._shadowed(static, source, moving, shaded[source], changed)] = 0.0
             if idx.size:
                 values[idx] = fresh[source].values
             images[source] = self._finish(camera_id, values)
         return Components(ambient=images[AMBIENT],
                           fringe={pid: images[pid] for pid in sources[1:]})
+
+    def _shadowed(self, static: _StaticPart, source: str, moving: Scene,
+                  near: list[npt.NDArray[np.intp]], recast: npt.NDArray[np.bool_],
+                  ) -> npt.NDArray[np.intp]:
+        """The static points (pixel indices) that a moving part hides from ``source``, among
+        those whose ray to it passes ``near`` the moving parts (positions in the static part's
+        shadow lists) and that are not ``recast`` anyway."""
+        chosen = np.zeros(len(static.shadow_idx[source]), dtype=bool)
+        for part_rows in near:
+            chosen[part_rows] = True
+        rows = np.flatnonzero(chosen)
+        pixels = static.shadow_idx[source][rows]
+        keep = ~recast[pixels]
+        rows, pixels = rows[keep], pixels[keep]
+        seg = static.shadow_seg[source][rows]
+        distance = np.sqrt(static.shadow_len2[source][rows])
+        blocker = moving.first_hit_distance(self.projectors[source].centre,
+                                            seg / distance[:, None])
+        # The same margin as the full shadow test of _shade_sources.
+        return pixels[blocker < distance - (1e-3 + 1e-6 * distance)]
 
     def _static_part(self, camera_id: str, built: BuiltScene, sources: Sequence[str],
                      ) -> _StaticPart:
