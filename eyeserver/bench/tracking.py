@@ -221,6 +221,7 @@ def _report(seconds: float, elapsed_s: float, started: dict[str, Any], status: d
     end_to_end = [(arrived - m["t_ns"]) / 1e6 for arrived, m in main]
     at_send = [float(m["latency_ms"]) for _, m in main]
     processing = [float(m["processing_ms"]) for _, m in main]
+    delivery = [float(m["delivery_ms"]) for _, m in main if m.get("delivery_ms") is not None]
     after = [m for _, m in main if m["t_ns"] >= saccade_end_ns]
     before = [m for _, m in main if m["t_ns"] < saccade_end_ns - 30_000_000]
     at_rest = [m["deviation"] for m in before if m["deviation"] is not None]
@@ -269,6 +270,9 @@ def _report(seconds: float, elapsed_s: float, started: dict[str, Any], status: d
                        "at_send_median": _percentile(at_send, 50),
                        "at_send_p99": _percentile(at_send, 99),
                        "processing_median": _percentile(processing, 50),
+                       "processing_p99": _percentile(processing, 99),
+                       "delivery_median": _percentile(delivery, 50),
+                       "delivery_p99": _percentile(delivery, 99),
                        "goal_p99": 40.0},
         "fits": {"with_pose": len(good), "without_pose": len(main) - len(good),
                  "in_tolerance": sum(1 for m in good if m["in_tolerance"]),
@@ -310,7 +314,9 @@ def format_text(report: dict[str, Any]) -> str:
         f"{_fmt(lat['end_to_end_p99'])} ms   goal p99 < 40 ms  "
         f"{'met' if (lat['end_to_end_p99'] or 1e9) < 40 else 'NOT met'}",
         f"  (at the daemon's send: median {_fmt(lat['at_send_median'])} ms, p99 "
-        f"{_fmt(lat['at_send_p99'])} ms; processing median {_fmt(lat['processing_median'])} ms)",
+        f"{_fmt(lat['at_send_p99'])} ms; of which frames in the daemon's hands after "
+        f"{_fmt(lat.get('delivery_median'))}/{_fmt(lat.get('delivery_p99'))} ms, processing "
+        f"{_fmt(lat['processing_median'])}/{_fmt(lat.get('processing_p99'))} ms, median/p99)",
         f"  saccade {reaction['saccade_deg']:g}° (tolerance {reaction['tolerance_gaze_deg']:g}°): "
         f"first processed frame after it held: "
         f"{reaction['first_processed_frame_after_saccade_held']}, "
@@ -363,7 +369,8 @@ class _Replay:
         due_ns = self._start_ns + self._next * self._period_ns
         if due_ns > now:
             self._clock.sleep((due_ns - now) / 1e9)
-        frame = FrameSet(self._next, due_ns, self._steps[self._next])
+        frame = FrameSet(self._next, due_ns, self._steps[self._next],
+                         arrived_ns=self._clock.now_ns())
         self._next += 1
         return frame
 

@@ -34,11 +34,15 @@ feeds :class:`BeamHold` and publishes one message per processed frame on
     {"t": s, "t_ns": ns, "frame": n, "pose": {"centre_mm", "limbus_centre_mm", "gaze"} | null,
      "deviation": {"delta_mm", "length_mm", "gaze_deg"} | null, "in_tolerance": bool,
      "beam_hold": bool, "latency_ms": ms, "confidence": 0…1, "eye": "visible"|"blink"|"lost",
-     "reasons": [...], "dropped_frames": n, "missed_frames": n, "processing_ms": ms}
+     "reasons": [...], "dropped_frames": n, "missed_frames": n, "delivery_ms": ms | null,
+     "processing_ms": ms}
 
 ``t`` is the frame set's mid-exposure time on the rig's monotonic clock (the mean of its
 cameras'), ``latency_ms`` the time from it to the message's send: the publisher stamps it when it
-publishes, and the WebSocket stamps it again right before sending. A fit that fails (no eye, the
+publishes, and the WebSocket stamps it again right before sending. Of that, ``delivery_ms`` is
+the time from ``t`` until the frame set was in the daemon's hands (half the exposure, the
+transfer, and any lateness of the rig) and ``processing_ms`` the reconstruction, fit and
+judgement; the rest is the wait for a free worker. A fit that fails (no eye, the
 eye lost) or a pose whose gaze cannot be found (lids closed: a blink) gives ``pose`` null and
 ``beam_hold`` true.
 
@@ -141,12 +145,15 @@ class FrameSet:
         The rig's frames (one step per unit); empty for scripted sources.
     data : object
         Anything a scripted source hands its scripted reconstruction (tests).
+    arrived_ns : int, optional
+        When the frame set was in the daemon's hands, ns on the same clock (None: not known).
     """
 
     frame: int
     t_ns: int
     steps: Sequence[AcquiredStep] = ()
     data: object = None
+    arrived_ns: int | None = None
 
 
 class FrameSource(Protocol):
@@ -319,7 +326,8 @@ class RigFrameSource:
             due_ns += int(late) * self._period_ns
         steps = self._rig.acquire(self._unit_ids, at_ns=due_ns)
         times = [f.meta.t_ns for step in steps for f in step.frames.values()]
-        frame = FrameSet(self._next, round(sum(times) / len(times)), steps)
+        frame = FrameSet(self._next, round(sum(times) / len(times)), steps,
+                         arrived_ns=clock.now_ns())
         self._next += 1
         return frame
 
@@ -655,6 +663,8 @@ class TrackingSession:
         now_ns = self.clock.now_ns()
         message.update(beam_hold=decision.beam_hold, reasons=list(decision.reasons),
                        dropped_frames=self.slot.dropped, missed_frames=self.source.missed,
+                       delivery_ms=None if frame_set.arrived_ns is None
+                       else (frame_set.arrived_ns - frame_set.t_ns) / 1e6,
                        processing_ms=(now_ns - started_ns) / 1e6,
                        latency_ms=(now_ns - frame_set.t_ns) / 1e6)
         if error is not None:

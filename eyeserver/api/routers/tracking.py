@@ -11,8 +11,10 @@ reconstructed, fitted and compared with the fraction's reference
 ``/ws/events`` (``?token=`` or ``Authorization: Bearer``; otherwise closed with 1008 before any
 message). Each message is ``{"type": "pose", "seq", "time", "t", "t_ns", "frame", "pose",
 "deviation", "in_tolerance", "beam_hold", "latency_ms", "confidence", "eye", "reasons",
-"dropped_frames", "missed_frames", "processing_ms"}``: ``t`` is the frame's mid-exposure time
-(seconds on the rig's monotonic clock), ``latency_ms`` the time from it to this send. A client
+"dropped_frames", "missed_frames", "delivery_ms", "processing_ms"}``: ``t`` is the frame's
+mid-exposure time (seconds on the rig's monotonic clock), ``latency_ms`` the time from it to this
+send, of which ``delivery_ms`` until the frames were in the daemon's hands and ``processing_ms``
+the reconstruction and fit. A client
 that reads too slowly loses its oldest messages (at most ``event_queue_size`` are kept for it)
 and gets ``{"type": "dropped", "count": n}`` before the next one, as on ``/ws/events``; it never
 slows the daemon or the other clients.
