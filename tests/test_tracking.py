@@ -392,6 +392,14 @@ def test_the_rig_source_schedules_frames_at_the_camera_rate_and_counts_missed_on
     first, late = frames[0], frames[3]
     assert first is not None and first.t_ns == START_NS + 2_000_000  # mean mid-exposure
     assert late is not None and late.t_ns == START_NS + 176_000_000
+    # In the daemon's hands when the rig returned them: 4 ms after the pulse, or once rendered.
+    assert [(f.arrived_ns - START_NS) / 1e6 for f in frames if f] == [10.0, 44.0, 174.0, 184.0,
+                                                                       204.0]
+    session = TrackingSession(source, lambda frame_set, previous: _pose(), reference=REFERENCE,
+                              tolerances=TOLERANCES, bus=EventBus(), clock=clock)
+    message = session.process(first)
+    assert message is not None and message["delivery_ms"] == 8.0  # 2 ms mid-exposure → 10 ms
+    assert message["latency_ms"] >= message["delivery_ms"] + message["processing_ms"]
 
 
 # --- the API and the pose stream over a real server ------------------------------------------
