@@ -138,6 +138,14 @@ def render_speed(speed: dict[str, Any]) -> str:
                   f"{frames['processed']} of {frames['camera_periods']} camera frames "
                   f"processed (goal 99 %), {frames['dropped']} dropped and {frames['missed']} "
                   "missed, all counted."]
+        latency = live.get("latency_ms", {})
+        if latency.get("delivery_median") is not None:
+            lines[-1] += (f" Of that latency, the frames reached the daemon "
+                          f"{_value(latency['delivery_median'], 0)} ms (median; p99 "
+                          f"{_value(latency.get('delivery_p99'), 0)} ms) after mid-exposure, "
+                          f"and their processing took {_value(latency['processing_median'], 0)} "
+                          f"ms (p99 {_value(latency.get('processing_p99'), 0)} ms); the rest is "
+                          "the wait for a free worker and the sending.")
     alone = speed.get("tracking_replay")
     if alone:
         from eyeserver.bench.tracking import format_replayed
