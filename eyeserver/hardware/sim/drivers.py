@@ -666,7 +666,7 @@ class SimTrigger(_SimFaults, Trigger):
         next_ns = clock.now_ns()
         while not stop.is_set():
             try:
-                self.fire()
+                fired = self.fire()
             except Exception as exc:
                 # A real controller that vanished simply stops pulsing; the error is kept for
                 # whoever supervises the rig, and the thread must not die with a traceback.
@@ -674,7 +674,11 @@ class SimTrigger(_SimFaults, Trigger):
                 _log.warning("trigger %s stopped free-running: %s", self.id, exc,
                              extra={"device_id": self.id})
                 return
-            next_ns = max(next_ns + round(1e9 / self.rate_hz), clock.now_ns())
+            # A thread that woke late fired late: the next pulse keeps a whole period from it
+            # (a controller never fires two pulses closer than its period; catching up at once
+            # put two 0.7 ms apart on a loaded machine).
+            period_ns = round(1e9 / self.rate_hz)
+            next_ns = max(next_ns + period_ns, fired.t_ns + period_ns)
             while not stop.is_set():
                 remaining_s = (next_ns - clock.now_ns()) / 1e9
                 if remaining_s <= 0:
