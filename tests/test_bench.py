@@ -174,6 +174,15 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
     section = "\n".join(render_pose(report))
     assert "## Eye pose" in section and "a fail against the 0.2 mm tolerance" in section
 
+    # One unit with the patient's radius held, as live tracking measures.
+    one = _json(capsys, ["bench", "pose", "--json", "--poses", "2", "--unit", "left",
+                         "--held-radius", "--calibration", str(caldir)])
+    assert one["units"] == ["left"] and one["model"].startswith("radius held")
+    assert one["fitted"] == 2 and one["gaze_sources"] == {"limbus (images)": 2}
+    assert one["gaze_error_deg"]["max"] < 1.0 and one["radius_error_mm"]["max"] == 0.0
+    assert main(["bench", "pose", "--unit", "centre", "--calibration", str(caldir)]) == 2
+    assert "no unit centre" in capsys.readouterr().err
+
 
 def test_tracking_bench_measures_live_tracking(calibrated_rooms: Any,
                                               capsys: pytest.CaptureFixture[str]) -> None:

@@ -56,14 +56,19 @@ def _angle_deg(a: Any, b: Any) -> float:
 
 
 def _measure(session: SimSession, spec: SceneSpec, caldir: Path, bundle: Path,
+             units: list[str] | None, held_radius: bool,
              ) -> tuple[EyePose | None, dict[str, Any], float, str | None]:
-    session.record(spec, bundle, overwrite=True)
+    session.record(spec, bundle, units=units, overwrite=True)
     truth = json.loads((bundle / "truth.json").read_text())["eye"]
     cloud, _ = reconstruct_bundle(caldir, bundle)
     views = limbus_views(caldir, bundle)
+    # The patient's model: the population's with the radius fitted, or (held) the radius an
+    # MRI of this eye gives, as the scene was built with it.
+    model = (EyeModel(globe_radius_mm=spec.eye.globe_radius_mm) if held_radius
+             else EyeModel.population())
     started = time.perf_counter()
     try:
-        pose = fit_eye(cloud, EyeModel.population(), views)
+        pose = fit_eye(cloud, model, views)
     except EyeserverError as exc:
         return None, truth, 0.0, str(exc)
     return pose, truth, time.perf_counter() - started, None
@@ -78,8 +83,24 @@ def _stats(values: list[float]) -> dict[str, float | None]:
 
 
 def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Path | None = None,
+        units: list[str] | None = None, held_radius: bool = False,
         progress: Progress = _quiet) -> dict[str, Any]:
-    """The pose bench as one JSON-able document."""
+    """The pose bench as one JSON-able document.
+
+    ``units``: capture only these units (default all: the default room's two look at the one
+    eye); ``held_radius``: the patient's model holds the globe's radius (as an MRI gives it)
+    instead of the population model's fitted one.
+
+    Raises
+    ------
+    EyeserverError
+        A unit the room does not have.
+    """
+    known = [unit.id for unit in config.units]
+    unknown = [u for u in units or () if u not in known]
+    if unknown:
+        raise EyeserverError(f"the room has no unit {', '.join(unknown)} (it has "
+                             f"{', '.join(known)})")
     rng = np.random.default_rng(seed)
     rows: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="eyeserver-bench-pose-") as tmp:
@@ -92,7 +113,8 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
             for n in range(poses):
                 spec = random_spec(rng, RADII_MM[n % len(RADII_MM)])
                 progress(f"pose {n + 1}/{poses}")
-                pose, truth, seconds, error = _measure(session, spec, caldir, work / "eye")
+                pose, truth, seconds, error = _measure(session, spec, caldir, work / "eye",
+                                                       units, held_radius)
                 row: dict[str, Any] = {"globe_radius_mm": truth["globe_radius_mm"],
                                        "error": error}
                 if pose is not None:
@@ -113,8 +135,10 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
             base = random_spec(rng, 12.0)
             shifted = base.model_copy(update={"position_mm": (
                 base.position[0] + SHIFT_MM, base.position[1], base.position[2])})
-            first, _, _, e1 = _measure(session, base, caldir, work / "shift_a")
-            second, _, _, e2 = _measure(session, shifted, caldir, work / "shift_b")
+            first, _, _, e1 = _measure(session, base, caldir, work / "shift_a", units,
+                                       held_radius)
+            second, _, _, e2 = _measure(session, shifted, caldir, work / "shift_b", units,
+                                        held_radius)
     shift: dict[str, Any] = {"true_shift_mm": SHIFT_MM, "tolerance_mm": TOLERANCE_MM,
                              "error": e1 or e2}
     if first is not None and second is not None:
@@ -131,6 +155,9 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
     return {
         "format": "eyeserver.bench.pose/1", "machine": machine(), "seed": seed,
         "poses": poses, "fitted": len(fitted), "goals": GOALS,
+        "units": units or known,
+        "model": "radius held (the scene's, as an MRI gives it)" if held_radius
+        else "population, radius fitted",
         "centre_error_mm": _stats([r["centre_error_mm"] for r in fitted]),
         "gaze_error_deg": _stats([r["gaze_error_deg"] for r in fitted]),
         "radius_error_mm": _stats([abs(r["radius_error_mm"]) for r in fitted]),
@@ -152,7 +179,9 @@ def format_text(report: dict[str, Any]) -> str:
             return f"{name}: not measured"
         return f"{name}: median {s['median']:.3f}, p95 {s['p95']:.3f}  (goal {goal})"
 
-    out = [f"eye pose bench: {report['fitted']}/{report['poses']} poses fitted",
+    out = [f"eye pose bench: {report['fitted']}/{report['poses']} poses fitted (units "
+           f"{', '.join(report.get('units', ['all']))}; model: "
+           f"{report.get('model', 'population, radius fitted')})",
            line("globe centre error (mm)", "centre_error_mm", "≤ 0.1 mm"),
            line("gaze error (deg)", "gaze_error_deg", "≤ 0.5°"),
            line("globe radius |error| (mm)", "radius_error_mm", "-"),

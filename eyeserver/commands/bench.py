@@ -92,6 +92,11 @@ def add_parser(subparsers: Subparsers) -> None:
     pose.add_argument("--calibration", type=Path, metavar="CALDIR",
                       help="use this calibration of the simulated rig instead of making one")
     pose.add_argument("--room", type=Path, metavar="FILE", help="room file (default room)")
+    pose.add_argument("--unit", action="append", metavar="ID", dest="units",
+                      help="capture only this unit (repeatable; default all of the room's)")
+    pose.add_argument("--held-radius", action="store_true",
+                      help="the patient's model holds the globe's radius, as an MRI gives it "
+                           "(default: the population model, radius fitted)")
     pose.set_defaults(handler=_pose)
     tracking = commands.add_parser(
         "tracking", help="live tracking end to end through a daemon on loopback",
@@ -147,7 +152,8 @@ def _pose(args: argparse.Namespace) -> int:
     from eyeserver.hardware.sim.config import load_room
 
     report = pose.run(load_room(args.room), poses=args.poses, seed=args.seed,
-                      calibration=args.calibration, progress=_progress)
+                      calibration=args.calibration, units=args.units,
+                      held_radius=args.held_radius, progress=_progress)
     print(json.dumps(report, indent=1) if args.json else pose.format_text(report))
     return 0
 

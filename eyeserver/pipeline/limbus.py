@@ -473,14 +473,23 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
     if len(images) >= 2:
         # From the last frame's pose, the eye turned by a saccade at most.
         tilts = _TILTS_DEG if search else _TILTS_DEG[:3]
-        _, normal = _start(images, centre0, depth, gaze0, limbus_radius, tilts)
-        try:
-            # The last frame's limbus is within a few pixels of this one's but for a saccade.
-            found.append(_refine(images, centre0 + depth * normal, normal, limbus_radius,
-                                 REACHES_PX if search else REACHES_PX[1:]))
-        except LimbusNotFoundError as exc:
-            failure = exc
-    if search and (not found or found[0].residual_px > GOOD_RESIDUAL_PX):
+        starts = [gaze0]
+        if search and gaze0[2] < math.cos(math.radians(_TILTS_DEG[1])):
+            # A rough gaze from the cloud alone can be 40° off (one unit's view of the eye):
+            # the limbus is also looked for about the cameras' side, where the eye looks.
+            starts.append(np.array([0.0, 0.0, 1.0]))
+        for start in starts:
+            _, normal = _start(images, centre0, depth, start, limbus_radius, tilts)
+            try:
+                # The last frame's limbus is within a few pixels of this one's but for a
+                # saccade.
+                found.append(_refine(images, centre0 + depth * normal, normal, limbus_radius,
+                                     REACHES_PX if search else REACHES_PX[1:]))
+            except LimbusNotFoundError as exc:
+                failure = exc
+            if found and found[-1].residual_px <= GOOD_RESIDUAL_PX:
+                break
+    if search and (not found or min(f.residual_px for f in found) > GOOD_RESIDUAL_PX):
         whole = [_Image(view, None) for view in views]
         blob = _dark_blob_centre(whole, limbus_radius)
         if blob is not None:
@@ -592,7 +601,19 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
     offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
     sclera = behind & clear & (np.abs(offset) < 0.3)
     if sclera.sum() < MIN_SCLERA_POINTS:
-        raise LimbusNotFoundError("too little sclera beside the limbus to place the globe")
+        if fixed_radius is None:
+            raise LimbusNotFoundError("too little sclera beside the limbus to place the globe")
+        # The model's radius places the globe on the limbus alone (one unit can see the limbus
+        # whole and no sclera beside it: measured, 0.02 mm against 1.3 mm for the cloud-only
+        # pose); what lies behind the limbus near that sphere (lids, mostly) says how little
+        # carries it, which drops the pose's confidence.
+        sclera = behind & (np.abs(offset) < 1.5)
+        if not sclera.any():
+            sclera = behind
+        return Globe(centre=L - depth * g, radius=math.hypot(depth, r), depth_sd_mm=0.0,
+                     points=int((behind & (np.abs(offset) < 0.3)).sum()),
+                     surface_mad_mm=float(np.median(np.abs(offset[sclera])))
+                     if sclera.any() else 1.5)
     near = np.abs(votes - depth) < 0.1
     spread = 1.4826 * float(np.median(np.abs(votes[near] - depth))) if near.any() else math.inf
     depth_sd = 0.0 if fixed_radius is not None else spread / math.sqrt(max(int(near.sum()), 1))
