@@ -446,10 +446,12 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
                 globe_radius: float, limbus_radius: float, *, search: bool = True) -> Limbus:
     """The limbus circle seen in ``views``, starting from a rough eye pose (see the module).
 
-    The search starts about the rough pose, in a window of each image around it. When that
-    ends in no limbus, or in edges further than :data:`GOOD_RESIDUAL_PX` from the circle,
-    and ``search`` is on, it starts again from the cornea's dark disc in the whole images
-    (module step 2), and the closer fit wins. Without ``search``, the faster choice when the
+    The search starts about the rough pose, in a window of each image around it (and, with
+    ``search`` and a rough gaze more than 6° from +Z, about +Z too, where the eye looks: one
+    unit's cloud alone can put the gaze 40° off). When that ends in no limbus, or in edges
+    further than :data:`GOOD_RESIDUAL_PX` from the circle, and ``search`` is on, it starts
+    again from the cornea's dark disc in the whole images (module step 2), and the closest fit
+    wins. Without ``search``, the faster choice when the
     rough pose is good (live tracking starts from the previous frame), only the window is read.
 
     Raises
@@ -560,7 +562,9 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
     Measured on 24 rendered poses this beats a geometric least-squares fit of the sclera
     (0.11 against 0.13 mm median centre error, p95 0.29 against 0.37 mm), which follows the
     pulled points outward. A ``fixed_radius`` (the patient's model) sets ``h`` outright; the
-    sclera then only measures how well the model fits.
+    sclera then only measures how well the model fits, and a limbus with too little sclera
+    beside it (one unit seeing the eye turned away) still places the globe, its surface
+    distance that of what lies behind the limbus (lids), so that its confidence drops.
 
     The depth is ill-conditioned: a sclera point at polar angle θ from the gaze moves off the
     sphere by only (cos θ − cos θ_limbus) ≈ −0.2 per millimetre of ``h`` over the visible
@@ -604,7 +608,7 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
         if fixed_radius is None:
             raise LimbusNotFoundError("too little sclera beside the limbus to place the globe")
         # The model's radius places the globe on the limbus alone (one unit can see the limbus
-        # whole and no sclera beside it: measured, 0.02 mm against 1.3 mm for the cloud-only
+        # whole and no sclera beside it: measured, 0.08 mm against 1.3 mm for the cloud-only
         # pose); what lies behind the limbus near that sphere (lids, mostly) says how little
         # carries it, which drops the pose's confidence.
         sclera = behind & (np.abs(offset) < 1.5)
