@@ -349,6 +349,30 @@ class _FocusingPipeline:
         return self._answer("track", cloud)
 
 
+def _scripted_session(pipeline: _FocusingPipeline, script: list[dict[str, object]], *,
+                      track: bool = True, min_confidence: float = 0.5) -> TrackingSession:
+    """A session on ``script`` whose pose finder reconstructs and fits with ``pipeline``
+    (following the eye with its warm fit unless ``track`` is off)."""
+    return TrackingSession(
+        _ScriptSource(script),
+        PoseFinder(pipeline, pipeline.fit, EyeModel.population(),
+                   track=pipeline.track if track else None),
+        bus=EventBus(), clock=ManualClock(),
+        reference={"centre_mm": list(CENTRE), "gaze": [0.0, 0.0, 1.0]},
+        tolerances=Tolerances(translation_mm=0.5, gaze_deg=1.0, min_confidence=min_confidence))
+
+
+def _messages(session: TrackingSession, frames: int) -> list[dict[str, Any]]:
+    """Acquire and process ``frames`` frames one at a time; their messages."""
+    messages = []
+    for _ in range(frames):
+        session.acquire_once()
+        message = session.process_once()
+        assert message is not None
+        messages.append(message)
+    return messages
+
+
 def test_the_session_follows_the_eye_in_its_window_and_looks_again_once_lost() -> None:
     first, second, third = (_previous(np.add(CENTRE, [0.01 * k, 0.0, 0.0])) for k in range(3))
     blink = replace(third, gaze_source="none")
@@ -362,19 +386,8 @@ def test_the_session_follows_the_eye_in_its_window_and_looks_again_once_lost() -
         {"fit": first},                      # 5: whole image again, global fit
     ]
     pipeline = _FocusingPipeline()
-    clock = ManualClock()
-    session = TrackingSession(
-        _ScriptSource(script),
-        PoseFinder(pipeline, pipeline.fit, EyeModel.population(), track=pipeline.track),
-        bus=EventBus(), clock=clock,
-        reference={"centre_mm": list(CENTRE), "gaze": [0.0, 0.0, 1.0]},
-        tolerances=Tolerances(translation_mm=0.5, gaze_deg=1.0, min_confidence=0.5))
-    eyes = []
-    for _ in script:
-        session.acquire_once()
-        message = session.process_once()
-        assert message is not None
-        eyes.append(message["eye"])
+    session = _scripted_session(pipeline, script)
+    eyes = [message["eye"] for message in _messages(session, len(script))]
 
     # A failed warm fit is followed by the whole images' global fit (the eye may have left the
     # window).
@@ -387,15 +400,7 @@ def test_the_session_follows_the_eye_in_its_window_and_looks_again_once_lost() -
 def test_without_a_warm_fit_every_frame_is_fitted_globally() -> None:
     pose = _previous(CENTRE)
     pipeline = _FocusingPipeline()
-    session = TrackingSession(
-        _ScriptSource([{"fit": pose}] * 3), PoseFinder(pipeline, pipeline.fit,
-                                                       EyeModel.population()),
-        bus=EventBus(), clock=ManualClock(),
-        reference={"centre_mm": list(CENTRE), "gaze": [0.0, 0.0, 1.0]},
-        tolerances=Tolerances(translation_mm=0.5, gaze_deg=1.0, min_confidence=0.5))
-    for _ in range(3):
-        session.acquire_once()
-        session.process_once()
+    _messages(_scripted_session(pipeline, [{"fit": pose}] * 3, track=False), 3)
     assert pipeline.calls == ["fit"] * 3
     assert pipeline.focused == [None, pose, pose]  # the window still follows the eye
 
@@ -404,15 +409,7 @@ def test_the_images_a_reconstruction_gives_go_to_the_fits() -> None:
     pose = replace(_previous(CENTRE), gaze_source="limbus (images)")
     pipeline = _FocusingPipeline()
     pipeline.with_views = True
-    session = TrackingSession(
-        _ScriptSource([{"fit": pose}, {"track": pose}]),
-        PoseFinder(pipeline, pipeline.fit, EyeModel.population(), track=pipeline.track),
-        bus=EventBus(), clock=ManualClock(),
-        reference={"centre_mm": list(CENTRE), "gaze": [0.0, 0.0, 1.0]},
-        tolerances=Tolerances(translation_mm=0.5, gaze_deg=1.0, min_confidence=0.5))
-    for _ in range(2):
-        session.acquire_once()
-        session.process_once()
+    _messages(_scripted_session(pipeline, [{"fit": pose}, {"track": pose}]), 2)
     assert pipeline.calls == ["fit", "track"] and pipeline.views == [2, 2]
 
 
@@ -436,18 +433,8 @@ def test_with_images_a_followed_pose_counts_only_with_the_limbus_found_in_them()
     ]
     pipeline = _FocusingPipeline()
     pipeline.with_views = True
-    session = TrackingSession(
-        _ScriptSource(script),
-        PoseFinder(pipeline, pipeline.fit, EyeModel.population(), track=pipeline.track),
-        bus=EventBus(), clock=ManualClock(),
-        reference={"centre_mm": list(CENTRE), "gaze": [0.0, 0.0, 1.0]},
-        tolerances=Tolerances(translation_mm=0.5, gaze_deg=1.0, min_confidence=0.0))
-    messages = []
-    for _ in script:
-        session.acquire_once()
-        message = session.process_once()
-        assert message is not None
-        messages.append(message)
+    session = _scripted_session(pipeline, script, min_confidence=0.0)
+    messages = _messages(session, len(script))
     assert pipeline.calls == ["fit", "track", "track", "fit", "track", "track", "fit"]
     assert pipeline.focused == [None, start, on_limbus, None, moved, blink, None]
     assert [m["eye"] for m in messages] == ["visible", "visible", "visible", "blink", "visible"]
