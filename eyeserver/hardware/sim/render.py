@@ -117,6 +117,15 @@ def pixel_samples(n: int) -> F64:
     return np.stack([(k + 0.5) / n - 0.5, _radical_inverse_base2(k) + 0.5 / n - 0.5], axis=1)
 
 
+def _union(parts: Sequence[npt.NDArray[np.intp]], size: int) -> npt.NDArray[np.bool_]:
+    """A mask of ``size`` set at every index of ``parts`` (several times faster than np.unique
+    of their concatenation)."""
+    mask = np.zeros(size, dtype=bool)
+    for part in parts:
+        mask[part] = True
+    return mask
+
+
 class Renderer:
     """Renders images of a room's cameras; thread-safe, with a small cache of still scenes."""
 
@@ -236,10 +245,7 @@ class Renderer:
                 gap = rel - frac[:, None] * seg
                 shaded[source].append(np.flatnonzero(np.einsum("ij,ij->i", gap, gap)
                                                       < radius**2))
-        # A boolean union is several times faster than np.unique on these index lists.
-        changed = np.zeros(rays.shape[0], dtype=bool)
-        for part_idx in seen:
-            changed[part_idx] = True
+        changed = _union(seen, rays.shape[0])
         idx = np.flatnonzero(changed)
         fresh = self._shade_sources(cam, built.scene, rays[idx], sources) if idx.size else {}
         images: dict[str, F32] = {}
@@ -259,10 +265,7 @@ class Renderer:
         """The static points (pixel indices) that a moving part hides from ``source``, among
         those whose ray to it passes ``near`` the moving parts (positions in the static part's
         shadow lists) and that are not ``recast`` anyway."""
-        chosen = np.zeros(len(static.shadow_idx[source]), dtype=bool)
-        for part_rows in near:
-            chosen[part_rows] = True
-        rows = np.flatnonzero(chosen)
+        rows = np.flatnonzero(_union(near, len(static.shadow_idx[source])))
         pixels = static.shadow_idx[source][rows]
         keep = ~recast[pixels]
         rows, pixels = rows[keep], pixels[keep]
