@@ -611,13 +611,12 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
         # whole and no sclera beside it: measured, 0.08 mm against 1.3 mm for the cloud-only
         # pose); what lies behind the limbus near that sphere (lids, mostly) says how little
         # carries it, which drops the pose's confidence.
-        sclera = behind & (np.abs(offset) < 1.5)
-        if not sclera.any():
-            sclera = behind
+        carrying = behind & (np.abs(offset) < 1.5)
+        if not carrying.any():
+            carrying = behind
+        mad = float(np.median(np.abs(offset[carrying]))) if carrying.any() else 1.5
         return Globe(centre=L - depth * g, radius=math.hypot(depth, r), depth_sd_mm=0.0,
-                     points=int((behind & (np.abs(offset) < 0.3)).sum()),
-                     surface_mad_mm=float(np.median(np.abs(offset[sclera])))
-                     if sclera.any() else 1.5)
+                     points=int((behind & (np.abs(offset) < 0.3)).sum()), surface_mad_mm=mad)
     near = np.abs(votes - depth) < 0.1
     spread = 1.4826 * float(np.median(np.abs(votes[near] - depth))) if near.any() else math.inf
     depth_sd = 0.0 if fixed_radius is not None else spread / math.sqrt(max(int(near.sum()), 1))
