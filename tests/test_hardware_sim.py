@@ -544,6 +544,42 @@ def test_a_pulse_scheduled_ahead_is_rendered_at_once_and_delivered_when_a_camera
     assert late.pulse.t_ns == now
 
 
+class SideBySideRoom(FakeRoom):
+    """A room whose renders of one pulse wait for each other: only cameras that render side
+    by side get their images."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.together = threading.Barrier(2, timeout=5.0)
+        self.threads: list[str] = []
+
+    def render(self, camera_id: str, **kwargs: Any) -> np.ndarray:
+        self.threads.append(threading.current_thread().name)
+        self.together.wait()
+        return super().render(camera_id, **kwargs)
+
+
+def test_a_pulse_is_rendered_on_the_cameras_own_threads_side_by_side_before_any_read() -> None:
+    room = SideBySideRoom()
+    context = sim_driver_context(room)
+    first, second = (SimCamera(c, context=context) for c in ("S1", "S2"))
+    trigger = SimTrigger("T1", context=context)
+    second.open()
+    try:
+        with camera_and_trigger(first, trigger):
+            (pulse,) = fire_step_on(trigger, ("S1", "S2"), pulses=1)
+            deadline = time.monotonic() + 5.0
+            while len(room.renders) < 2 and time.monotonic() < deadline:
+                time.sleep(0.001)
+            assert sorted(r["camera"] for r in room.renders) == ["S1", "S2"]  # none read yet
+            assert threading.current_thread().name not in room.threads
+            assert len(set(room.threads)) == 2
+            frames = [camera.read_frame(READ_TIMEOUT_S) for camera in (first, second)]
+    finally:
+        second.close()
+    assert [f.meta.trigger_index for f in frames] == [pulse.index] * 2
+
+
 def test_acquire_one_unit_and_bad_unit_lists(open_rig: Rig) -> None:
     (step,) = open_rig.acquire(["right"])
     assert sorted(step.frames) == ["S3", "S4"]
