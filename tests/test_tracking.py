@@ -424,8 +424,8 @@ def tracking(app: FastAPI, base_url: str) -> TrackingControl:
     clock = ManualClock(1_000_000_000)
     pipeline = ScriptedPipeline(clock, reconstruct_s=0.012, fit_s=0.008)
     control.clock = clock
-    control.finder_factory = lambda service, model, workers: PoseFinder(pipeline.reconstruct,
-                                                                        pipeline.fit, model)
+    control.finder_factory = lambda service, model: PoseFinder(pipeline.reconstruct,
+                                                               pipeline.fit, model)
     control.source_factory = lambda service, units, c: ScriptedSource(c, pace_s=0.002)
     physicist = auth(PHYSICIST_TOKEN)
     for request in (

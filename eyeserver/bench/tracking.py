@@ -417,7 +417,7 @@ def replayed(calibration: Path, seconds: float = 10.0, *, room_file: Path | None
     first = PoseFinder(RigReconstructor(calibration, rig), fit_eye, EyeModel.population())(
         FrameSet(0, 0, steps[0]), None)
     model = replace(EyeModel.population(), globe_radius_mm=first.globe_radius_mm)
-    finders = [PoseWorker(calibration, rig, model, share=workers) for _ in range(workers)]
+    finders = [PoseWorker(calibration, rig, model) for _ in range(workers)]
     for finder in finders:
         finder.start()
     clock = MonotonicClock()

@@ -780,9 +780,8 @@ def _now_text() -> str:
 SourceFactory = Callable[[Service, list[str], Clock], FrameSource]
 """Builds the frame source of a session from the service, the unit ids and the clock."""
 
-FinderFactory = Callable[[Service, EyeModel, int], FindPose]
-"""Builds a pose finder of a session from the service, the patient's eye model and how many
-finders the session has."""
+FinderFactory = Callable[[Service, EyeModel], FindPose]
+"""Builds a pose finder of a session from the service and the patient's eye model."""
 
 
 def rig_source(service: Service, unit_ids: list[str], clock: Clock) -> FrameSource:
@@ -790,9 +789,9 @@ def rig_source(service: Service, unit_ids: list[str], clock: Clock) -> FrameSour
     return RigFrameSource(service.rig, unit_ids, clock)
 
 
-def worker_finder(service: Service, model: EyeModel, workers: int = 1) -> FindPose:
+def worker_finder(service: Service, model: EyeModel) -> FindPose:
     """A started :class:`~eyeserver.service.tracking_worker.PoseWorker` on the active
-    calibration: reconstruction and fit in their own process (one of ``workers``).
+    calibration: reconstruction and fit in their own process.
 
     Raises
     ------
@@ -808,7 +807,7 @@ def worker_finder(service: Service, model: EyeModel, workers: int = 1) -> FindPo
         raise NoActiveCalibrationError(
             "no calibration is active: import one (POST /api/v1/calibrations) and activate "
             "it (POST /api/v1/calibrations/{id}/activate)")
-    worker = PoseWorker(active.path, service.rig_spec(), model, share=workers)
+    worker = PoseWorker(active.path, service.rig_spec(), model)
     worker.start()
     return worker
 
@@ -887,7 +886,7 @@ class TrackingControl:
             try:
                 source = self.source_factory(service, unit_ids, self.clock)
                 for _ in range(self.workers):
-                    finders.append(self.finder_factory(service, model, self.workers))
+                    finders.append(self.finder_factory(service, model))
                 session = TrackingSession(
                     source, finders, reference=reference.pose,
                     tolerances=patient.tolerances, bus=self.messages, clock=self.clock,

@@ -60,8 +60,9 @@ _log = logging.getLogger(__name__)
 
 
 WORKER_NICENESS = 5
-"""Tracking workers run this much nicer than the daemon, so that acquisition (the simulated
-room's rendering, a driver's frame handling) and the API come first on a busy machine."""
+"""Tracking workers run this much nicer than the daemon, so that acquisition (a driver's frame
+handling) and the API come first on a busy machine. The simulated room's rendering runs nicer
+still (:data:`~eyeserver.hardware.sim.drivers.RENDER_NICENESS`)."""
 
 
 class TrackingWorkerError(EyeserverError):
@@ -69,19 +70,19 @@ class TrackingWorkerError(EyeserverError):
     unexpected error in it (the child's traceback is in the message)."""
 
 
-def _serve(connection: Connection, calibration: str, rig: RigSpec, model: EyeModel,
-           blas_threads: int) -> None:
+def _serve(connection: Connection, calibration: str, rig: RigSpec, model: EyeModel) -> None:
     """The child: load the calibration, then answer frame sets until told to stop."""
     # Imported here: eyeserver.service.tracking imports this module.
     from eyeserver.service.tracking import PoseFinder, RigReconstructor
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # The BLAS's own threads (SciPy's least squares) fight the other workers for the cores:
-    # measured on 2 cores, 10 s replayed at 25 Hz, two workers processed 52 % of the frames
-    # with a BLAS thread per core each, 92 % with one BLAS thread each.
-    threadpool_limits(limits=blas_threads, user_api="blas")
-    # OpenCV's own thread pool likewise (threadpoolctl does not reach it).
-    cv2.setNumThreads(blas_threads)
+    # One thread: a frame's arrays are small, and the BLAS's and OpenCV's own threads fight
+    # the other workers and the rig for the cores. Measured on 2 cores: two workers with a
+    # BLAS thread per core each processed 52 % of 10 s replayed at 25 Hz, 92 % with one each;
+    # a lone worker with two threads had its second spin at 98 % of a core in live tracking
+    # (52 ms a frame; with one thread, 41 ms). OpenCV's pool is not reached by threadpoolctl.
+    threadpool_limits(limits=1, user_api="blas")
+    cv2.setNumThreads(1)
     # Below the daemon: acquisition must not wait for the workers (it lets the next frame
     # wait for them instead).
     with contextlib.suppress(OSError):
@@ -131,15 +132,12 @@ class PoseWorker:
         The rig it belongs to.
     model : EyeModel
         The patient's eye model (with the reference's radius held, where there is one).
-    share : int
-        How many workers share the machine's cores: each gets its share of BLAS threads.
 
     Call :meth:`start` before the first frame and :meth:`close` after the last.
     """
 
-    def __init__(self, calibration: str | Path, rig: RigSpec, model: EyeModel, *,
-                 share: int = 1) -> None:
-        self._args = (str(calibration), rig, model, max(1, (os.cpu_count() or 1) // share))
+    def __init__(self, calibration: str | Path, rig: RigSpec, model: EyeModel) -> None:
+        self._args = (str(calibration), rig, model)
         self.frame_timeout_s = FRAME_TIMEOUT_S
         self._connection: Connection | None = None
         self._process: Any = None
