@@ -193,6 +193,12 @@ def test_a_pose_at_the_reference_passes_with_its_evidence(
     assert client.get(f"{API}/captures/{evidence['capture_id']}/cloud.ply").status_code == 200
     assert fake_fit.calls[-1] == (evidence["cloud_points"], EyeModel.population())
     assert body["id"].startswith("pose-")
+    # The capture is the stored result's evidence: it cannot be deleted.
+    refused = client.delete(f"{API}/captures/{evidence['capture_id']}",
+                            params={"reason": "tidy up"})
+    assert refused.status_code == 409
+    assert f"the evidence of pose measurement {body['id']}" in refused.json()["detail"]
+    assert client.get(f"{API}/captures/{evidence['capture_id']}").status_code == 200
 
 
 def test_a_1_mm_shift_gaze_shift_or_poor_fit_fails(
@@ -346,6 +352,11 @@ def test_end_to_end_a_captured_reference_then_a_1_mm_shift(
     ref = reference.json()
     assert ref["source"] == "capture"
     assert ref["evidence"]["calibration_id"] == calibration_id
+    refused = client.delete(f"{API}/captures/{ref['evidence']['capture_id']}",
+                            params={"reason": "tidy up"})
+    assert refused.status_code == 409
+    assert "the evidence of version 1 of a reference pose of fraction 1" in refused.json()[
+        "detail"]
     # Absolute accuracy is the bench's (eyeserver bench pose); here a guard: the radius fitted
     # from a narrow band of sclera leaves the centre ≈ 0.2 mm off along the gaze.
     assert ref["pose"]["centre_mm"] == pytest.approx([0.0, 0.0, -10.0], abs=0.3)

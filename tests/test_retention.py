@@ -70,6 +70,15 @@ def test_old_measurements_are_deleted_and_audited_as_retention(service: Service,
     assert purge_expired(service, 30, clock=cutoff_clock) == []  # nothing twice
 
 
+def test_a_stored_results_evidence_is_kept(service: Service) -> None:
+    evidence, plain = (service.capture("all").id for _ in range(2))
+    service.keep_as_evidence(lambda: {evidence: "the evidence of pose measurement pose-1"})
+    later = datetime.fromisoformat(service.store.get_capture(plain).created)
+
+    assert purge_expired(service, 30, clock=lambda: later + timedelta(days=31)) == [plain]
+    assert _ids(service) == {evidence}
+
+
 def test_the_periodic_task_applies_the_rule_again_and_again(service: Service) -> None:
     first = service.capture("all").id
     now = [datetime.now(UTC)]

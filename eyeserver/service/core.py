@@ -29,7 +29,7 @@ import logging
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -88,6 +88,8 @@ __all__ = [
 ServiceState = Literal["idle", "capturing", "calibrating", "tracking", "fault"]
 BusyState = Literal["capturing", "calibrating", "tracking"]
 DeviceHealth = Literal["ok", "fault"]
+EvidenceSource = Callable[[], Mapping[str, str]]
+"""Capture ids that are evidence → what of (see :meth:`Service.keep_as_evidence`)."""
 
 ALL_UNITS = "all"
 """The ``unit`` of a capture that interleaves every unit of the rig."""
@@ -217,6 +219,7 @@ class Service:
         # A calibration session holds "calibrating" between its acquisitions (see hold_session).
         self._session: str | None = None
         self._session_acquiring = False
+        self._evidence_sources: list[EvidenceSource] = []
 
     # --- lifecycle --------------------------------------------------------------------------
 
@@ -784,17 +787,31 @@ class Service:
                                f"(POST /api/v1/captures/{capture_id}/reconstruction)")
         return path
 
+    def keep_as_evidence(self, source: EvidenceSource) -> None:
+        """Never delete the captures ``source()`` names: it maps each capture id to what the
+        capture is the evidence of (a stored pose measurement, a captured reference pose)."""
+        self._evidence_sources.append(source)
+
+    def evidence_captures(self) -> dict[str, str]:
+        """Every capture that is something's evidence, and what: a calibration's inputs and
+        what :meth:`keep_as_evidence` registered. Such a capture goes only with what it
+        documents (never, as nothing of it is deleted)."""
+        held = {capture_id: f"an input of calibration {calibration.id} (its evidence)"
+                for calibration in self.store.list_calibrations()
+                for capture_id in input_capture_ids(calibration)}
+        for source in self._evidence_sources:
+            held.update(source())
+        return held
+
     def delete_capture(self, capture_id: str, *, actor: str, reason: str) -> None:
         """Delete a capture with everything kept beside it (audited first; see
-        :meth:`Store.delete_capture`, which raises the errors)."""
+        :meth:`Store.delete_capture`, which raises the errors); a capture that is evidence
+        (:meth:`evidence_captures`) raises :class:`StateConflictError`."""
         with self.audit.failures(actor, "delete_capture", capture_id):
             store = self.store
-            # A calibration's input bundles are its evidence: they go only with it (never).
-            for calibration in store.list_calibrations():
-                if capture_id in input_capture_ids(calibration):
-                    raise StateConflictError(
-                        f"capture {capture_id} is an input of calibration {calibration.id} "
-                        "(its evidence) and cannot be deleted")
+            held = self.evidence_captures().get(capture_id)
+            if held is not None:
+                raise StateConflictError(f"capture {capture_id} is {held} and cannot be deleted")
             store.delete_capture(capture_id, actor=actor, reason=reason)
         _log.warning("capture deleted", extra={"capture_id": capture_id, "actor": actor,
                                                 "reason": reason})

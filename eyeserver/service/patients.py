@@ -425,6 +425,19 @@ class Patients:
                                 "fraction = ? ORDER BY version", (patient_id, fraction))
         return [self._reference(patient_id, file) for (file,) in rows]
 
+    def reference_captures(self) -> dict[str, str]:
+        """The captures that captured reference poses were measured on → which reference
+        (fraction and version; no patient id: this goes into error messages)."""
+        held = {}
+        for fraction, version, file in self.store.query(
+                "SELECT fraction, version, file FROM pose_references WHERE source = 'capture'"):
+            evidence = json.loads(self.store.read_document(file)).get("evidence") or {}
+            if evidence.get("capture_id"):
+                held[str(evidence["capture_id"])] = (
+                    f"the evidence of version {version} of a reference pose of fraction "
+                    f"{fraction}")
+        return held
+
     def _reference(self, patient_id: str, file: str) -> ReferencePose:
         d = json.loads(self.store.read_document(file))
         return ReferencePose(patient_id, int(d["fraction"]), int(d["version"]), d["created"],

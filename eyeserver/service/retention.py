@@ -6,7 +6,10 @@ With ``retention_days`` set, :func:`purge_expired` runs at start-up and then eve
 :meth:`~eyeserver.service.core.Service.delete_capture`, so each deletion is audited like a
 person's, with the actor :data:`RETENTION_ACTOR` and the rule as its reason. Calibration captures
 (chessboard, plate, reference) are kept: they are no patient data, and they document how the
-calibrations in use were made. Without ``retention_days`` nothing is ever deleted automatically.
+calibrations in use were made. So are the measurements that are a stored result's evidence (a
+pose measurement's, a captured reference pose's:
+:meth:`~eyeserver.service.core.Service.evidence_captures`): they stay as long as the result.
+Without ``retention_days`` nothing is ever deleted automatically.
 """
 
 from __future__ import annotations
@@ -69,9 +72,11 @@ def purge_expired(service: Service, retention_days: float,
         expired += [record.id for record in page]
         if not page or len(expired) >= total:
             break
+    evidence = service.evidence_captures()
+    kept = [capture_id for capture_id in expired if capture_id in evidence]
     reason = f"retention: older than {retention_days:g} days (before {cutoff.isoformat()})"
     deleted = []
-    for capture_id in expired:
+    for capture_id in (c for c in expired if c not in evidence):
         try:
             service.delete_capture(capture_id, actor=RETENTION_ACTOR, reason=reason)
         except UnknownIdError:
@@ -81,9 +86,10 @@ def purge_expired(service: Service, retention_days: float,
                 "capture_id": capture_id, "reason": str(exc)})
             continue
         deleted.append(capture_id)
-    if deleted:
+    if deleted or kept:
         _log.info("retention deleted captures", extra={
-            "count": len(deleted), "retention_days": retention_days})
+            "count": len(deleted), "kept_as_evidence": len(kept),
+            "retention_days": retention_days})
     return deleted
 
 

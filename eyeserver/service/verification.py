@@ -11,7 +11,9 @@ defaults without one) and compares the pose with the fraction's newest reference
 
 The result is stored with its evidence (capture id — its bundle and ``cloud.ply`` stay with the
 capture —, the reconstruction's calibration id, the eye-model version and the fit) as
-``patients/<key>/measurements/<pose id>.json`` and a row, in one audited transaction. A fit that
+``patients/<key>/measurements/<pose id>.json`` and a row, in one audited transaction; the
+capture of a stored measurement or captured reference is never deleted, by a person (HTTP 409)
+or the retention rule (:meth:`PoseVerification.evidence_captures`). A fit that
 fails raises :class:`~eyeserver.pipeline.eyepose.PoseError` (HTTP 422); the failure is written
 to the audit file with the capture it was tried on.
 
@@ -206,6 +208,16 @@ class PoseVerification:
         self.service = service
         self.patients = patients
         self.fit = fit
+        # A stored result's capture is its evidence: it is never deleted (nor by retention).
+        service.keep_as_evidence(self.evidence_captures)
+
+    def evidence_captures(self) -> dict[str, str]:
+        """The captures of stored pose measurements and captured reference poses → what of."""
+        held = self.patients.reference_captures()
+        for measurement_id, capture_id in self.service.store.query(
+                "SELECT id, capture_id FROM pose_measurements"):
+            held[str(capture_id)] = f"the evidence of pose measurement {measurement_id}"
+        return held
 
     # --- measuring --------------------------------------------------------------------------
 
