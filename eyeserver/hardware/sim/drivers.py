@@ -159,6 +159,8 @@ class _Exposure:
     """What a camera latched when a pulse exposed it, and its image being rendered."""
 
     pulse: TriggerPulse
+    t_ns: int
+    """Mid-exposure: the pulse plus half the exposure."""
     projectors: dict[str, float]
     exposure_us: float
     gain_db: float
@@ -461,10 +463,11 @@ class SimCamera(_SimFaults, Camera):
                 return
             self._queued += 1
             lit, exposure_us, gain_db = dict(projectors), self.exposure_us, self.gain_db
+            t_ns = pulse.t_ns + round(exposure_us * 500.0)
             assert self._renderer is not None  # receiving: opened
-            image = self._renderer.submit(self._render, pulse, lit, exposure_us, gain_db)
-            self._exposures.put(_Exposure(pulse=pulse, projectors=lit, exposure_us=exposure_us,
-                                          gain_db=gain_db, image=image))
+            image = self._renderer.submit(self._render, t_ns, lit, exposure_us, gain_db)
+            self._exposures.put(_Exposure(pulse=pulse, t_ns=t_ns, projectors=lit,
+                                          exposure_us=exposure_us, gain_db=gain_db, image=image))
 
     def _next_exposure(self, deadline: float) -> _Exposure | None:
         while True:
@@ -502,15 +505,14 @@ class SimCamera(_SimFaults, Camera):
                 raise DeviceTimeoutError(self.id, f"no triggered frame within {timeout_s} s")
             return self._deliver(exposure)
 
-    def _render(self, pulse: TriggerPulse, projectors: dict[str, float], exposure_us: float,
+    def _render(self, t_ns: int, projectors: dict[str, float], exposure_us: float,
                 gain_db: float) -> np.ndarray:
-        """An exposure's image, rendered on the camera's own thread (in pulse order)."""
-        return self._wiring.room.render(
-            self.id, t_s=(pulse.t_ns + round(exposure_us * 500.0)) / 1e9, projectors=projectors,
-            exposure_us=exposure_us, gain_db=gain_db, rng=self._rng)
+        """An exposure's image at mid-exposure ``t_ns``, rendered on the camera's own thread
+        (in pulse order)."""
+        return self._wiring.room.render(self.id, t_s=t_ns / 1e9, projectors=projectors,
+                                        exposure_us=exposure_us, gain_db=gain_db, rng=self._rng)
 
     def _deliver(self, exposure: _Exposure) -> Frame:
-        t_ns = exposure.pulse.t_ns + round(exposure.exposure_us * 500.0)
         try:
             image = exposure.image.result()
         except CancelledError:  # closed before its turn to render
@@ -528,7 +530,7 @@ class SimCamera(_SimFaults, Camera):
             counter = self._frame_counter
             self._frame_counter += 1
             dropped = self._dropped
-        meta = FrameMeta(camera_id=self.id, frame_counter=counter, t_ns=t_ns,
+        meta = FrameMeta(camera_id=self.id, frame_counter=counter, t_ns=exposure.t_ns,
                          exposure_us=exposure.exposure_us, gain_db=exposure.gain_db,
                          dropped_frames=dropped, bit_depth=self.bit_depth,
                          projectors_on=tuple(exposure.projectors),
