@@ -352,7 +352,8 @@ def _globe_candidates(points: F64, r_bounds: tuple[float, float], fixed: float |
     globe's size with enough support is the sclera; "of a globe's size" allows for the voted
     centre's error (:data:`_VOTED_CENTRE_MM`), which moves the sclera's peak by as much (a held
     radius of 12 mm ± 5 % missed the sclera's peak at 11.35 mm on 2 of 30 noise draws of an eye
-    at rest, measured). Falls back to the LO-MSAC shell search.
+    at rest, and on 4 of 60 draws of another noise generator; measured). Falls back to the
+    LO-MSAC shell search.
     """
     voxels, counts, off_plane = _without_planes(points)
     if len(voxels) < 8:
