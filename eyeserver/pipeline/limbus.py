@@ -23,9 +23,10 @@ strays by 5–13°: the cloud's sclera ends a fringe period outside the limbus, 
    sub-pixel position from a parabola through the derivative. Innermost, because outside the
    limbus lie other rising edges (a projector shadow's end, the lids' margins) but inside it only
    the cornea.
-4. **Circle.** ``scipy.optimize.least_squares`` on the edge points' distances to the projected
-   circle's tangent (pixels), Cauchy loss (lid margins crossing the cornea and shadow edges are
-   outliers; seen from several cameras they cannot all agree with one circle), three rounds with
+4. **Circle.** Robust least squares (Levenberg–Marquardt) of the edge points' distances to
+   the projected circle's tangent (pixels), Cauchy loss (lid margins crossing the cornea and
+   shadow edges are outliers; seen from several cameras they cannot all agree with one
+   circle), three rounds with
    the search window shrinking 20 → 8 → 4 px. Uncertainties from the Jacobian and a robust
    residual scale.
 5. **Globe.** The limbus lies on the globe: its centre is ``C = L − h·g`` with
@@ -54,7 +55,6 @@ from typing import Any
 import cv2
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import OptimizeResult, least_squares
 from scipy.spatial import cKDTree
 
 from eyeserver.pipeline.demodulate import demodulate
@@ -375,9 +375,33 @@ _STEPS = np.array([1e-6, 1e-6, 1e-6, 1e-7, 1e-7, 1e-6])
 """Forward-difference steps of the circle's parameters (mm, gaze components, mm)."""
 
 
+@dataclass(frozen=True)
+class _Circle:
+    """A fitted circle's parameters ``x`` (centre, gaze X and Y, radius), its residuals (px)
+    and its Jacobian scaled by the loss as ``scipy.optimize.least_squares`` scales it (its
+    ``JᵀJ`` the Gauss–Newton Hessian of the robust cost, for the covariance)."""
+
+    x: F64
+    fun: F64
+    jac: F64
+
+
+_CIRCLE_X_SCALE = np.array([0.1, 0.1, 0.1, 0.01, 0.01, 0.1])
+"""Typical changes of the circle's parameters; a fit stops when its steps fall below
+:data:`_CIRCLE_XTOL` of them."""
+
+_CIRCLE_XTOL = 1e-4
+_CIRCLE_ITERATIONS = 30
+
+
+def _cauchy_cost(residuals: F64) -> float:
+    return 0.5 * float(np.sum(np.log1p(residuals * residuals)))
+
+
 def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], centre: F64,
-                normal: F64, radius: float) -> OptimizeResult:
-    """Least squares of the edges' distances to the projected circle's tangents (pixels).
+                normal: F64, radius: float) -> _Circle:
+    """Robust least squares (Cauchy loss, scale 1 px) of the edges' distances to the projected
+    circle's tangents (pixels).
 
     Each edge keeps the circle angle it was found at, and the outward normal of the start
     circle there: moving along the tangent costs nothing to first order, so the association
@@ -387,31 +411,57 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
     and its six nudged copies): SciPy's own differencing projects once per parameter, which
     cost 70 % of the fit (measured in live tracking: 19 of 37 ms per frame); projecting the
     circle points alone, not their normals too, halved the rest (9.5 → 5 ms a tracked frame).
+
+    The minimisation is Levenberg–Marquardt on iteratively reweighted least squares, written
+    here rather than ``scipy.optimize.least_squares`` (trust-region reflective), whose
+    bookkeeping around six parameters and a few hundred residuals cost more than the
+    projections: each iteration evaluates the circle and its Jacobian in one batched
+    projection (SciPy evaluated residuals and Jacobian separately, ≈ 10 projections a fit).
+    Measured in live tracking: 3.6 → 1.4 ms a fit, the same circles within 1e-4 of their
+    parameters' scales (tests).
     """
     seen = [(image, angles, found, image.outline(centre, normal, radius, angles)[1])
             for image, (angles, found) in zip(images, edges, strict=True) if len(angles)]
 
-    def rows(params: F64) -> F64:
-        """Residuals ``(H, N)`` of parameter rows ``(H, 6)``."""
+    def evaluate(params: F64) -> tuple[F64, F64]:
+        """Residuals ``(N,)`` at ``params`` and their forward-difference Jacobian ``(N, 6)``."""
+        nudged = np.vstack([params, params + np.diag(_STEPS)])
         out = []
         for image, angles, found, outward in seen:
-            on, _ = _circles(params[:, :3], _gaze(params), params[:, 5], angles)
-            uv = image.project_full(on).reshape(len(params), len(angles), 2)
+            on, _ = _circles(nudged[:, :3], _gaze(nudged), nudged[:, 5], angles)
+            uv = image.project_full(on).reshape(len(nudged), len(angles), 2)
             out.append(((found[None] - uv) * outward[None]).sum(axis=-1))
-        return np.concatenate(out, axis=1)
+        values = np.concatenate(out, axis=1)
+        return values[0], ((values[1:] - values[0]) / _STEPS[:, None]).T
 
-    def residuals(params: F64) -> F64:
-        values: F64 = rows(params[None])[0]
-        return values
-
-    def jacobian(params: F64) -> F64:
-        nudged = np.vstack([params, params + np.diag(_STEPS)])
-        values = rows(nudged)
-        return np.asarray(((values[1:] - values[0]) / _STEPS[:, None]).T, dtype=np.float64)
-
-    start = np.array([*centre, normal[0], normal[1], radius])
-    return least_squares(residuals, start, jac=jacobian, loss="cauchy", f_scale=1.0,
-                         x_scale=np.array([0.1, 0.1, 0.1, 0.01, 0.01, 0.1]))
+    x = np.array([*centre, normal[0], normal[1], radius])
+    residuals, jac = evaluate(x)
+    cost = _cauchy_cost(residuals)
+    damping = 1e-3
+    for _ in range(_CIRCLE_ITERATIONS):
+        weights = 1.0 / (1.0 + residuals * residuals)
+        hessian = jac.T @ (weights[:, None] * jac)
+        gradient = jac.T @ (weights * residuals)
+        try:
+            step = np.linalg.solve(hessian + damping * np.diag(np.maximum(np.diag(hessian),
+                                                                          1e-12)), -gradient)
+        except np.linalg.LinAlgError:
+            break
+        trial = x + step
+        trial_residuals, trial_jac = evaluate(trial)
+        trial_cost = _cauchy_cost(trial_residuals)
+        if trial_cost <= cost:
+            x, residuals, jac, cost = trial, trial_residuals, trial_jac, trial_cost
+            damping = max(damping / 10.0, 1e-9)
+            if np.all(np.abs(step) < _CIRCLE_XTOL * _CIRCLE_X_SCALE):
+                break
+        else:
+            damping *= 10.0
+            if damping > 1e8:
+                break
+    squared = residuals * residuals
+    scale = np.maximum((1.0 - squared) / (1.0 + squared) ** 2, np.finfo(float).eps)
+    return _Circle(x=x, fun=residuals, jac=jac * np.sqrt(scale)[:, None])
 
 
 def _refine(images: Sequence[_Image], centre: F64, normal: F64, radius: float,
