@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -398,6 +398,26 @@ def _cauchy_cost(residuals: F64) -> float:
     return 0.5 * float(np.sum(np.log1p(residuals * residuals)))
 
 
+def _circle_residuals(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]],
+                      centre: F64, normal: F64, radius: float) -> Callable[[F64], F64]:
+    """The edges' distances to the projected circle's tangents (pixels) as a function of
+    parameter rows ``(H, 6)`` (centre, gaze X and Y, radius) → ``(H, N)``, all rows in one
+    projection per camera; each edge is measured along the start circle's outward normal at
+    the angle it was found at (:func:`_fit_circle`)."""
+    seen = [(image, angles, found, image.outline(centre, normal, radius, angles)[1])
+            for image, (angles, found) in zip(images, edges, strict=True) if len(angles)]
+
+    def rows(params: F64) -> F64:
+        out = []
+        for image, angles, found, outward in seen:
+            on, _ = _circles(params[:, :3], _gaze(params), params[:, 5], angles)
+            uv = image.project_full(on).reshape(len(params), len(angles), 2)
+            out.append(((found[None] - uv) * outward[None]).sum(axis=-1))
+        return np.concatenate(out, axis=1)
+
+    return rows
+
+
 def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], centre: F64,
                 normal: F64, radius: float) -> _Circle:
     """Robust least squares (Cauchy loss, scale 1 px) of the edges' distances to the projected
@@ -417,21 +437,14 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
     bookkeeping around six parameters and a few hundred residuals cost more than the
     projections: each iteration evaluates the circle and its Jacobian in one batched
     projection (SciPy evaluated residuals and Jacobian separately, ≈ 10 projections a fit).
-    Measured in live tracking: 3.6 → 1.4 ms a fit, the same circles within 1e-4 of their
-    parameters' scales (tests).
+    Measured in live tracking: ≈ 30 % less a fit (4.4 against 6.2 ms, 5 projections against
+    10), the same circles within 1e-4 of their parameters' scales (tests: against SciPy's).
     """
-    seen = [(image, angles, found, image.outline(centre, normal, radius, angles)[1])
-            for image, (angles, found) in zip(images, edges, strict=True) if len(angles)]
+    rows = _circle_residuals(images, edges, centre, normal, radius)
 
     def evaluate(params: F64) -> tuple[F64, F64]:
         """Residuals ``(N,)`` at ``params`` and their forward-difference Jacobian ``(N, 6)``."""
-        nudged = np.vstack([params, params + np.diag(_STEPS)])
-        out = []
-        for image, angles, found, outward in seen:
-            on, _ = _circles(nudged[:, :3], _gaze(nudged), nudged[:, 5], angles)
-            uv = image.project_full(on).reshape(len(nudged), len(angles), 2)
-            out.append(((found[None] - uv) * outward[None]).sum(axis=-1))
-        values = np.concatenate(out, axis=1)
+        values = rows(np.vstack([params, params + np.diag(_STEPS)]))
         return values[0], ((values[1:] - values[0]) / _STEPS[:, None]).T
 
     x = np.array([*centre, normal[0], normal[1], radius])
