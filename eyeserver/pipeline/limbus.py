@@ -545,13 +545,22 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
             starts.append(np.array([0.0, 0.0, 1.0]))
         for start in starts:
             _, normal = _start(images, centre0, depth, start, limbus_radius, tilts)
-            try:
-                # The last frame's limbus is within a few pixels of this one's but for a
-                # saccade.
-                found.append(_refine(images, centre0 + depth * normal, normal, limbus_radius,
-                                     REACHES_PX if search else REACHES_PX[1:]))
-            except LimbusNotFoundError as exc:
-                failure = exc
+            # The last frame's limbus is within a few pixels of this one's but for a saccade;
+            # where the last gaze still fits best it is within a pixel or two, and the last
+            # round alone finds it (the rounds before it only bring a far start closer), with
+            # all rounds after a saccade's start or when that one fails.
+            rounds: list[Sequence[float]] = [REACHES_PX if search else REACHES_PX[1:]]
+            if not search and np.array_equal(normal, start):
+                rounds.insert(0, REACHES_PX[-1:])
+            for reaches in rounds:
+                try:
+                    found.append(_refine(images, centre0 + depth * normal, normal,
+                                         limbus_radius, reaches))
+                except LimbusNotFoundError as exc:
+                    failure = exc
+                    continue
+                if found[-1].residual_px <= GOOD_RESIDUAL_PX:
+                    break
             if found and found[-1].residual_px <= GOOD_RESIDUAL_PX:
                 break
     if search and (not found or min(f.residual_px for f in found) > GOOD_RESIDUAL_PX):
