@@ -58,6 +58,7 @@ the columns and back.
 
 from __future__ import annotations
 
+import functools
 import math
 import numbers
 from dataclasses import dataclass
@@ -68,6 +69,7 @@ import numpy.typing as npt
 import scipy.fft
 
 F32 = npt.NDArray[np.float32]
+F64 = npt.NDArray[np.float64]
 
 __all__ = ["Carrier", "Demodulated", "demodulate", "measure_carrier", "phase_difference"]
 
@@ -242,6 +244,45 @@ def _shifted_line(line: F32, shifts: npt.NDArray[np.float64]) -> F32:
     return result
 
 
+def _bridge(n: int, total: int) -> tuple[F64, F64, F64]:
+    """Positions of the pad lines after the end border, the same before the start, and the
+    raised-cosine weight of the start border's continuation in each."""
+    beyond = np.arange(n, total, dtype=np.float64)
+    towards_start = 0.5 * (1.0 - np.cos(np.pi * (beyond - n + 1.0) / (total - n + 1.0)))
+    return beyond, beyond - total, towards_start
+
+
+@functools.lru_cache(maxsize=64)
+def _period_operator(n: int, total: int, period: float) -> tuple[npt.NDArray[np.intp], F32]:
+    """:func:`_interpolation_operator` of the continuation by whole periods (see
+    :func:`_continuation`) of ``n`` lines to ``total``: it depends on the sizes and the
+    carrier only, so it is made once per window shape (measured: 0.5 ms a call, a sixth of
+    a tracked window's demodulation)."""
+    beyond, before, towards_start = _bridge(n, total)
+    towards_end = (1.0 - towards_start).astype(np.float32)
+    towards_start32 = towards_start.astype(np.float32)
+    # Sources end one sample short of the border so the cubic has all its neighbours.
+    last = n - 2
+    terms: list[tuple[npt.NDArray[np.float64], F32]]
+    if period <= last - 1:
+        from_end = beyond - np.ceil((beyond - last) / period) * period
+        from_start = before + np.ceil((1.0 - before) / period) * period
+    if 2.0 * period <= last - 1:
+        # Two periods back, extrapolated linearly (2·one period − two periods): the pad's
+        # own copy would carry the phase of one period further in, a step of (phase slope
+        # × period) at the border; the difference of the two copies cancels it to first
+        # order, and the background is extrapolated linearly as well.
+        terms = [(from_end, 2.0 * towards_end), (from_end - period, -towards_end),
+                 (from_start, 2.0 * towards_start32),
+                 (from_start + period, -towards_start32)]
+    elif period <= last - 1:
+        terms = [(from_end, towards_end), (from_start, towards_start32)]
+    else:
+        terms = [(np.clip(2.0 * (n - 1) - beyond, 0.0, n - 1.0), towards_end),
+                 (np.clip(-before, 0.0, n - 1.0), towards_start32)]
+    return _interpolation_operator(n, terms)
+
+
 def _continuation(block: F32, axis: int, total: int, f_along: float, f_across: float,
                   along_fringes: bool) -> F32:
     """The ``total − n`` lines that continue ``block`` beyond its end along ``axis``.
@@ -254,52 +295,28 @@ def _continuation(block: F32, axis: int, total: int, f_along: float, f_across: f
     images only).
     """
     n = block.shape[axis]
-    extra = total - n
-    beyond = np.arange(n, total, dtype=np.float64)   # positions after the end border
-    before = beyond - total                          # the same positions before the start
-    towards_start = 0.5 * (1.0 - np.cos(np.pi * (beyond - n + 1.0) / (extra + 1.0)))
-    period = 1.0 / abs(f_along) if f_along != 0.0 else math.inf
-    towards_end = (1.0 - towards_start).astype(np.float32)
-    towards_start32 = towards_start.astype(np.float32)
     if not along_fringes:
-        # Sources end one sample short of the border so the cubic has all its neighbours.
-        last = n - 2
-        terms: list[tuple[npt.NDArray[np.float64], F32]]
-        if period <= last - 1:
-            from_end = beyond - np.ceil((beyond - last) / period) * period
-            from_start = before + np.ceil((1.0 - before) / period) * period
-        if 2.0 * period <= last - 1:
-            # Two periods back, extrapolated linearly (2·one period − two periods): the pad's
-            # own copy would carry the phase of one period further in, a step of (phase slope
-            # × period) at the border; the difference of the two copies cancels it to first
-            # order, and the background is extrapolated linearly as well.
-            terms = [(from_end, 2.0 * towards_end), (from_end - period, -towards_end),
-                     (from_start, 2.0 * towards_start32),
-                     (from_start + period, -towards_start32)]
-        elif period <= last - 1:
-            terms = [(from_end, towards_end), (from_start, towards_start32)]
-        else:
-            terms = [(np.clip(2.0 * (n - 1) - beyond, 0.0, n - 1.0), towards_end),
-                     (np.clip(-before, 0.0, n - 1.0), towards_start32)]
-        used, operator = _interpolation_operator(n, terms)
+        period = 1.0 / abs(f_along) if f_along != 0.0 else math.inf
+        used, operator = _period_operator(n, total, period)
         if axis == 1:
             return np.asarray(block[:, used] @ operator, dtype=np.float32)
         return np.asarray(operator.T @ block[used, :], dtype=np.float32)
-    else:
-        # Along the fringe through the pad pixel back to the border line: the other
-        # coordinate moves by (distance along axis)·f_along/f_across. That axis is already
-        # continued periodically (the steep axis is always done first), so positions wrap.
-        slope = f_along / f_across
-        end_line = np.ascontiguousarray(block[:, n - 1] if axis == 1 else block[n - 1, :])
-        start_line = np.ascontiguousarray(block[:, 0] if axis == 1 else block[0, :])
-        end_part = _shifted_line(end_line, (beyond - (n - 1)) * slope)
-        start_part = _shifted_line(start_line, before * slope)
-        if axis == 1:
-            end_part, start_part = end_part.T, start_part.T
-    weight = towards_start32.reshape((1, -1) if axis == 1 else (-1, 1))
+    # Along the fringe through the pad pixel back to the border line: the other coordinate
+    # moves by (distance along axis)·f_along/f_across. That axis is already continued
+    # periodically (the steep axis is always done first), so positions wrap.
+    beyond, before, towards_start = _bridge(n, total)
+    slope = f_along / f_across
+    end_line = np.ascontiguousarray(block[:, n - 1] if axis == 1 else block[n - 1, :])
+    start_line = np.ascontiguousarray(block[:, 0] if axis == 1 else block[0, :])
+    end_part = _shifted_line(end_line, (beyond - (n - 1)) * slope)
+    start_part = _shifted_line(start_line, before * slope)
+    if axis == 1:
+        end_part, start_part = end_part.T, start_part.T
+    weight = towards_start.astype(np.float32).reshape((1, -1) if axis == 1 else (-1, 1))
     return np.asarray(end_part + (start_part - end_part) * weight, dtype=np.float32)
 
 
+@functools.lru_cache(maxsize=64)
 def _padded_length(length: int, pad_px: int, frequency: float) -> int:
     """A fast FFT length of at least ``length + 2·pad_px`` that holds whole carrier periods.
 
