@@ -194,6 +194,10 @@ def test_tracking_bench_measures_live_tracking(calibrated_rooms: Any,
     assert report["error"] is None
     assert frames["processed"] > 0
     assert frames["camera_periods"] == frames["acquired"] + frames["missed"]
+    # The camera periods begin with the first frame, after the cameras were prepared.
+    assert report["stream_s"] == pytest.approx(frames["camera_periods"] / 25.0)
+    assert report["stream_s"] < report["elapsed_s"]
+    assert 0 < report["first_pose_after_start_s"] < report["elapsed_s"]
     assert latency["end_to_end_p99"] >= latency["end_to_end_median"] > 0
     assert report["fits"]["with_pose"] > 0
     assert report["clients"]["count"] == 20 and report["clients"]["reader_messages_lost"] == 0

@@ -6,7 +6,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -66,6 +66,7 @@ class FakeRoom:
         self.clock: Clock = clock if clock is not None else ManualClock(START_NS)
         self.seed = seed
         self.renders: list[dict[str, Any]] = []
+        self.prepared: list[tuple[str, tuple[str, ...]]] = []
         self._lock = threading.Lock()
 
     def camera_ids(self) -> list[str]:
@@ -79,6 +80,10 @@ class FakeRoom:
 
     def camera_format(self, camera_id: str) -> tuple[int, int, int]:
         return (24, 16, 12) if camera_id == "S4" else (32, 24, 8)
+
+    def prepare(self, camera_id: str, projectors: Sequence[str]) -> None:
+        with self._lock:
+            self.prepared.append((camera_id, tuple(projectors)))
 
     def render(self, camera_id: str, *, t_s: float, projectors: Mapping[str, float],
                exposure_us: float, gain_db: float, rng: np.random.Generator) -> np.ndarray:
@@ -589,6 +594,24 @@ def test_acquire_one_unit_and_bad_unit_lists(open_rig: Rig) -> None:
             open_rig.acquire(unit_ids)
     with pytest.raises(ValueError, match="timeout_s"):
         open_rig.acquire(["left"], timeout_s=0)
+
+
+def test_the_rig_prepares_a_units_cameras_for_a_stream(open_rig: Rig, room: FakeRoom) -> None:
+    open_rig.prepare_stream(["right"])
+    # Each camera of the unit, lit by the unit's projector, and nothing rendered.
+    assert room.prepared == [("S3", ("P2",)), ("S4", ("P2",))]
+    assert room.renders == []
+    with pytest.raises(ValueError, match="unknown unit"):
+        open_rig.prepare_stream(["centre"])
+    sim_camera(open_rig, "S3").inject_fault("disconnect")
+    with pytest.raises(DeviceDisconnectedError):
+        open_rig.prepare_stream(["right"])
+
+
+def test_a_closed_rig_prepares_nothing(rig: Rig, room: FakeRoom) -> None:
+    with pytest.raises(DeviceNotOpenError):
+        rig.prepare_stream(["left"])
+    assert room.prepared == []
 
 
 def test_acquire_on_a_closed_rig(rig: Rig) -> None:

@@ -666,3 +666,22 @@ def test_a_moving_eye_renders_as_the_whole_scene_cast_afresh(room: SimRoom, odd_
             for pid in projectors:
                 np.testing.assert_allclose(moving.fringe[pid], whole.fringe[pid], atol=1e-4)
                 assert np.abs(whole.fringe[pid]).max() > 1.0  # the fringes are there
+
+
+def test_preparing_a_camera_casts_a_moving_eyes_static_part_before_its_first_frame() -> None:
+    # The first render of a moving scene casts its static part whole (≈ 1 s a camera); a
+    # stream's cameras are prepared before the stream so that its first frames come on time.
+    sim = SimRoom(clock=ManualClock(0))
+    motion = MotionSpec(seed=2, drift_deg=0.05, saccade_rate_hz=0.0, blink_rate_hz=0.0)
+    sim.set_scene(SceneSpec(kind="eye", eye=EyeSpec(motion=motion)))
+    assert not sim.renderer._static
+    sim.prepare("S1", ["P1"])
+    (camera_id, _), part = next(iter(sim.renderer._static.items()))
+    assert camera_id == "S1" and sorted(part.values) == ["P1", "ambient"]
+    # What was prepared is what a frame then uses (the same light as without preparing).
+    prepared = sim.components("S1", 0.2, ["P1"])
+    assert len(sim.renderer._static) == 1
+    fresh = SimRoom(clock=ManualClock(0))
+    fresh.set_scene(sim.scene)
+    np.testing.assert_array_equal(prepared.fringe["P1"], fresh.components("S1", 0.2, ["P1"])
+                                  .fringe["P1"])

@@ -350,19 +350,26 @@ def test_low_confidence_holds_the_beam() -> None:
 
 
 class _FakeRig:
-    """Pulses at the scheduled time (now if that has passed), takes ``busy_s`` of the clock to
-    deliver (the simulated room's rendering) and no less than 4 ms after the pulse (exposure
-    and transfer); frames mid-exposure 1 and 3 ms after the pulse."""
+    """Takes ``PREPARE_S`` of the clock to prepare its cameras for the stream, then pulses at
+    the scheduled time (now if that has passed), takes ``busy_s`` of the clock to deliver (the
+    simulated room's rendering) and no less than 4 ms after the pulse (exposure and transfer);
+    frames mid-exposure 1 and 3 ms after the pulse."""
 
     def __init__(self, clock: ManualClock, busy_s: list[float]) -> None:
         self.clock = clock
         self.busy_s = busy_s
-        self.calls: list[tuple[float, float]] = []  # (called, pulse) ms after the start
+        self.prepared: list[list[str]] = []
+        self.calls: list[tuple[float, float]] = []  # (called, pulse) ms after the stream's start
+
+    def prepare_stream(self, unit_ids: list[str]) -> None:
+        self.prepared.append(list(unit_ids))
+        self.clock.advance(PREPARE_S)
 
     def acquire(self, unit_ids: list[str], *, at_ns: int | None = None) -> list[AcquiredStep]:
+        assert self.prepared, "acquired before the cameras were prepared"
         now = self.clock.now_ns()
         pulse = now if at_ns is None else max(now, at_ns)
-        self.calls.append(((now - START_NS) / 1e6, (pulse - START_NS) / 1e6))
+        self.calls.append(((now - STREAM_NS) / 1e6, (pulse - STREAM_NS) / 1e6))
         step = TriggerStep(projectors=("P1",), cameras=("S1", "S2"))
         frames = {c: Frame(np.zeros((2, 2), np.uint8),
                            FrameMeta(c, len(self.calls), pulse + 1_000_000 + k * 2_000_000,
@@ -374,6 +381,8 @@ class _FakeRig:
 
 
 START_NS = 10_000_000_000
+PREPARE_S = 1.5
+STREAM_NS = START_NS + round(PREPARE_S * 1e9)
 
 
 def test_the_rig_source_schedules_frames_at_the_camera_rate_and_counts_missed_ones() -> None:
@@ -382,6 +391,9 @@ def test_the_rig_source_schedules_frames_at_the_camera_rate_and_counts_missed_on
     source = RigFrameSource(rig, ["left"], clock)  # type: ignore[arg-type]
     frames = [source.next_frame() for _ in range(5)]
 
+    # The cameras are prepared once, before the first frame's time is set: the time they take
+    # (the simulated room's first render of a moving eye) costs no frames.
+    assert rig.prepared == [["left"]]
     assert [f.frame for f in frames if f] == [0, 1, 2, 4, 5]  # frame 3 was missed
     assert source.missed == 1
     # Each pulse is scheduled for its due time as soon as the last frames arrived (so the room
@@ -390,11 +402,11 @@ def test_the_rig_source_schedules_frames_at_the_camera_rate_and_counts_missed_on
     assert rig.calls == [(0.0, 0.0), (10.0, 40.0), (44.0, 80.0), (174.0, 174.0),
                          (184.0, 200.0)]
     first, late = frames[0], frames[3]
-    assert first is not None and first.t_ns == START_NS + 2_000_000  # mean mid-exposure
-    assert late is not None and late.t_ns == START_NS + 176_000_000
+    assert first is not None and first.t_ns == STREAM_NS + 2_000_000  # mean mid-exposure
+    assert late is not None and late.t_ns == STREAM_NS + 176_000_000
     # In the daemon's hands when the rig returned them: 4 ms after the pulse, or once rendered.
-    assert [(f.arrived_ns - START_NS) / 1e6 for f in frames if f] == [10.0, 44.0, 174.0, 184.0,
-                                                                       204.0]
+    assert [(f.arrived_ns - STREAM_NS) / 1e6 for f in frames if f] == [10.0, 44.0, 174.0,
+                                                                        184.0, 204.0]
     session = TrackingSession(source, lambda frame_set, previous: _pose(), reference=REFERENCE,
                               tolerances=TOLERANCES, bus=EventBus(), clock=clock)
     message = session.process(first)

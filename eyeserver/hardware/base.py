@@ -129,6 +129,17 @@ class Camera(Device):
             raise ValueError(f"timeout_s must be positive, not {timeout_s}")
         return self._read_frame(timeout_s)
 
+    def prepare_stream(self, projectors: Sequence[str]) -> None:
+        """Get ready to stream frames lit by ``projectors`` (ids): a camera that needs a
+        moment before its first frame takes it here, so that the stream's first frames come
+        on time (a simulated camera fills its room's render caches for the scene in front of
+        it). Nothing by default."""
+        self._require_open()
+        self._prepare_stream(tuple(projectors))
+
+    def _prepare_stream(self, projectors: tuple[str, ...]) -> None:
+        """Hook of :meth:`prepare_stream`."""
+
     @abc.abstractmethod
     def _apply_exposure_us(self, value: float) -> None: ...
 

@@ -302,6 +302,27 @@ class Rig:
                  for unit in (self._unit_by_id[u] for u in unit_ids)]
         return self._run(steps, timeout_s, at_ns)
 
+    def prepare_stream(self, unit_ids: Sequence[str]) -> None:
+        """Get the cameras of ``unit_ids`` ready to stream, each lit by its unit's projector
+        (:meth:`~eyeserver.hardware.base.Camera.prepare_stream`): call it once before a stream
+        of :meth:`acquire` calls, so that its first frames come on time.
+
+        Raises
+        ------
+        ValueError
+            For an unknown unit.
+        DeviceError
+            When a camera fails.
+        """
+        unknown = [u for u in unit_ids if u not in self._unit_by_id]
+        if unknown:
+            raise ValueError(f"unknown unit(s) {', '.join(map(repr, unknown))}; "
+                             f"the rig has {', '.join(self._unit_by_id)}")
+        with self._lock:
+            for unit in (self._unit_by_id[u] for u in unit_ids):
+                for camera in unit.cameras:
+                    camera.prepare_stream((unit.projector.id,))
+
     def acquire_unlit(self, timeout_s: float = 2.0) -> AcquiredStep:
         """Capture every camera on one pulse that lights no projector (chessboards in room light).
 

@@ -292,7 +292,9 @@ class RigFrameSource:
     Frame ``n`` is due at ``start + n / rate_hz``: its pulse is scheduled for that moment as
     soon as the last frame set has arrived (:meth:`~eyeserver.hardware.rig.Rig.acquire` with
     ``at_ns``), so the frames come at a steady rate with exact times, and the simulated room
-    renders each before it is due, as a camera's frame costs the host nothing. An acquisition
+    renders each before it is due, as a camera's frame costs the host nothing. The cameras are
+    prepared for the stream (:meth:`~eyeserver.hardware.rig.Rig.prepare_stream`) before the
+    first frame's time is set. An acquisition
     that overruns its period makes the frames whose time has passed *missed* (counted in
     :attr:`missed`), so the frame numbers keep counting camera periods.
     """
@@ -316,6 +318,9 @@ class RigFrameSource:
     def next_frame(self) -> FrameSet | None:
         clock = self._clock
         if self._start_ns is None:
+            # Cameras that need a moment before their first frame take it before the first
+            # frame is due, not out of the first frames.
+            self._rig.prepare_stream(self._unit_ids)
             self._start_ns = clock.now_ns()
         due_ns = self._start_ns + self._next * self._period_ns
         now = clock.now_ns()

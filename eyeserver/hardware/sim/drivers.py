@@ -24,7 +24,7 @@ import os
 import queue
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Final, Literal, Protocol, TypeVar, get_args
@@ -112,6 +112,11 @@ class RenderSource(Protocol):
 
     def camera_format(self, camera_id: str) -> tuple[int, int, int]:
         """Image ``(width, height, bit_depth)`` of a camera."""
+        ...
+
+    def prepare(self, camera_id: str, projectors: Sequence[str]) -> None:
+        """Make what renders of ``camera_id`` lit by ``projectors`` will reuse (caches of the
+        scene in front of it), so that the first of them costs no more than the next."""
         ...
 
     def render(self, camera_id: str, *, t_s: float, projectors: Mapping[str, float],
@@ -504,6 +509,12 @@ class SimCamera(_SimFaults, Camera):
             if exposure is None:
                 raise DeviceTimeoutError(self.id, f"no triggered frame within {timeout_s} s")
             return self._deliver(exposure)
+
+    def _prepare_stream(self, projectors: tuple[str, ...]) -> None:
+        # The room's first render of a moving scene casts its static part whole (≈ 1 s a
+        # camera): done here, on the caller's thread, before the stream's first pulse.
+        self._check_connected()
+        self._wiring.room.prepare(self.id, projectors)
 
     def _render(self, t_ns: int, projectors: dict[str, float], exposure_us: float,
                 gain_db: float) -> np.ndarray:

@@ -8,7 +8,7 @@ and the simulated-rig API place scenes in (``set_scene``). Ground truth lives in
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -102,6 +102,12 @@ class SimRoom:
                        else render.supersample)
         return self.renderer.components(camera_id, built.scene, supersample, projectors,
                                         cache_key=spec.model_dump_json())
+
+    def prepare(self, camera_id: str, projectors: Sequence[str]) -> None:
+        """Fill the render caches for ``camera_id`` lit by ``projectors`` with the scene in
+        front of it now: a moving scene's static part (cast whole, ≈ 1 s a camera) or a
+        still scene's light components."""
+        self.components(camera_id, self.clock.now_ns() / 1e9, projectors)
 
     def render(self, camera_id: str, *, t_s: float, projectors: Mapping[str, float],
                exposure_us: float, gain_db: float, rng: np.random.Generator,
