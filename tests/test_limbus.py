@@ -109,6 +109,27 @@ def test_the_circle_fit_is_scipys_robust_least_squares(calibrated_rooms: Any, tm
     assert np.allclose(ours.jac, scipys.jac, rtol=1e-3, atol=1e-3)
 
 
+def test_following_the_eye_takes_one_round_where_the_last_gaze_still_fits(
+        calibrated_rooms: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Live tracking (no search) from the last frame's gaze: the last search round alone finds
+    the limbus; from a gaze a saccade away, the rounds before it bring the start closer."""
+    _, caldir = calibrated_rooms("default")
+    truth = _record("default", LOOKING, tmp_path / "eye")
+    views = limbus_views(caldir, tmp_path / "eye")
+    fits: list[int] = []
+    fit = limbus._fit_circle
+    monkeypatch.setattr(limbus, "_fit_circle", lambda *a: fits.append(1) or fit(*a))
+    gaze = np.asarray(truth["gaze"])
+    away = gaze + math.tan(math.radians(6.0)) * np.array([1.0, 0.0, 0.0])
+    for start, rounds in ((gaze, 1), (away / np.linalg.norm(away), 2)):
+        fits.clear()
+        found = find_limbus(views, truth["centre_mm"], start, truth["globe_radius_mm"],
+                            11.7 / 2, search=False)
+        assert len(fits) == rounds
+        assert _angle_deg(found.normal, gaze) < 0.5
+        assert np.linalg.norm(found.centre - truth["limbus_centre_mm"]) < 0.05
+
+
 def test_closed_lids_have_no_limbus(calibrated_rooms: Any, tmp_path: Path) -> None:
     """Lids closed (an opening too small to show the cornea): no limbus is made up."""
     _, caldir = calibrated_rooms("default")
