@@ -37,8 +37,8 @@ that is spherical: the lids are shells in front of it. So:
 4. **The limbus in the images** (when the fit is given the fringe images, ``views``): found
    by :mod:`eyeserver.pipeline.limbus` from the rough pose of steps 2–3, it sets the gaze and
    the limbus centre, and the globe is the sphere through it that the sclera lies on
-   (:func:`pose_on_limbus`). Measured on 200 rendered poses: gaze 0.17° median (p95 0.40°),
-   limbus centre 0.013 mm, globe centre 0.109 mm median (p95 0.27 mm). Without images, or
+   (:func:`pose_on_limbus`). Measured on 200 rendered poses: gaze 0.17° median (p95 0.41°),
+   limbus centre 0.013 mm, globe centre 0.12 mm median (p95 0.29 mm). Without images, or
    where no limbus is found, the cloud-only pose of steps 2–3 stands (``gaze_source`` says
    which).
 
