@@ -194,3 +194,35 @@ def test_a_held_radius_places_the_globe_on_a_limbus_seen_without_sclera(
     assert _angle_deg(pose.gaze, truth["gaze"]) < 0.5
     assert np.linalg.norm(np.subtract(pose.centre_mm, truth["centre_mm"])) < 0.15
     assert pose.sclera_points < 30 and pose.confidence < 0.1
+
+
+def _shell(rng: np.random.Generator, centre: np.ndarray, radii: np.ndarray,
+           polar_deg: tuple[float, float]) -> np.ndarray:
+    """Points on spheres about ``centre`` (one radius each) at polar angles from +Z."""
+    polar = np.radians(rng.uniform(*polar_deg, radii.size))
+    azimuth = rng.uniform(0.0, 2 * math.pi, radii.size)
+    directions = np.stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth),
+                           np.cos(polar)], axis=1)
+    return np.asarray(centre + radii[:, None] * directions)
+
+
+def test_the_globe_on_the_limbus_is_supported_by_a_sclera_shell_not_by_lids() -> None:
+    """The sclera votes for one sphere through the limbus; lids, spread over millimetres, do
+    not: where no sclera is seen the innermost shell is the lids', and its little support
+    (what the pose's confidence counts; measured on a rendered pose of `bench pose` whose
+    globe came out 3.9 mm off: 43 against 196–1,775 on 24 others) gives it away."""
+    rng = np.random.default_rng(5)
+    r, radius = 11.7 / 2, 12.0
+    centre = np.array([0.0, 0.0, -math.sqrt(radius**2 - r**2)])
+    found = limbus.Limbus(centre=np.zeros(3), normal=np.array([0.0, 0.0, 1.0]), radius=r,
+                          centre_sd_mm=0.01, gaze_sd_deg=0.1, radius_sd_mm=0.01,
+                          residual_px=0.2, coverage={})
+    sclera = _shell(rng, centre, radius + rng.normal(0.0, 0.02, 1500), (32.0, 50.0))
+    lids = _shell(rng, centre, rng.uniform(12.8, 15.0, 3000), (30.0, 70.0))
+
+    seen = limbus.globe_on_limbus(np.vstack([sclera, lids]), found)
+    hidden = limbus.globe_on_limbus(lids, found)
+
+    assert seen.radius == pytest.approx(radius, abs=0.02) and seen.support > 200
+    assert abs(hidden.radius - radius) > 0.5  # the lids taken for the sclera
+    assert hidden.support < 0.1 * seen.support

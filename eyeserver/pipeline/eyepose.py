@@ -829,7 +829,11 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
                         + lever**2 * (1.0 - g**2))
     gaze = Gaze(g, limbus.gaze_sd_deg, LIMBUS_FROM_IMAGES, limbus.centre, limbus.centre_sd_mm,
                 limbus.radius)
-    confidence = _confidence(globe.points, WELL_SEEN_LIMBUS_POINTS, globe.surface_mad_mm, gaze)
+    # The globe's support, not its sclera points: lids taken for the sclera of an eye that
+    # shows almost none lie near the sphere in hundreds of points too (measured: 1 pose of 200,
+    # 3.9 mm off with confidence 0.64: 43 points of support against 196–1,775 on 24 others).
+    confidence = _confidence(globe.support, WELL_SEEN_LIMBUS_POINTS, globe.surface_mad_mm,
+                             gaze)
     return _pose(globe.centre, centre_sd, globe.radius, gaze, globe.surface_mad_mm,
                  globe.points, confidence, started)
 

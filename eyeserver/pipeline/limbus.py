@@ -157,6 +157,11 @@ class Globe:
     """Uncertainty of ``h`` (the centre's distance behind the limbus plane)."""
     points: int
     surface_mad_mm: float
+    support: int
+    """How many points place it: the sclera points whose own sphere through the limbus lies
+    within 0.1 mm of ``h`` when the radius is fitted (the lids' votes spread over millimetres,
+    so lids taken for the sclera, where almost no sclera is seen, have little support), the
+    sclera points when the radius is held."""
 
 
 def fringe_free(camera: CalibratedCamera, image: npt.ArrayLike,
@@ -687,11 +692,13 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
         if not carrying.any():
             carrying = behind
         mad = float(np.median(np.abs(offset[carrying]))) if carrying.any() else 1.5
+        points = int((behind & (np.abs(offset) < 0.3)).sum())
         return Globe(centre=L - depth * g, radius=math.hypot(depth, r), depth_sd_mm=0.0,
-                     points=int((behind & (np.abs(offset) < 0.3)).sum()), surface_mad_mm=mad)
+                     points=points, surface_mad_mm=mad, support=points)
     near = np.abs(votes - depth) < 0.1
     spread = 1.4826 * float(np.median(np.abs(votes[near] - depth))) if near.any() else math.inf
     depth_sd = 0.0 if fixed_radius is not None else spread / math.sqrt(max(int(near.sum()), 1))
     return Globe(centre=L - depth * g, radius=math.hypot(depth, r), depth_sd_mm=depth_sd,
                  points=int(sclera.sum()),
-                 surface_mad_mm=float(np.median(np.abs(offset[sclera]))))
+                 surface_mad_mm=float(np.median(np.abs(offset[sclera]))),
+                 support=int(sclera.sum()) if fixed_radius is not None else int(near.sum()))
