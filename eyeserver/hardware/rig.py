@@ -258,6 +258,12 @@ class Rig:
     def __exit__(self, *exc_info: object) -> None:
         self.close()
 
+    def _check_units(self, unit_ids: Sequence[str]) -> None:
+        unknown = [u for u in unit_ids if u not in self._unit_by_id]
+        if unknown:
+            raise ValueError(f"unknown unit(s) {', '.join(map(repr, unknown))}; "
+                             f"the rig has {', '.join(self._unit_by_id)}")
+
     def acquire(self, unit_ids: Sequence[str], timeout_s: float = 2.0, *,
                 at_ns: int | None = None) -> list[AcquiredStep]:
         """Capture one interleaved frame set: one trigger pulse per unit, in the order given.
@@ -291,10 +297,7 @@ class Rig:
         """
         if not unit_ids:
             raise ValueError("unit_ids must name at least one unit")
-        unknown = [u for u in unit_ids if u not in self._unit_by_id]
-        if unknown:
-            raise ValueError(f"unknown unit(s) {', '.join(map(repr, unknown))}; "
-                             f"the rig has {', '.join(self._unit_by_id)}")
+        self._check_units(unit_ids)
         if len(set(unit_ids)) != len(unit_ids):
             raise ValueError(f"unit_ids repeats a unit: {list(unit_ids)}")
         steps = [TriggerStep(projectors=(unit.projector.id,),
@@ -314,10 +317,7 @@ class Rig:
         DeviceError
             When a camera fails.
         """
-        unknown = [u for u in unit_ids if u not in self._unit_by_id]
-        if unknown:
-            raise ValueError(f"unknown unit(s) {', '.join(map(repr, unknown))}; "
-                             f"the rig has {', '.join(self._unit_by_id)}")
+        self._check_units(unit_ids)
         with self._lock:
             for unit in (self._unit_by_id[u] for u in unit_ids):
                 for camera in unit.cameras:
