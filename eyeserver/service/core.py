@@ -803,13 +803,15 @@ class Service:
             held.update(source())
         return held
 
-    def delete_capture(self, capture_id: str, *, actor: str, reason: str) -> None:
+    def delete_capture(self, capture_id: str, *, actor: str, reason: str,
+                       evidence: Mapping[str, str] | None = None) -> None:
         """Delete a capture with everything kept beside it (audited first; see
         :meth:`Store.delete_capture`, which raises the errors); a capture that is evidence
-        (:meth:`evidence_captures`) raises :class:`StateConflictError`."""
+        (:meth:`evidence_captures`, or ``evidence`` when the caller deletes many and took it
+        once) raises :class:`StateConflictError`."""
         with self.audit.failures(actor, "delete_capture", capture_id):
             store = self.store
-            held = self.evidence_captures().get(capture_id)
+            held = (self.evidence_captures() if evidence is None else evidence).get(capture_id)
             if held is not None:
                 raise StateConflictError(f"capture {capture_id} is {held} and cannot be deleted")
             store.delete_capture(capture_id, actor=actor, reason=reason)

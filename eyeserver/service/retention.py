@@ -78,7 +78,9 @@ def purge_expired(service: Service, retention_days: float,
     deleted = []
     for capture_id in (c for c in expired if c not in evidence):
         try:
-            service.delete_capture(capture_id, actor=RETENTION_ACTOR, reason=reason)
+            # The evidence taken once for the run (it reads every captured reference).
+            service.delete_capture(capture_id, actor=RETENTION_ACTOR, reason=reason,
+                                   evidence=evidence)
         except UnknownIdError:
             continue  # deleted by someone else meanwhile
         except EyeserverError as exc:
