@@ -149,10 +149,11 @@ class Settings(BaseSettings):
         Long jobs (batch reconstructions, calibration solves) that may wait while one runs;
         one more is refused with HTTP 503. Default ``8``.
     ``tracking_workers``
-        Worker processes that reconstruct and fit live tracking's frames, each on the next
-        frame while the others work. Default ``2``: on two cores, with the simulated room
-        rendering on them too, two processed 62 % of the frames against 38 % for one
-        (``eyeserver bench tracking --workers N`` measures it).
+        Worker processes that reconstruct and fit live tracking's frames: the first takes
+        every frame it is free for, the next ones the frames it is busy through. Default
+        ``2``: a global fit of the whole images (after the eye was lost, ≈ 1 s) leaves the
+        second worker following the frames; with one, a 60-s run on two cores dropped 24
+        frames after the saccade (``eyeserver bench tracking --workers N`` measures it).
     ``tokens``
         The bearer tokens the API accepts. In the file, named tokens as an array of tables
         (``[[tokens]]`` with ``name``, ``role``, ``token``); in ``EYESERVER_TOKENS``,

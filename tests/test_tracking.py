@@ -153,6 +153,43 @@ def test_the_newest_frame_wins_and_replaced_frames_are_counted() -> None:
     assert slot.take(None) is None
 
 
+def test_a_frame_goes_to_the_lowest_ranked_free_taker() -> None:
+    # The first worker takes every frame it is free for (its caches stay warm, and the workers
+    # do not share the cores with each other); the second takes the frames the first is busy
+    # through (a global fit's second).
+    slot = LatestFrame()
+    got: dict[int, list[int]] = {0: [], 1: []}
+    spare_waiting = threading.Event()
+
+    def take(rank: int) -> None:
+        if rank == 1:
+            spare_waiting.set()
+        item = slot.take(TIMEOUT_S, rank)
+        assert item is not None
+        got[rank].append(item.frame)
+
+    spare = threading.Thread(target=take, args=(1,))
+    spare.start()
+    assert spare_waiting.wait(TIMEOUT_S)
+    first = threading.Thread(target=take, args=(0,))
+    first.start()
+    while 0 not in slot._waiting:  # both are waiting
+        time.sleep(0.001)
+    slot.put(FrameSet(0, 0))
+    first.join(TIMEOUT_S)
+    assert got == {0: [0], 1: []}  # the first is free: it takes the frame, the spare waits on
+    slot.put(FrameSet(1, 40))  # the first is busy now (not waiting): the spare takes it
+    spare.join(TIMEOUT_S)
+    assert got == {0: [0], 1: [1]}
+    # A spare that times out while a lower rank waits takes nothing and leaves the frame.
+    slot.put(FrameSet(2, 80))
+    slot._waiting.append(0)  # as if the first were waiting
+    assert slot.take(0.01, rank=1) is None
+    slot._waiting.remove(0)
+    again = slot.take(0, rank=1)
+    assert again is not None and again.frame == 2
+
+
 def test_a_session_processes_only_the_newest_frame_and_reports_the_drops() -> None:
     clock = ManualClock(1_000_000_000)
     session = _session(clock, [_pose()] * 6)

@@ -24,7 +24,10 @@ The processing thread has each frame set it takes reconstructed with the active 
 (loaded once per session) and the patient's eye model fitted to it — in a worker process of its
 own (:class:`~eyeserver.service.tracking_worker.PoseWorker`), so this work neither holds the
 GIL against acquisition and the event loop nor shares their core (with several workers, a
-processing thread each takes the newest frame when its worker is free, and a pose that comes
+processing thread each takes the newest frame when its worker is free — the first worker
+whenever it is, the next ones only while those before them are busy (:meth:`LatestFrame.take`'s
+``rank``: measured in ``eyeserver bench tracking``, a lone worker's frames took 27–28 ms, two
+taking turns 31–32 ms, their caches cold and their work overlapping) — and a pose that comes
 after a newer frame's was published is dropped and counted, so frames are judged in order) —
 compares the pose with the fraction's reference
 (:func:`~eyeserver.service.verification.deviation`, :func:`~eyeserver.service.verification.judge`),
@@ -446,6 +449,7 @@ class LatestFrame:
         self._condition = threading.Condition()
         self._item: FrameSet | None = None
         self._closed = False
+        self._waiting: list[int] = []  # the ranks of the takers waiting
         self.dropped = 0
         """Frame sets replaced before anyone took them."""
 
@@ -459,11 +463,24 @@ class LatestFrame:
             self._condition.notify_all()
             return replaced
 
-    def take(self, timeout_s: float | None = None) -> FrameSet | None:
+    def take(self, timeout_s: float | None = None, rank: int = 0) -> FrameSet | None:
         """The newest frame set (removing it), waiting for one; None when closed and empty or
-        on timeout."""
+        on timeout.
+
+        Takers of a lower ``rank`` come first: a frame set goes to a taker of rank ``k`` only
+        while none of a lower rank is waiting (one that is, is free for it).
+        """
         with self._condition:
-            self._condition.wait_for(lambda: self._item is not None or self._closed, timeout_s)
+            self._waiting.append(rank)
+            try:
+                ready = self._condition.wait_for(
+                    lambda: self._closed or (self._item is not None
+                                             and min(self._waiting) >= rank), timeout_s)
+            finally:
+                self._waiting.remove(rank)
+                self._condition.notify_all()  # a lower rank leaving may let a higher one take
+            if not ready:
+                return None
             item, self._item = self._item, None
             return item
 
@@ -692,7 +709,7 @@ class TrackingSession:
         self._processing = len(self.finders)
         self._threads = [threading.Thread(target=self._acquire_loop, name="tracking-acquisition",
                                           daemon=True),
-                         *(threading.Thread(target=self._process_loop, args=(finder,),
+                         *(threading.Thread(target=self._process_loop, args=(finder, n),
                                             name=f"tracking-processing-{n}", daemon=True)
                            for n, finder in enumerate(self.finders))]
         for thread in self._threads:
@@ -714,10 +731,10 @@ class TrackingSession:
         finally:
             self.slot.close()
 
-    def _process_loop(self, finder: FindPose) -> None:
+    def _process_loop(self, finder: FindPose, rank: int) -> None:
         try:
             while True:
-                frame_set = self.slot.take(None)
+                frame_set = self.slot.take(None, rank)
                 if frame_set is None:
                     break  # closed and empty
                 if self._stop.is_set():
