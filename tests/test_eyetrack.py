@@ -22,7 +22,13 @@ from eyeserver.hardware.sim.scenes import SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.io.rig_file import rig_from_dict
 from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError, fit_eye
-from eyeserver.pipeline.eyetrack import WINDOW_QUANTUM_PX, eye_window, pose_window, track_eye
+from eyeserver.pipeline.eyetrack import (
+    WINDOW_QUANTUM_PX,
+    eye_window,
+    lids_closed,
+    pose_window,
+    track_eye,
+)
 from eyeserver.pipeline.fusion import Part, fuse
 from eyeserver.pipeline.geometry import project
 from eyeserver.pipeline.limbus import LimbusView
@@ -90,6 +96,30 @@ def test_the_warm_fit_tells_the_sclera_from_the_lids_around_it() -> None:
 
     assert np.linalg.norm(np.subtract(pose.centre_mm, CENTRE)) < 0.05, pose
     assert pose.gaze_source != "none"
+
+
+def _closed_lids(rng: np.random.Generator) -> npt.NDArray[np.float64]:
+    """Lids shut over the eye: the lid shell 1.2 mm outside the globe, the opening too, and no
+    sclera (the face's outliers as in :func:`_eye_cloud`)."""
+    u = rng.normal(size=(40000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    u = u[u[:, 2] > 0.45]
+    points = np.vstack([CENTRE + (RADIUS + 1.2) * u,
+                        CENTRE + rng.uniform(-14.0, 14.0, size=(300, 3))])
+    return points + rng.normal(scale=0.03, size=points.shape)
+
+
+def test_closed_lids_are_told_from_an_open_eye_and_from_one_that_moved() -> None:
+    gaze = np.array([0.0, 0.0, 1.0])
+    open_eye = _eye_cloud(np.random.default_rng(6), lids=True).points
+    assert not lids_closed(open_eye, CENTRE, RADIUS, gaze, 5.85)
+    assert lids_closed(_closed_lids(np.random.default_rng(7)), CENTRE, RADIUS, gaze, 5.85)
+    # An eye that moved a millimetre (towards the cameras: its sclera about the limbus lies on
+    # the lids' shell of the last globe) or turned still shows its cornea inside the limbus.
+    for moved in ([0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, -0.7, 0.7]):
+        assert not lids_closed(open_eye + moved, CENTRE, RADIUS, gaze, 5.85), moved
+    turned = np.array([math.sin(math.radians(8.0)), 0.0, math.cos(math.radians(8.0))])
+    assert not lids_closed(open_eye, CENTRE, RADIUS, turned, 5.85)
 
 
 def test_the_warm_fit_gives_up_where_the_last_globe_is_empty() -> None:

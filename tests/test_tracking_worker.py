@@ -15,12 +15,13 @@ import pytest
 
 from eyeserver.core.clock import ManualClock
 from eyeserver.hardware.sim.config import load_room
+from eyeserver.hardware.sim.motion import MotionSpec, ScriptEvent
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.hardware.sim.truth import room_truth
 from eyeserver.io import RigSpec
 from eyeserver.io.rig_file import rig_from_dict
-from eyeserver.pipeline.eyepose import EyeModel, PoseError, fit_eye
+from eyeserver.pipeline.eyepose import LIMBUS_FROM_IMAGES, EyeModel, PoseError, fit_eye
 from eyeserver.pipeline.eyetrack import track_eye
 from eyeserver.pipeline.reconstruct import strong_modulation
 from eyeserver.service import tracking
@@ -217,3 +218,42 @@ class _OneFrame:
     def next_frame(self) -> FrameSet | None:
         frame, self.frame = self.frame, None
         return frame
+
+
+def test_closed_lids_are_a_blink_not_a_globe(calibrated_rooms: Any) -> None:
+    """With the lids closed the limbus is not found and the lid shell, a millimetre outside the
+    globe, lies where the sclera was: the frame is a blink (the last globe kept, no gaze),
+    without the global fit, which took the lids for the globe (1.3 mm, 40° off, confidence up
+    to 0.97); when the lids open the limbus is found again from the last gaze."""
+    _, caldir = calibrated_rooms("default")
+    blink = MotionSpec(drift_deg=0.0, saccade_rate_hz=0.0, blink_rate_hz=0.0,
+                       script=[ScriptEvent(t_s=0.2, kind="blink", duration_s=1.0)])
+    with SimSession.open(load_room(None), seed=5) as session:
+        rig = rig_from_dict(session.rig.spec(), "<simulated rig>")
+        unit = session.rig.units[0].id
+        session.room.set_scene(SceneSpec(kind="eye", eye=EyeSpec(motion=blink)))
+        frames, openness = [], []
+        for at_s in (0.0, 0.57, 1.4):  # open, shut (0.5–0.65 s), open again
+            session.clock.advance(at_s - session.room.scene_time(session.clock.now_ns() / 1e9))
+            frames.append(FrameSet(len(frames), 0, session.rig.acquire([unit])))
+            openness.append(room_truth(session.room)["eye"]["openness"])
+        truth = room_truth(session.room)["eye"]
+    assert openness[0] == 1.0 and openness[1] == 0.0 and openness[2] == 1.0
+    global_fits: list[int] = []
+
+    def counted_fit(*args: Any) -> Any:
+        global_fits.append(1)
+        return fit_eye(*args)
+
+    finder = PoseFinder(RigReconstructor(caldir, rig), counted_fit, MODEL, track=track_eye)
+    reference = {"centre_mm": truth["centre_mm"], "gaze": truth["gaze"]}
+    start = start_pose(reference, MODEL)
+    assert start is not None
+    open_pose = finder(frames[0], start)
+    shut = finder(frames[1], open_pose)
+    again = finder(frames[2], shut)
+    assert open_pose.gaze_source == again.gaze_source == LIMBUS_FROM_IMAGES
+    assert shut.gaze_source == "none" and shut.confidence == 0.0
+    assert shut.centre_mm == open_pose.centre_mm and shut.gaze == open_pose.gaze
+    assert global_fits == []
+    assert np.linalg.norm(np.subtract(again.centre_mm, truth["centre_mm"])) < 0.1
