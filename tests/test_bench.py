@@ -201,6 +201,11 @@ def test_tracking_bench_measures_live_tracking(calibrated_rooms: Any,
     assert latency["end_to_end_p99"] >= latency["end_to_end_median"] > 0
     assert report["fits"]["with_pose"] > 0
     assert report["clients"]["count"] == 20 and report["clients"]["reader_messages_lost"] == 0
+    blink = report["blink"]  # scripted three quarters of the way
+    assert blink["duration_s"] == tracking.BLINK_S
+    assert max(blink["held"], blink["seen_as_blink"], blink["with_pose"]) \
+        <= blink["frames_half_shut"]
+    assert "lids half shut or more" in tracking.format_text(report)
 
 
 def test_the_replay_bench_counts_every_frame_it_hands_the_tracking_worker(

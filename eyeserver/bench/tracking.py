@@ -2,7 +2,7 @@
 
 A daemon on loopback (:class:`~eyeserver.bench.daemon.DaemonProcess`) with a calibration of the
 simulated rig, a patient whose reference is captured at rest, then the eye set moving (slight
-drift and a scripted saccade out of tolerance and back) and live tracking for a while, read on
+drift, a scripted saccade out of tolerance and back, a blink) and live tracking for a while, read on
 ``/api/v1/ws/pose`` by twenty WebSocket clients, one of which never reads. Figures:
 
 * camera frames acquired at 25 Hz (share of the camera periods), and the share *processed*
@@ -11,6 +11,8 @@ drift and a scripted saccade out of tolerance and back) and live tracking for a 
   machine's monotonic clock), median and p99, beside the daemon's own figure at the send;
 * the beam hold's reaction to the saccade: camera frames from the saccade's end to the first
   message held for ``out_of_tolerance``, and whether the first frame processed after it was;
+* the blink: the processed frames with the lids half shut or more (the script's truth), how
+  many held the beam and were seen as a blink, the processing around it;
 * what the 19 reading clients received (messages per second) and what the silent one lost.
 """
 
@@ -35,7 +37,7 @@ from eyeserver.bench.daemon import DaemonError, DaemonProcess, zip_directory
 from eyeserver.bench.simcal import calibrate_room
 from eyeserver.core.clock import MonotonicClock
 from eyeserver.hardware.sim.config import load_room
-from eyeserver.hardware.sim.motion import MotionSpec
+from eyeserver.hardware.sim.motion import EyeMotion, MotionSpec
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.io.rig_file import rig_from_dict
@@ -57,6 +59,7 @@ API = "/api/v1"
 RATE_HZ = 25.0
 PATIENT = "P-BENCH-TRACK"
 SACCADE_DEG = 8.0
+BLINK_S = 0.3
 TOLERANCE_GAZE_DEG = 2.0
 TOLERANCE_MM = 0.5
 CLIENTS = 20
@@ -149,11 +152,13 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path,
     # the eye returns to the reference gaze one second later.
     lead_s = 3.0
     saccade_s = lead_s + seconds / 2
+    blink_s = lead_s + 3 * seconds / 4
     motion = {"seed": 1, "drift_deg": 0.02, "saccade_rate_hz": 0.0, "blink_rate_hz": 0.0,
               "script": [{"t_s": saccade_s, "kind": "saccade",
                           "gaze_deg": [SACCADE_DEG, 0.0], "duration_s": 0.03},
                          {"t_s": saccade_s + 1.0, "kind": "saccade", "gaze_deg": [0.0, 0.0],
-                          "duration_s": 0.03}]}
+                          "duration_s": 0.03},
+                         {"t_s": blink_s, "kind": "blink", "duration_s": BLINK_S}]}
     _checked(client.put(f"{API}/sim/eye", json={"motion": motion}), "eye motion")
     before = time.monotonic_ns()
     eye = _checked(client.get(f"{API}/sim/eye"), "eye truth")
@@ -178,8 +183,30 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path,
                    for _ in range(CLIENTS - 1)]
         status, elapsed_s, started, start_ns = _track(client, seconds, saccade_s, lead_s,
                                                       silent, readers, progress)
-    return _report(seconds, elapsed_s, started, start_ns, status, reference, readers, silent,
-                   saccade_end_ns)
+    report = _report(seconds, elapsed_s, started, start_ns, status, reference, readers, silent,
+                     saccade_end_ns)
+    report["blink"] = _blink(readers[0], EyeMotion(MotionSpec.model_validate(motion)), epoch_ns,
+                             blink_s)
+    return report
+
+
+def _blink(reader: _Reader, motion: EyeMotion, epoch_ns: int, blink_s: float
+           ) -> dict[str, Any]:
+    """What the scripted blink did to the stream: the processed frames with the lids half
+    shut or more (the script's truth at each frame's time), how many held the beam and were
+    seen as a blink, and the processing around it."""
+    def scene_s(message: dict[str, Any]) -> float:
+        return float(message["t_ns"] - epoch_ns) / 1e9
+
+    messages = [m for _, m in reader.messages if m.get("type") == "pose"]
+    shut = [m for m in messages if motion.state(scene_s(m)).openness <= 0.5]
+    around = [float(m["processing_ms"]) for m in messages
+              if blink_s - 0.2 <= scene_s(m) <= blink_s + BLINK_S + 0.2]
+    return {"duration_s": BLINK_S, "frames_half_shut": len(shut),
+            "held": sum(1 for m in shut if m["beam_hold"]),
+            "seen_as_blink": sum(1 for m in shut if m["eye"] == "blink"),
+            "with_pose": sum(1 for m in shut if m["pose"] is not None),
+            "processing_ms_max_around": max(around) if around else None}
 
 
 def _track(client: Any, seconds: float, saccade_s: float, lead_s: float, silent: _Reader,
@@ -345,6 +372,13 @@ def format_text(report: dict[str, Any]) -> str:
         f"messages/s, lost {clients['reader_messages_lost']}; the one that never read lost "
         f"{clients['silent_lost']} (kept {clients['silent_received']})",
     ]
+    blink = report.get("blink")
+    if blink:
+        lines.append(
+            f"  blink {blink['duration_s']:g} s: {blink['frames_half_shut']} processed frames "
+            f"with the lids half shut or more, {blink['held']} held the beam, "
+            f"{blink['seen_as_blink']} seen as a blink, {blink['with_pose']} with a pose; "
+            f"processing ≤ {_fmt(blink['processing_ms_max_around'])} ms around it")
     if clients.get("silent_closed"):
         lines.append(f"  the client that never read was closed: {clients['silent_closed']}")
     if report.get("error"):

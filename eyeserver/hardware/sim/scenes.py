@@ -226,7 +226,7 @@ class _Local:
     envelope: tuple[F64, float] | None = None
 
 
-def _build_local(spec: SceneSpec, t_s: float) -> _Local:
+def _build_local(spec: SceneSpec, t_s: float, lids_moving: bool = False) -> _Local:
     """Bodies in the scene's local frame, local fiducials, the eye's local truth, moving parts."""
     kind = spec.kind
     plate_white = constant_albedo(WHITE)
@@ -342,7 +342,7 @@ def _build_local(spec: SceneSpec, t_s: float) -> _Local:
     half_limbus = eye.limbus_diameter_mm / 2
     cap_centre = centre + (limbus_depth + sagitta / 2) * gaze
     moving = [(1, cap_centre, math.hypot(half_limbus, sagitta / 2) + 0.05)]
-    if openness < 1.0:
+    if openness < 1.0 or lids_moving:
         moving.append((2, head.copy(), lid_radius + 0.05))
     return _Local([Body([globe]), Body([cornea]), Body([lids]), face], np.zeros((0, 3)),
                   eye_truth, moving, (head.copy(), lid_radius + 0.1))
@@ -372,9 +372,14 @@ class _LidShell(Sphere):
         return t, normals
 
 
-def build_scene(spec: SceneSpec, t_s: float = 0.0) -> BuiltScene:
-    """Ray-casting geometry and ground truth of ``spec`` at time ``t_s`` (seconds)."""
-    local = _build_local(spec, t_s)
+def build_scene(spec: SceneSpec, t_s: float = 0.0, *, lids_moving: bool = False
+                ) -> BuiltScene:
+    """Ray-casting geometry and ground truth of ``spec`` at time ``t_s`` (seconds).
+
+    ``lids_moving``: count an eye's lids among the moving parts even while they are open (its
+    static part then is the one a blink renders with).
+    """
+    local = _build_local(spec, t_s, lids_moving)
     bodies, fiducials_local, eye_local = local.bodies, local.fiducials, local.eye
     R = pose_matrix(spec.rotation_deg)
     t = np.asarray(spec.position, dtype=np.float64)
