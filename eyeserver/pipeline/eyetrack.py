@@ -314,10 +314,10 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
         last_gaze = np.asarray(previous.gaze, dtype=np.float64)
         if lids_closed(points, centre, radius, last_gaze, model.limbus_diameter_mm / 2):
             # A blink: the last globe and gaze stand, the gaze unseen (beam held).
-            rel = np.linalg.norm(points - centre, axis=1) - radius
+            off = np.linalg.norm(points - centre, axis=1) - radius
             return pose_from_cloud(centre, np.asarray(previous.centre_sd_mm, dtype=np.float64),
                                    radius, Gaze(last_gaze, 90.0, "none"),
-                                   float(np.median(np.abs(rel))), 0, started)
+                                   float(np.median(np.abs(off))), 0, started)
     seen_radius, lid_radius = _seen_shells(points, centre, radius)
     cov = np.full((3, 3), np.inf)
     resid = np.zeros(0)
