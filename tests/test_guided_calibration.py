@@ -251,6 +251,11 @@ def test_guided_calibration_end_to_end(client: Client, tmp_path: Path) -> None:
     assert len(inputs) == len(PLATE_HEIGHTS) + 1 + len(answers)
     assert client.get(f"{API}/calibrations/compare",
                       params={"a": p2h_id, "b": "cal-nope"}).status_code == 404
+    # A download uploads again (another daemon, a reinstall): the calibration, not its inputs.
+    again = client.post(f"{API}/calibrations", content=response.content,
+                        headers={"content-type": "application/zip"})
+    assert again.status_code == 201, again.text
+    assert again.json()["quality"] == _ok(client.get(f"{API}/calibrations/{p2h_id}"))["quality"]
     # The inputs are the calibration's evidence: they cannot be deleted.
     evidence = sorted(inputs)[0]
     refused = client.delete(f"{API}/captures/{evidence}", params={"reason": "tidy up"})

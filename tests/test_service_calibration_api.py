@@ -124,12 +124,16 @@ def _bad_archives(caldir: Path) -> dict[str, tuple[bytes, str]]:
         "not a calibration": (_zip({CALIBRATION_FILE: b'{"format": "something-else"}'}),
                               "field 'format'"),
         "not JSON": (_zip({CALIBRATION_FILE: b"\x00\x01"}), "not valid JSON"),
+        "evidence elsewhere": (_zip({"a/" + CALIBRATION_FILE: good[CALIBRATION_FILE],
+                                     "b/inputs/cap-1/bundle.json": b"{}"}),
+                               "one top-level folder"),
+        "unsafe evidence": (_zip({**good, "inputs/../../x": b"x"}), "'..'"),
     }
 
 
 @pytest.mark.parametrize("case", ["parent", "absolute", "symlink", "extra file", "two folders",
                                   "not a zip", "no calibration.json", "not a calibration",
-                                  "not JSON"])
+                                  "not JSON", "evidence elsewhere", "unsafe evidence"])
 def test_an_unsafe_or_invalid_archive_is_a_json_422_naming_the_problem(
         client: Client, caldir: Path, case: str) -> None:
     before = len(client.get(f"{API}/calibrations").json()["items"])
@@ -140,6 +144,18 @@ def test_an_unsafe_or_invalid_archive_is_a_json_422_naming_the_problem(
     assert response.status_code == 422, response.text
     assert reason in response.json()["detail"]
     assert len(client.get(f"{API}/calibrations").json()["items"]) == before
+
+
+@pytest.mark.parametrize("folder", ["", "cal/"], ids=["flat", "in-a-folder"])
+def test_a_downloaded_calibration_imports_without_its_evidence(tmp_path: Path, caldir: Path,
+                                                               folder: str) -> None:
+    # GET /calibrations/{id}/download carries the input bundles under <id>/inputs/.
+    members = {**_calibration_members(caldir, folder),
+               f"{folder}inputs/cap-1/bundle.json": b"{}",
+               f"{folder}inputs/cap-1/S1_000.png": b"not looked at"}
+    unpack_calibration_zip(_zip(members), tmp_path, max_unpacked_bytes=10**8)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([ARRAYS_FILE,
+                                                                CALIBRATION_FILE])
 
 
 def test_a_calibration_of_another_rig_is_refused(client: Client, caldir: Path) -> None:

@@ -25,6 +25,9 @@ ARCHIVE_NAME = "<uploaded calibration.zip>"
 """How error messages name the uploaded archive (it has no path of its own)."""
 
 _ALLOWED = (CALIBRATION_FILE, ARRAYS_FILE)
+EVIDENCE_FOLDER = "inputs"
+"""Where a downloaded calibration keeps its input bundles (``GET /calibrations/{id}/download``):
+skipped on import, so a download can be uploaded again (to another daemon, after a reinstall)."""
 _CHUNK = 1 << 20
 
 
@@ -36,8 +39,18 @@ def _refuse(member: str | None, reason: str) -> FormatError:
     return FormatError(ARCHIVE_NAME, member, reason)
 
 
+def _evidence(parts: tuple[str, ...], is_dir: bool) -> bool:
+    """Whether a member lies under ``<folder>/inputs/`` (or ``inputs/`` in a flat archive): the
+    input bundles a downloaded calibration carries as its evidence."""
+    for at in (1, 0):
+        if len(parts) > at and parts[at] == EVIDENCE_FOLDER:
+            return len(parts) >= at + 3 or is_dir
+    return False
+
+
 def _member_target(info: zipfile.ZipInfo) -> str | None:
-    """The file name a member unpacks to (None for a directory entry); refuses unsafe names."""
+    """The file name a member unpacks to (None for a directory entry or the evidence under
+    ``inputs/``, which are not unpacked); refuses unsafe names."""
     name = info.filename
     if "\\" in name or name.startswith("/") or (len(name) > 1 and name[1] == ":"):
         raise _refuse(name, "absolute or non-POSIX member names are not allowed")
@@ -49,6 +62,8 @@ def _member_target(info: zipfile.ZipInfo) -> str | None:
         raise _refuse(name, "symbolic links are not allowed")
     if info.flag_bits & 0x1:
         raise _refuse(name, "encrypted members are not allowed")
+    if _evidence(parts, info.is_dir()):
+        return None
     if info.is_dir():
         if len(parts) != 1:
             raise _refuse(name, "only one top-level folder is allowed")
@@ -75,8 +90,10 @@ def unpack_calibration_zip(archive: bytes, target: Path, *, max_unpacked_bytes: 
     ------
     FormatError
         The archive is not a zip, holds an unsafe or unexpected member, holds two members of the
-        same name or lacks ``calibration.json`` (names the member). Nothing validates the
-        calibration itself here: that is :func:`eyeserver.calibration.artefact.load_calibration`.
+        same name or lacks ``calibration.json`` (names the member). The input bundles of a
+        downloaded calibration (:data:`EVIDENCE_FOLDER`) are checked for safety and skipped.
+        Nothing validates the calibration itself here: that is
+        :func:`eyeserver.calibration.artefact.load_calibration`.
     UploadTooLargeError
         The members unpack to more than ``max_unpacked_bytes``.
     """
@@ -90,6 +107,11 @@ def unpack_calibration_zip(archive: bytes, target: Path, *, max_unpacked_bytes: 
         for info in bundle.infolist():
             name = _member_target(info)
             parts = PurePosixPath(info.filename).parts
+            if _evidence(parts, info.is_dir()):
+                # The evidence stays in the archive; the calibration is what is stored. It
+                # must lie in the calibration's own folder.
+                folders.add(parts[0] if len(parts) > 1 and parts[1] == EVIDENCE_FOLDER else "")
+                continue
             if len(parts) == 2 or info.is_dir():
                 folders.add(parts[0])
             elif len(parts) == 1:

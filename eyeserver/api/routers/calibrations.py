@@ -73,7 +73,8 @@ async def _read_limited(request: Request, limit: int) -> bytes:
 async def import_calibration(request: Request, service: ServiceDep,
                              caller: PhysicistDep) -> CalibrationResponse:
     """Store a calibration: the body is a zip of the directory ``eyeserver calibrate`` writes
-    (``calibration.json`` and ``arrays.npz``, flat or in one folder).
+    (``calibration.json`` and ``arrays.npz``, flat or in one folder), or a calibration
+    downloaded from a daemon (its evidence under ``inputs/`` is not imported: keep the zip).
 
     The calibration is checked as the pipeline will read it and must have been made for this
     daemon's rig. It is not activated. Physicists only.
