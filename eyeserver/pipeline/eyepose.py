@@ -40,7 +40,8 @@ that is spherical: the lids are shells in front of it. So:
    (:func:`pose_on_limbus`). Measured on 200 rendered poses: gaze 0.17° median (p95 0.41°),
    limbus centre 0.013 mm, globe centre 0.12 mm median (p95 0.29 mm). Without images, or
    where no limbus is found, the cloud-only pose of steps 2–3 stands (``gaze_source`` says
-   which).
+   which; with images that showed no limbus, at a confidence scaled by
+   :data:`UNSEEN_LIMBUS`).
 
 Torsion is invisible to the surface of a sphere with a round limbus (DESIGN §4): reported as None.
 

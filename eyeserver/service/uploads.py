@@ -48,9 +48,8 @@ def _evidence(parts: tuple[str, ...], is_dir: bool) -> bool:
     return False
 
 
-def _member_target(info: zipfile.ZipInfo) -> str | None:
-    """The file name a member unpacks to (None for a directory entry or the evidence under
-    ``inputs/``, which are not unpacked); refuses unsafe names."""
+def _safe_parts(info: zipfile.ZipInfo) -> tuple[str, ...]:
+    """A member's path parts; refuses unsafe names (every member, the skipped ones too)."""
     name = info.filename
     if "\\" in name or name.startswith("/") or (len(name) > 1 and name[1] == ":"):
         raise _refuse(name, "absolute or non-POSIX member names are not allowed")
@@ -62,8 +61,13 @@ def _member_target(info: zipfile.ZipInfo) -> str | None:
         raise _refuse(name, "symbolic links are not allowed")
     if info.flag_bits & 0x1:
         raise _refuse(name, "encrypted members are not allowed")
-    if _evidence(parts, info.is_dir()):
-        return None
+    return parts
+
+
+def _member_target(info: zipfile.ZipInfo, parts: tuple[str, ...]) -> str | None:
+    """The file name a safe member (:func:`_safe_parts`) unpacks to (None for a directory
+    entry); refuses any but the calibration's files."""
+    name = info.filename
     if info.is_dir():
         if len(parts) != 1:
             raise _refuse(name, "only one top-level folder is allowed")
@@ -105,13 +109,13 @@ def unpack_calibration_zip(archive: bytes, target: Path, *, max_unpacked_bytes: 
         chosen: dict[str, zipfile.ZipInfo] = {}
         folders = set()
         for info in bundle.infolist():
-            name = _member_target(info)
-            parts = PurePosixPath(info.filename).parts
+            parts = _safe_parts(info)
             if _evidence(parts, info.is_dir()):
                 # The evidence stays in the archive; the calibration is what is stored. It
                 # must lie in the calibration's own folder.
                 folders.add(parts[0] if len(parts) > 1 and parts[1] == EVIDENCE_FOLDER else "")
                 continue
+            name = _member_target(info, parts)
             if len(parts) == 2 or info.is_dir():
                 folders.add(parts[0])
             elif len(parts) == 1:
