@@ -45,11 +45,6 @@ class MotionSpec(BaseModel):
     blink_duration_s: Annotated[float, Field(gt=0)] = 0.25
     script: list[ScriptEvent] = Field(default_factory=list)
 
-    @property
-    def blinks(self) -> bool:
-        """Whether the lids ever move (random blinks or a scripted one)."""
-        return self.blink_rate_hz > 0 or any(e.kind == "blink" for e in self.script)
-
 
 @dataclass(frozen=True)
 class MotionState:

@@ -222,12 +222,15 @@ class Renderer:
         """Components of a moving scene at one instant, re-casting only what moved.
 
         The static part (``built.static``) is rendered once and cached. Each frame re-casts,
-        through the whole scene, only the pixels whose camera ray meets a moving part's bounding
-        sphere. A static point whose ray to a projector passes through the sphere can only fall
-        into a moving part's shadow: there the moving parts alone are tested for blocking that
-        ray, and its static value kept or darkened (half the re-cast rays on the simulated eye,
-        measured). Everywhere else the moving parts cannot change the light. Both tests run only
-        over the pixels that meet ``built.envelope``, found once per static part.
+        through the whole scene, only the pixels whose camera ray meets a moving part (tested
+        where the ray meets the part's bounding sphere). A static point whose ray to a
+        projector passes through the sphere can only fall into a moving part's shadow: there
+        the moving parts alone are tested for blocking that ray, and its static value kept or
+        darkened (half the re-cast rays on the simulated eye, measured). Everywhere else the
+        moving parts cannot change the light. Both tests run only over the pixels that meet
+        ``built.envelope``, found once per static part. Measured on one camera: a frame of the
+        drifting eye 6.6 ms (7.6 re-casting every ray that meets a bound), of the shut lids
+        18.5 (23 with the whole lid shell a moving part).
         """
         if built.static is None or built.static_key is None or built.envelope is None:
             raise ValueError("the scene has no static part to cache")
@@ -252,8 +255,14 @@ class Renderer:
                 gap = rel - frac[:, None] * seg
                 shaded[source].append(np.flatnonzero(np.einsum("ij,ij->i", gap, gap)
                                                       < radius**2))
-        changed = _union(seen, rays.shape[0])
-        idx = np.flatnonzero(changed)
+        # Of the rays that meet a bound, only those that meet a moving part can change: the
+        # others keep the static part's first hit (its light changes only by a moving part's
+        # shadow, below). Testing the moving parts alone is cheap against re-casting the whole
+        # scene: a blink's bound is the whole lid shell, its closing lids a part of it.
+        idx = np.flatnonzero(_union(seen, rays.shape[0]))
+        idx = idx[np.isfinite(moving.first_hit_distance(cam.centre, rays[idx]))]
+        changed = np.zeros(rays.shape[0], dtype=bool)
+        changed[idx] = True
         fresh = self._shade_sources(cam, built.scene, rays[idx], sources) if idx.size else {}
         images: dict[str, F32] = {}
         for source in sources:

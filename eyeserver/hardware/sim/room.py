@@ -105,19 +105,9 @@ class SimRoom:
 
     def prepare(self, camera_id: str, projectors: Sequence[str]) -> None:
         """Fill the render caches for ``camera_id`` lit by ``projectors`` with the scene in
-        front of it now: a moving scene's static part (cast whole, ≈ 1 s a camera; for an eye
-        that blinks, also the one without the lids, which a blink's frames render with) or a
-        still scene's light components."""
-        now_s = self.clock.now_ns() / 1e9
-        self.components(camera_id, now_s, projectors)
-        with self._lock:
-            spec = self._scene
-            scene_t = self.scene_time(now_s)
-        motion = spec.eye.motion if spec.moving else None
-        if (motion is not None and motion.blinks
-                and self.config.render.supersample_moving == 1):
-            self.renderer.components_moving(
-                camera_id, build_scene(spec, scene_t, lids_moving=True), projectors)
+        front of it now: a moving scene's static part (cast whole, ≈ 1 s a camera; a blink
+        renders with it too) or a still scene's light components."""
+        self.components(camera_id, self.clock.now_ns() / 1e9, projectors)
 
     def render(self, camera_id: str, *, t_s: float, projectors: Mapping[str, float],
                exposure_us: float, gain_db: float, rng: np.random.Generator,

@@ -226,7 +226,7 @@ class _Local:
     envelope: tuple[F64, float] | None = None
 
 
-def _build_local(spec: SceneSpec, t_s: float, lids_moving: bool = False) -> _Local:
+def _build_local(spec: SceneSpec, t_s: float) -> _Local:
     """Bodies in the scene's local frame, local fiducials, the eye's local truth, moving parts."""
     kind = spec.kind
     plate_white = constant_albedo(WHITE)
@@ -325,7 +325,12 @@ def _build_local(spec: SceneSpec, t_s: float, lids_moving: bool = False) -> _Loc
     half_w, half_h = eye.aperture_mm
     half_h_now = half_h * openness  # 0 when shut: no slit is left for a ray to pass
     face_z = 0.5 * eye.globe_radius_mm
-    lids = _LidShell(head, lid_radius, half_w, half_h_now, constant_albedo(SKIN), "lids")
+    # The lids with the opening wide (they never reach further out), and while they blink
+    # the part that closes over the opening: a moving part of its own, so the rest of the lids
+    # stays in the static part and a blink re-casts only the rays that meet that part.
+    lids = _LidShell(head, lid_radius, half_w, half_h, constant_albedo(SKIN), "lids")
+    closing = (_LidShell(head, lid_radius, half_w, half_h_now, constant_albedo(SKIN), "lids",
+                         within=(half_w, half_h)) if openness < 1.0 else None)
     face_hole = math.sqrt(max(lid_radius**2 - face_z**2, 1.0)) - 0.2
     face_plane = Plane(constant_albedo(SKIN), "skin", half_size=(60.0, 60.0),
                        hole=(0.0, 0.0, face_hole))
@@ -342,44 +347,51 @@ def _build_local(spec: SceneSpec, t_s: float, lids_moving: bool = False) -> _Loc
     half_limbus = eye.limbus_diameter_mm / 2
     cap_centre = centre + (limbus_depth + sagitta / 2) * gaze
     moving = [(1, cap_centre, math.hypot(half_limbus, sagitta / 2) + 0.05)]
-    if openness < 1.0 or lids_moving:
-        moving.append((2, head.copy(), lid_radius + 0.05))
-    return _Local([Body([globe]), Body([cornea]), Body([lids]), face], np.zeros((0, 3)),
-                  eye_truth, moving, (head.copy(), lid_radius + 0.1))
+    bodies = [Body([globe]), Body([cornea]), Body([lids]), face]
+    if closing is not None:
+        bodies.append(Body([closing]))
+        moving.append((4, head.copy(), lid_radius + 0.05))
+    return _Local(bodies, np.zeros((0, 3)), eye_truth, moving,
+                  (head.copy(), lid_radius + 0.1))
 
 
 class _LidShell(Sphere):
-    """The front of a sphere around the globe, present only outside the elliptical opening."""
+    """The front of a sphere around the globe, present only outside the elliptical opening
+    (``half_w`` × ``half_h``) and, given ``within``, only inside that wider ellipse: the part of
+    blinking lids that closes over the wide opening."""
 
     def __init__(self, centre: F64, radius: float, half_w: float, half_h: float,
-                 albedo: AlbedoFn, label: str) -> None:
+                 albedo: AlbedoFn, label: str, within: tuple[float, float] | None = None
+                 ) -> None:
         super().__init__(centre, radius, albedo, label)
         self.half_w = half_w
         self.half_h = half_h
+        self.within = within
 
     def intersect(self, o: F64, d: F64) -> tuple[F64, F64]:
         t, normals = super().intersect(o, d)
         points = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
         rel = points - self.centre
-        # The ellipse test multiplied out, so that shut lids (half_h = 0) have no opening at
-        # all; a minimum slit let rays through to the globe on a few pixels mid-blink.
-        in_opening = ((rel[:, 0] * self.half_h) ** 2 + (rel[:, 1] * self.half_w) ** 2
-                      < (self.half_w * self.half_h) ** 2)
         behind = rel[:, 2] < 0  # only the front half forms lids; the back is inside the head
-        miss = in_opening | behind
+        miss = _inside(rel, self.half_w, self.half_h) | behind
+        if self.within is not None:
+            miss |= ~_inside(rel, *self.within)
         t = np.where(miss, np.inf, t)
         normals[miss] = 0.0
         return t, normals
 
 
-def build_scene(spec: SceneSpec, t_s: float = 0.0, *, lids_moving: bool = False
-                ) -> BuiltScene:
-    """Ray-casting geometry and ground truth of ``spec`` at time ``t_s`` (seconds).
+def _inside(rel: F64, half_w: float, half_h: float) -> npt.NDArray[np.bool_]:
+    """Whether points (local x, y) lie inside the ellipse ``half_w`` × ``half_h``, the test
+    multiplied out so that a shut opening (``half_h`` = 0) holds nothing: a minimum slit let
+    rays through to the globe on a few pixels mid-blink."""
+    return np.asarray((rel[:, 0] * half_h) ** 2 + (rel[:, 1] * half_w) ** 2
+                      < (half_w * half_h) ** 2)
 
-    ``lids_moving``: count an eye's lids among the moving parts even while they are open (its
-    static part then is the one a blink renders with).
-    """
-    local = _build_local(spec, t_s, lids_moving)
+
+def build_scene(spec: SceneSpec, t_s: float = 0.0) -> BuiltScene:
+    """Ray-casting geometry and ground truth of ``spec`` at time ``t_s`` (seconds)."""
+    local = _build_local(spec, t_s)
     bodies, fiducials_local, eye_local = local.bodies, local.fiducials, local.eye
     R = pose_matrix(spec.rotation_deg)
     t = np.asarray(spec.position, dtype=np.float64)
@@ -404,12 +416,12 @@ def build_scene(spec: SceneSpec, t_s: float = 0.0, *, lids_moving: bool = False
     bounds = [(R @ centre + t, radius) for _, centre, radius in local.moving]
     static_key = None
     if spec.moving:
-        # The static part depends on everything but the gaze and time, and on where the head is
-        # and whether the lids count as static (not blinking).
+        # The static part depends on everything but the gaze, the lids' blink and time, and on
+        # where the head is.
         rest = spec.model_copy(update={"eye": spec.eye.model_copy(
             update={"motion": None, "gaze_deg": (0.0, 0.0)})})
         head = eye_local["centre_local"].round(6).tolist() if eye_local else None
-        static_key = f"{rest.model_dump_json()}|head={head}|blink={2 in moving_index}"
+        static_key = f"{rest.model_dump_json()}|head={head}"
     envelope = None
     if local.envelope is not None:
         envelope = (R @ local.envelope[0] + t, local.envelope[1])
