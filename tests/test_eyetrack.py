@@ -484,6 +484,9 @@ class _ScriptSource:
     def missed(self) -> int:
         return 0
 
+    def warm_up_frame(self) -> FrameSet | None:
+        return None
+
     def next_frame(self) -> FrameSet | None:
         if self.frame >= len(self.script):
             return None

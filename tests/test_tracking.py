@@ -82,6 +82,9 @@ class ScriptedSource:
     def missed(self) -> int:
         return 0
 
+    def warm_up_frame(self) -> FrameSet | None:
+        return None
+
     def next_frame(self) -> FrameSet | None:
         if self.count is not None and self.frame >= self.count:
             return None
@@ -449,6 +452,72 @@ def test_the_rig_source_schedules_frames_at_the_camera_rate_and_counts_missed_on
     message = session.process(first)
     assert message is not None and message["delivery_ms"] == 8.0  # 2 ms mid-exposure → 10 ms
     assert message["latency_ms"] >= message["delivery_ms"] + message["processing_ms"]
+
+
+def test_the_rig_source_takes_a_warm_up_frame_before_the_stream() -> None:
+    clock = ManualClock(START_NS)
+    rig = _FakeRig(clock, [0.010, 0.010, 0.010])
+    source = RigFrameSource(rig, ["left"], clock)  # type: ignore[arg-type]
+    warm = source.warm_up_frame()
+    frames = [source.next_frame() for _ in range(2)]
+    # Prepared once, for both; the warm-up frame is taken at once, the stream's time set after
+    # it: its first frame is frame 0, due when the warm-up frame has arrived.
+    assert rig.prepared == [["left"]]
+    assert warm is not None and warm.frame == -1 and warm.t_ns == STREAM_NS + 2_000_000
+    assert [f.frame for f in frames if f] == [0, 1] and source.missed == 0
+    assert rig.calls == [(0.0, 0.0), (10.0, 10.0), (20.0, 50.0)]
+
+
+def test_the_finders_are_warmed_side_by_side_before_the_stream_where_the_eye_should_be(
+        ) -> None:
+    clock = ManualClock(1_000_000_000)
+    pipeline = ScriptedPipeline(clock)
+    warmed: list[tuple[int, int, EyePose, str]] = []
+    calls: list[int] = []
+    both = threading.Barrier(2, timeout=TIMEOUT_S)
+
+    class Finder(PoseFinder):
+        def __init__(self, number: int) -> None:
+            super().__init__(pipeline.reconstruct, pipeline.fit, EyeModel.population())
+            self.number = number
+
+        def warm(self, frame_set: FrameSet, expected: EyePose) -> None:
+            warmed.append((self.number, frame_set.frame, expected,
+                           threading.current_thread().name))
+            both.wait()  # each waits for the other: side by side
+            if self.number:
+                raise RuntimeError("a finder that fails to warm fails on its frames, if at all")
+
+        def __call__(self, frame_set: FrameSet, previous: EyePose | None) -> EyePose:
+            calls.append(frame_set.frame)
+            return super().__call__(frame_set, previous)
+
+    class Warming(ScriptedSource):
+        def warm_up_frame(self) -> FrameSet | None:
+            return FrameSet(-1, self.clock.now_ns(), data=_pose())
+
+    published: list[dict[str, Any]] = []
+
+    class Recorded(EventBus):
+        def publish(self, type: str, **data: Any) -> int:
+            published.append(data)
+            return 0
+
+    expected = start_pose(REFERENCE, EyeModel(globe_radius_mm=12.0))
+    assert expected is not None
+    session = TrackingSession(Warming(clock, count=3, pace_s=0.005), [Finder(0), Finder(1)],
+                              reference=REFERENCE, tolerances=TOLERANCES, bus=Recorded(),
+                              clock=clock, expected=expected)
+    done = threading.Event()
+    session.start(on_end=done.set)
+    assert done.wait(TIMEOUT_S)
+    assert sorted((n, f, e) for n, f, e, _ in warmed) == [(0, -1, expected), (1, -1, expected)]
+    assert len({name for *_, name in warmed}) == 2
+    # The warm-up frame is neither processed nor counted; the stream's frames are.
+    assert calls and -1 not in calls and -1 not in [m["frame"] for m in published]
+    status = session.status()
+    assert status["frames_acquired"] == status["frames_processed"] + status["frames_dropped"]
+    assert status["frames_acquired"] == 3 and status["error"] is None
 
 
 # --- the API and the pose stream over a real server ------------------------------------------

@@ -12,12 +12,15 @@ inherit their locks):
 
 ::
 
-    processing thread ── (frame set, last pose) ──► child: reconstruct, follow or fit the eye
+    processing thread ── ("pose", frame set, last pose) ──► child: reconstruct, follow or fit
                       ◄── pose | "lost: why" | "failed: traceback" ──
 
-A frame set is two 640 × 512 images (≈ 1.3 MB pickled through a pipe, about a millisecond); the
-cropped cameras of the tracking window stay cached in the child. The child loads the
-calibration once, at the start, so a calibration that cannot reconstruct fails
+Before the stream, the session warms each child on a frame set taken for it (``"warm"``: the
+window's cameras and the fringe strength of the expected eye; answered ``"warmed"``).
+
+A frame set is two 640 × 512 images (≈ 0.7 MB at 8 bits pickled through a pipe, under a
+millisecond); the cropped cameras of the tracking window stay cached in the child. The child
+loads the calibration once, at the start, so a calibration that cannot reconstruct fails
 :meth:`PoseWorker.start` (the session does not start) rather than the first frame. The child
 ends when asked (:meth:`PoseWorker.close`), when the daemon's end of the pipe closes (the
 daemon died), and ignores Ctrl-C (the daemon decides when tracking ends). A child that dies is
@@ -103,8 +106,16 @@ def _serve(connection: Connection, calibration: str, rig: RigSpec, model: EyeMod
             return  # the daemon went away
         if request is None:
             return
-        frame_set, previous = request
+        kind, frame_set, previous = request
         reply: tuple[str, Any]
+        if kind == "warm":
+            try:
+                finder.warm(frame_set, previous)
+                reply = ("warmed", None)
+            except Exception as exc:
+                reply = ("failed", _failure(exc))
+            connection.send(reply)
+            continue
         try:
             reply = ("pose", finder(frame_set, previous))
         except (PoseError, ValueError) as exc:
@@ -201,17 +212,7 @@ class PoseWorker:
             The child is gone, failed unexpectedly, or took longer than
             :attr:`frame_timeout_s` (the child is then stopped).
         """
-        if self._connection is None:
-            raise TrackingWorkerError("the tracking worker is not running")
-        try:
-            self._connection.send((frame_set, previous))
-        except (OSError, ValueError) as exc:
-            raise TrackingWorkerError(f"cannot reach the tracking worker: {exc}") from None
-        try:
-            kind, detail = self._receive(self.frame_timeout_s, "to answer")
-        except TrackingWorkerError:
-            self.close()  # a late answer would be taken for the next frame's
-            raise
+        kind, detail = self._ask("pose", frame_set, previous)
         if kind == "pose":
             pose: EyePose = detail
             return pose
@@ -221,6 +222,33 @@ class PoseWorker:
             raise ReconstructionError(detail)
         raise TrackingWorkerError(f"the tracking worker failed on frame "
                                   f"{getattr(frame_set, 'frame', '?')}: {self._failed(detail)}")
+
+    def warm(self, frame_set: Any, expected: EyePose) -> None:
+        """:meth:`PoseFinder.warm <eyeserver.service.tracking.PoseFinder.warm>` in the child.
+
+        Raises
+        ------
+        TrackingWorkerError
+            The child is gone, failed, or took longer than :attr:`frame_timeout_s`.
+        """
+        kind, detail = self._ask("warm", frame_set, expected)
+        if kind != "warmed":
+            raise TrackingWorkerError(f"the tracking worker failed to warm up: "
+                                      f"{self._failed(detail)}")
+
+    def _ask(self, kind: str, frame_set: Any, pose: EyePose | None) -> tuple[str, Any]:
+        """Send the child a frame set with a pose; its answer."""
+        if self._connection is None:
+            raise TrackingWorkerError("the tracking worker is not running")
+        try:
+            self._connection.send((kind, frame_set, pose))
+        except (OSError, ValueError) as exc:
+            raise TrackingWorkerError(f"cannot reach the tracking worker: {exc}") from None
+        try:
+            return self._receive(self.frame_timeout_s, "to answer")
+        except TrackingWorkerError:
+            self.close()  # a late answer would be taken for the next frame's
+            raise
 
     @staticmethod
     def _failed(detail: tuple[str, str]) -> str:
