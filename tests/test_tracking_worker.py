@@ -3,10 +3,14 @@ frame without an eye, a calibration that cannot reconstruct, and a worker that d
 
 from __future__ import annotations
 
+import fcntl
 import json
+import pickle
 import shutil
+import threading
 from collections.abc import Iterator
 from dataclasses import replace
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +40,14 @@ from eyeserver.service.tracking import (
     TrackingSession,
     start_pose,
 )
-from eyeserver.service.tracking_worker import PoseWorker, TrackingWorkerError
+from eyeserver.service.tracking_worker import (
+    PIPE_BYTES,
+    PoseWorker,
+    TrackingWorkerError,
+    _widen,
+)
+
+TIMEOUT_S = 30.0
 
 MODEL = EyeModel(globe_radius_mm=12.0, cornea_radius_mm=7.8, limbus_diameter_mm=11.7)
 
@@ -116,6 +127,27 @@ def test_a_warmed_finder_keeps_the_expected_eyes_window_and_finds_the_same_pose(
     with pytest.raises(TrackingWorkerError, match=r"failed to warm up: AttributeError"):
         worker.warm(FrameSet(-1, 0, [object()]), expected)  # type: ignore[list-item]
     assert worker(rest, None).gaze_source == "limbus (images)"  # and goes on
+
+
+@pytest.mark.skipif(not hasattr(fcntl, "F_SETPIPE_SZ"), reason="pipe sizes are Linux's")
+def test_a_frame_set_goes_to_the_worker_without_waiting_for_it_to_read(
+        frames: tuple[RigSpec, list[FrameSet]], worker: PoseWorker) -> None:
+    # The daemon's send of a frame set (≈ 0.7 MB) must not wait on the child's reads, which
+    # come only when it gets a core: the request pipe holds a whole frame set.
+    _, (rest, _, _) = frames
+    assert worker._connection is not None
+    assert fcntl.fcntl(worker._connection._send.fileno(), fcntl.F_GETPIPE_SZ) == PIPE_BYTES
+    message = pickle.dumps(("pose", rest, None))
+    assert len(message) > 600_000
+    unread, pipe = get_context("spawn").Pipe(duplex=False)
+    _widen(pipe)
+    sent = threading.Thread(target=pipe.send_bytes, args=(message,), daemon=True)
+    sent.start()  # nobody reads: a 64 kB pipe would block this for good
+    sent.join(TIMEOUT_S)
+    assert not sent.is_alive()
+    assert unread.recv_bytes() == message
+    unread.close()
+    pipe.close()
 
 
 def test_a_frame_without_an_eye_is_a_pose_error_and_the_worker_goes_on(
