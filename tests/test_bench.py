@@ -208,6 +208,12 @@ def test_tracking_bench_measures_live_tracking(calibrated_rooms: Any,
     assert max(blink["held"], blink["seen_as_blink"], blink["with_pose"]) \
         <= blink["frames_half_shut"]
     assert "lids half shut or more" in tracking.format_text(report)
+    # The saccade (8° against a 2° tolerance) holds the beam on the first frame after it,
+    # seen out of tolerance or, where that frame showed no eye, lost.
+    reaction = report["beam_hold_reaction"]
+    assert reaction["first_processed_frame_after_saccade_held"] is True
+    reasons = set(reaction["first_processed_frame_after_saccade_reasons"])
+    assert reasons & {"out_of_tolerance", "lost"}
 
 
 def test_the_replay_bench_counts_every_frame_it_hands_the_tracking_worker(

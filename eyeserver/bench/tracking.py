@@ -275,8 +275,11 @@ def _report(seconds: float, elapsed_s: float, started: dict[str, Any], start_ns:
     period_ns = 1e9 / RATE_HZ
     reaction: dict[str, Any] = {
         "saccade_deg": SACCADE_DEG, "tolerance_gaze_deg": TOLERANCE_GAZE_DEG,
+        # Held for whatever reason (out of tolerance, or the eye not found in that frame).
         "first_processed_frame_after_saccade_held": None if first_after is None
-        else "out_of_tolerance" in first_after["reasons"],
+        else bool(first_after["beam_hold"]),
+        "first_processed_frame_after_saccade_reasons": None if first_after is None
+        else list(first_after["reasons"]),
         "frames_from_saccade_end_to_hold": None if held is None
         else math.ceil((held["t_ns"] - saccade_end_ns) / period_ns),
         "processed_frames_from_saccade_end_to_hold": None if held is None
@@ -370,9 +373,11 @@ def format_text(report: dict[str, Any]) -> str:
         f"{_fmt(lat['processing_median'])}/{_fmt(lat.get('processing_p99'))} ms, median/p99)",
         f"  saccade {reaction['saccade_deg']:g}° (tolerance {reaction['tolerance_gaze_deg']:g}°): "
         f"first processed frame after it held: "
-        f"{reaction['first_processed_frame_after_saccade_held']}, "
-        f"{reaction['frames_from_saccade_end_to_hold']} camera frame(s) from its end to the "
-        f"hold ({reaction['processed_frames_from_saccade_end_to_hold']} processed frames before)",
+        f"{reaction['first_processed_frame_after_saccade_held']} "
+        f"({', '.join(reaction.get('first_processed_frame_after_saccade_reasons') or []) or '-'}"
+        f"), {reaction['frames_from_saccade_end_to_hold']} camera frame(s) from its end to the "
+        f"hold out of tolerance ({reaction['processed_frames_from_saccade_end_to_hold']} "
+        "processed frames before)",
         f"  (before the saccade {reaction['held_out_of_tolerance_before_saccade']} of "
         f"{reaction['processed_before_saccade']} processed frames were already held out of "
         "tolerance)",
