@@ -78,8 +78,10 @@ PIPE_BYTES = 1 << 20
 """Capacity asked for the pipe that carries frame sets to the child (Linux's default limit for
 an unprivileged process, /proc/sys/fs/pipe-max-size): a frame set of two 8-bit images
 (≈ 0.7 MB) is written whole without waiting for the child to read it. Through a socket pair's
-≈ 200 kB the daemon's send waited for the child's reads, each as soon as the child got a core:
-1.1 ms median, 10.8 ms p99 in the tracking bench, with the rendering on the same cores."""
+≈ 200 kB the daemon's send waited for the child's reads, each as soon as the child got a core.
+Measured in the tracking bench, with the rendering on the same cores: the send took 1.1 ms
+median, 10.8 ms p99 through the socket pair, 0.5 and 8 ms through this pipe (what is left: the
+sending thread waiting for a core or for the daemon's interpreter lock)."""
 
 
 class _Channel:
