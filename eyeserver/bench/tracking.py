@@ -10,7 +10,8 @@ drift, a scripted saccade out of tolerance and back, a blink) and live tracking 
 * end-to-end latency, frame mid-exposure → message received by the client (both on the
   machine's monotonic clock), median and p99, beside the daemon's own figure at the send;
 * the beam hold's reaction to the saccade: camera frames from the saccade's end to the first
-  message held for ``out_of_tolerance``, and whether the first frame processed after it was;
+  message held for ``out_of_tolerance``, and whether the first frame processed after it held
+  the beam (and why);
 * the blink: the processed frames with the lids half shut or more (the script's truth), how
   many held the beam and were seen as a blink, the processing around it;
 * what the 19 reading clients received (messages per second) and what the silent one lost.

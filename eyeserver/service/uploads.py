@@ -39,13 +39,16 @@ def _refuse(member: str | None, reason: str) -> FormatError:
     return FormatError(ARCHIVE_NAME, member, reason)
 
 
-def _evidence(parts: tuple[str, ...], is_dir: bool) -> bool:
-    """Whether a member lies under ``<folder>/inputs/`` (or ``inputs/`` in a flat archive): the
-    input bundles a downloaded calibration carries as its evidence."""
+def _evidence_of(parts: tuple[str, ...], is_dir: bool) -> str | None:
+    """The calibration's folder (``""`` in a flat archive) when a member lies under
+    ``<folder>/inputs/`` (or ``inputs/``): the input bundles a downloaded calibration carries
+    as its evidence; None for any other member."""
     for at in (1, 0):
         if len(parts) > at and parts[at] == EVIDENCE_FOLDER:
-            return len(parts) >= at + 3 or is_dir
-    return False
+            if len(parts) < at + 3 and not is_dir:
+                return None  # not inside a bundle folder: the calibration's own checks
+            return parts[0] if at else ""
+    return None
 
 
 def _safe_parts(info: zipfile.ZipInfo) -> tuple[str, ...]:
@@ -110,10 +113,11 @@ def unpack_calibration_zip(archive: bytes, target: Path, *, max_unpacked_bytes: 
         folders = set()
         for info in bundle.infolist():
             parts = _safe_parts(info)
-            if _evidence(parts, info.is_dir()):
+            evidence_folder = _evidence_of(parts, info.is_dir())
+            if evidence_folder is not None:
                 # The evidence stays in the archive; the calibration is what is stored. It
                 # must lie in the calibration's own folder.
-                folders.add(parts[0] if len(parts) > 1 and parts[1] == EVIDENCE_FOLDER else "")
+                folders.add(evidence_folder)
                 continue
             name = _member_target(info, parts)
             if len(parts) == 2 or info.is_dir():
