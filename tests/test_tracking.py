@@ -34,6 +34,7 @@ from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError
 from eyeserver.service.events import EventBus
 from eyeserver.service.patients import Tolerances
 from eyeserver.service.tracking import (
+    FOLLOW_LOST_S,
     FrameSet,
     LatestFrame,
     PoseFinder,
@@ -295,9 +296,9 @@ def test_the_first_frame_is_looked_for_where_the_reference_expects_the_eye() -> 
     for _ in script:
         session.acquire_once()
         session.process_once()
-    # From the reference's pose first, then from each last pose; once a processed frame lost
-    # the eye, not from the reference again (it may not be there): the global fit.
-    assert given == [expected, script[0], moved, None]
+    # From the reference's pose first, then from each last pose; after a frame that lost the
+    # eye, from the last pose found (FOLLOW_LOST_S: the next test).
+    assert given == [expected, script[0], moved, moved]
 
     # Which poses followed from it count is the pose finder's call (test_eyetrack.py); a
     # first frame that found no eye from it is lost, and the next gets the global fit.
@@ -309,6 +310,40 @@ def test_the_first_frame_is_looked_for_where_the_reference_expects_the_eye() -> 
         session.acquire_once()
         session.process_once()
     assert given == [expected, None]
+
+
+def test_after_a_lost_frame_the_eye_is_followed_from_where_it_was_last_found_for_a_while(
+) -> None:
+    clock = ManualClock(1_000_000_000)
+    found, lost = _pose((0.3, 0.0, -10.0)), PoseError("no eye in this frame")
+    periods = round(FOLLOW_LOST_S / 0.040)  # frames 40 ms apart (ScriptedSource)
+    again = _pose((0.5, 0.0, -10.0))
+    script: list[object] = [found, *[lost] * (periods + 1), again, _pose()]
+    pipeline = ScriptedPipeline(clock)
+    given: list[EyePose | None] = []
+
+    def find(frame_set: FrameSet, previous: EyePose | None) -> EyePose:
+        given.append(previous)
+        return pipeline.fit(pipeline.reconstruct(frame_set), EyeModel.population())
+
+    session = TrackingSession(ScriptedSource(clock, script), find, reference=REFERENCE,
+                              tolerances=TOLERANCES, bus=EventBus(), clock=clock)
+    messages = []
+    for _ in script:
+        session.acquire_once()
+        messages.append(session.process_once())
+
+    # No pose yet: the global fit; then up to FOLLOW_LOST_S after the frame that found it,
+    # every frame is followed from that pose (the finder decides whether what it finds from
+    # there counts); frames later than that get the global fit (None), and the eye found
+    # again is followed from its new pose.
+    assert given[0] is None
+    assert given[1:periods + 1] == [found] * periods
+    assert given[periods + 1:periods + 3] == [None, None]
+    assert given[-1] == again
+    # The lost frames are lost all the same: beam held, no pose.
+    assert all(m is not None and m["eye"] == "lost" and m["beam_hold"]
+               for m in messages[1:periods + 2])
 
 
 def test_beam_hold_rises_on_the_first_out_of_tolerance_frame_and_falls_after_the_dwell(

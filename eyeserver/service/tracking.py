@@ -55,7 +55,10 @@ the reconstruction covers only a window around the eye in each camera
 globe is refitted from the last pose (:func:`~eyeserver.pipeline.eyetrack.track_eye`) instead
 of searched for; the global fit (:func:`~eyeserver.pipeline.eyepose.fit_eye`) of the whole
 images comes back when the warm fit fails or does not find the limbus in the images
-(:class:`PoseFinder`), and once the eye is lost. A blink keeps the last globe.
+(:class:`PoseFinder`). A frame after one that lost the eye is followed from the last pose found
+if that frame is at most :data:`FOLLOW_LOST_S` older (measured on rendered frames of the
+drifting eye: 17–18 ms a frame against the global fit's 0.42–0.47 s, during which the frames
+that come are dropped); after that, the global fit. A blink keeps the last globe.
 
 The clock, the frame source and the pose finder (:class:`FindPose`: :class:`PoseFinder` runs
 the reconstruction and fits in this process) are injected, so tests replay any
@@ -116,12 +119,17 @@ from eyeserver.service.verification import (
     measurement_model,
 )
 
-__all__ = ["CAMERA_RATE_HZ", "FindPose", "FocusingReconstructor", "FrameSet", "FrameSource",
-           "LatestFrame", "PoseFinder", "Reconstructor", "RigFrameSource", "RigReconstructor",
-           "TrackFunction", "TrackedCloud", "TrackingControl", "TrackingSession", "start_pose"]
+__all__ = ["CAMERA_RATE_HZ", "FOLLOW_LOST_S", "FindPose", "FocusingReconstructor", "FrameSet",
+           "FrameSource", "LatestFrame", "PoseFinder", "Reconstructor", "RigFrameSource",
+           "RigReconstructor", "TrackFunction", "TrackedCloud", "TrackingControl",
+           "TrackingSession", "start_pose"]
 
 CAMERA_RATE_HZ = 25.0
 """The cameras' frame rate during live tracking."""
+
+FOLLOW_LOST_S = 1.0
+"""For this long after the last frame that found the eye (by mid-exposure time), a frame after
+one that lost it is first followed from that frame's pose, not given the global fit at once."""
 
 _log = logging.getLogger(__name__)
 _JOIN_S = 10.0
@@ -599,8 +607,11 @@ class TrackingSession:
     expected : EyePose, optional
         The last pose until the first frame is processed (:func:`start_pose` of the
         reference): the first frame is followed from where the eye should be, like any other
-        (:class:`PoseFinder`). After that, or without it, a frame with no last pose (the eye
-        lost) gets the global fit.
+        (:class:`PoseFinder`). After that, or without it, a frame after one that lost the eye
+        is followed from the last pose found up to :data:`FOLLOW_LOST_S` before it; with none
+        as recent (nor the reference: the eye may not be there), the finder gets no last pose
+        (the global fit). Whether a pose followed from it counts is the finder's call: a
+        :class:`PoseFinder` with the images takes it only with the limbus found in them.
     """
 
     def __init__(self, source: FrameSource, find: FindPose | Sequence[FindPose], *,
@@ -614,6 +625,7 @@ class TrackingSession:
             raise ValueError("a tracking session needs at least one pose finder")
         self.last_pose: EyePose | None = None
         """The last globe found (a blink's too); None before the first and once lost."""
+        self._last_seen: tuple[int, EyePose] | None = None  # (frame time, the last globe)
         self.expected = expected
         self.reference = reference
         self.tolerances = tolerances
@@ -671,8 +683,12 @@ class TrackingSession:
         finder = find or self.finders[0]
         with self._publishing:
             previous = self.last_pose
+            seen = self._last_seen
             if previous is None and self._last_frame < 0:
                 previous = self.expected  # nothing processed yet: where the eye should be
+            elif previous is None and seen is not None and (
+                    frame_set.t_ns - seen[0] <= FOLLOW_LOST_S * 1e9):
+                previous = seen[1]  # lost in the last frame: where the eye was seen last
         try:
             pose = finder(frame_set, previous)
         except (PoseError, ReconstructionError, ValueError) as exc:
@@ -688,6 +704,8 @@ class TrackingSession:
                  error: str | None, started_ns: int) -> dict[str, Any]:
         """The rest of :meth:`process`, in frame order."""
         self.last_pose = pose
+        if pose is not None:
+            self._last_seen = (frame_set.t_ns, pose)
         if pose is not None and pose.gaze_source == "none":
             # A globe without limbus or cornea: the lids cover the front of the eye.
             eye, error, pose = "blink", "no limbus or cornea visible (blink?)", None
