@@ -37,6 +37,7 @@ from eyeserver.hardware.sim.scenes import (
     SKIN,
     EyeSpec,
     SceneSpec,
+    _cap_bound,
     build_scene,
     scene_truth,
 )
@@ -642,6 +643,25 @@ def test_a_blink_closes_the_lids() -> None:
     shut_image = sim.components("S1", t_s=mid_blink).ambient[window][interior]
     np.testing.assert_allclose(open_image, SCLERA * vignetting, rtol=0.01)
     np.testing.assert_allclose(shut_image, SKIN * vignetting, rtol=0.01)
+
+
+@pytest.mark.parametrize(("radius", "half_w", "half_h"), [(13.2, 11.0, 7.5), (13.2, 6.0, 9.0),
+                                                        (10.0, 12.0, 7.5)])
+def test_the_closing_lids_bound_holds_the_whole_cap_and_no_more(radius: float, half_w: float,
+                                                                  half_h: float) -> None:
+    # The closing lids lie on the lid sphere's front inside the wide opening; the moving
+    # render re-tests only the rays that meet their bound, so it must hold every such point
+    # (the moving-eye test below checks the light mid-blink), and it is the smallest ball that
+    # does: its rim touches the cap's edge.
+    centre = np.array([0.4, -0.3, 2.0])
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(-half_w, half_w, 200_000), rng.uniform(-half_h, half_h, 200_000)
+    keep = ((x / half_w) ** 2 + (y / half_h) ** 2 < 1) & (x * x + y * y < radius**2)
+    x, y = x[keep], y[keep]
+    cap = centre + np.stack([x, y, np.sqrt(radius**2 - x * x - y * y)], axis=1)
+    middle, reach = _cap_bound(centre, radius, max(half_w, half_h))
+    distance = np.linalg.norm(cap - middle, axis=1)
+    assert reach - 0.1 < distance.max() <= reach
 
 
 @pytest.mark.parametrize("t_s", [0.0, 0.33, 0.52, 0.9])

@@ -230,7 +230,8 @@ class Renderer:
         moving parts cannot change the light. Both tests run only over the pixels that meet
         ``built.envelope``, found once per static part. Measured on one camera: a frame of the
         drifting eye 6.6 ms (7.6 re-casting every ray that meets a bound), of the shut lids
-        18.5 (23 with the whole lid shell a moving part).
+        18.5 (23 with the whole lid shell a moving part); with the closing lids bounded by their
+        own cap instead of the lid sphere, 9 % less again (20 against 22 ms, another day).
         """
         if built.static is None or built.static_key is None or built.envelope is None:
             raise ValueError("the scene has no static part to cache")
