@@ -414,16 +414,18 @@ def test_the_session_follows_the_eye_in_its_window_and_looks_again_once_lost() -
         {"track": lost, "fit": third},       # 2: the warm fit fails: the global fit
         {"track": blink},                    # 3: a blink keeps the globe
         {"track": lost, "fit": lost},        # 4: lost
-        {"fit": first},                      # 5: whole image again, global fit
+        {"track": lost, "fit": first},       # 5: from the last globe seen, then whole image
     ]
     pipeline = _FocusingPipeline()
     session = _scripted_session(pipeline, script)
     eyes = [message["eye"] for message in _messages(session, len(script))]
 
     # A failed warm fit is followed by the whole images' global fit (the eye may have left the
-    # window).
-    assert pipeline.focused == [None, first, second, None, third, blink, None, None]
-    assert pipeline.calls == ["fit", "track", "track", "fit", "track", "track", "fit", "fit"]
+    # window); after a lost frame, the eye is first looked for where it was last seen (the
+    # blink's globe; tests/test_tracking.py: for how long).
+    assert pipeline.focused == [None, first, second, None, third, blink, None, blink, None]
+    assert pipeline.calls == ["fit", "track", "track", "fit", "track", "track", "fit", "track",
+                              "fit"]
     assert eyes == ["visible", "visible", "visible", "blink", "lost", "visible"]
     assert session.last_pose == first
 
