@@ -155,3 +155,34 @@ def test_region_of_interest_and_quality_crop(calibrated_rooms: Any, tmp_path: Pa
     assert points.size and np.all(np.abs(points[:, :2]) <= 5.0 + 1e-4)
     assert cropped["points"] < whole["points"] / 3
     assert cropped["median_mm"] < 0.05
+
+
+def test_a_cameras_pixel_rays_are_computed_when_first_needed_and_windows_slice_them() -> None:
+    # Undistorting every pixel (≈ 40 ms a camera) is paid only by what reconstructs pixels:
+    # the limbus search of a pose measurement projects points and never needs it.
+    from eyeserver.pipeline.demodulate import Carrier
+    from eyeserver.pipeline.geometry import pixel_grid_normalised, rays_from_normalised
+    from eyeserver.pipeline.phase_height import PhaseHeightModel
+    from eyeserver.pipeline.reconstruct import CalibratedCamera, cropped, decimated
+
+    height, width = 120, 160
+    K = np.array([[300.0, 0.0, 83.0], [0.0, 310.0, 57.0], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.2, 0.05, 0.001, -0.002, 0.0])
+    R = np.array([[1.0, 0.0, 0.0], [0.0, 0.8, -0.6], [0.0, 0.6, 0.8]])
+    model = PhaseHeightModel((10.0, 1.0, 0, 0, 0, 0, 0, 0, 0, 0, 0),
+                             0.0, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0, (-10.0, 25.0))
+    camera = CalibratedCamera("S1", K, dist, R, np.array([0.0, 5.0, 250.0]), model,
+                              Carrier((0.0, 0.1)), np.zeros((height, width), np.float32),
+                              border_px=10)
+    assert "_xy" not in vars(camera) and "rays" not in vars(camera)
+    x, y = pixel_grid_normalised(width, height, K, dist)
+    np.testing.assert_array_equal(camera.x, x)
+    np.testing.assert_array_equal(camera.y, y)
+    np.testing.assert_array_equal(camera.rays, rays_from_normalised(x, y, R).reshape(-1, 3))
+    assert camera.x.flags.c_contiguous and camera.y.flags.c_contiguous
+    window = cropped(camera, 30, 20, 110, 90)
+    np.testing.assert_array_equal(window.x, x[20:90, 30:110])
+    np.testing.assert_array_equal(window.rays.reshape(70, 80, 3),
+                                  camera.rays.reshape(height, width, 3)[20:90, 30:110])
+    coarse = decimated(window, 2)
+    np.testing.assert_array_equal(coarse.y, y[20:90:2, 30:110:2])

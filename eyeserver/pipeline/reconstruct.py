@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import InitVar, dataclass, field
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -165,20 +166,41 @@ class CalibratedCamera:
     given for spacing 1 and scaled by it, so that they keep their size on the object."""
     grid: InitVar[tuple[F64, F64] | None] = None
     """The undistorted normalised coordinates ``(x, y)`` of the pixels when known (a window or
-    a decimation of another camera's: sliced, not computed again); None: computed."""
-    x: F64 = field(init=False, repr=False)
-    y: F64 = field(init=False, repr=False)
-    rays: F64 = field(init=False, repr=False)
+    a decimation of another camera's: sliced, not computed again); None: computed when first
+    needed."""
+    _grid: tuple[F64, F64] | None = field(default=None, init=False, repr=False, compare=False)
     _pinhole_maps: tuple[F32, F32] | None = field(default=None, init=False, repr=False)
     _towards: dict[str, tuple[F64, F64]] = field(default_factory=dict, init=False, repr=False)
 
     def __post_init__(self, grid: tuple[F64, F64] | None) -> None:
+        self._grid = grid
+
+    @cached_property
+    def _xy(self) -> tuple[F64, F64]:
+        # Undistorting every pixel costs ≈ 40 ms a 640 × 512 camera (cv2.undistortPoints):
+        # not paid by a camera whose pixels are never reconstructed (the limbus search of a
+        # pose measurement projects points through K and the distortion only).
         height, width = self.reference_phase.shape
-        x, y = grid or pixel_grid_normalised(width, height, self.K, self.dist)
+        x, y = self._grid or pixel_grid_normalised(width, height, self.K, self.dist)
+        self._grid = None
         # Contiguous, so that the many ``x.ravel()[pixels]`` look-ups index a view instead of
         # copying the whole grid each time (2.6 MB, ≈ 0.1 ms a copy).
-        self.x, self.y = np.ascontiguousarray(x), np.ascontiguousarray(y)
-        self.rays = rays_from_normalised(self.x, self.y, self.R).reshape(-1, 3)
+        return np.ascontiguousarray(x), np.ascontiguousarray(y)
+
+    @property
+    def x(self) -> F64:
+        """Undistorted normalised x of every pixel ``(height, width)``."""
+        return self._xy[0]
+
+    @property
+    def y(self) -> F64:
+        """Undistorted normalised y of every pixel ``(height, width)``."""
+        return self._xy[1]
+
+    @cached_property
+    def rays(self) -> F64:
+        """Each pixel's unit ray in the WCS ``(height · width, 3)``."""
+        return rays_from_normalised(self.x, self.y, self.R).reshape(-1, 3)
 
     @property
     def shape(self) -> tuple[int, int]:
