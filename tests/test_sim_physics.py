@@ -664,18 +664,38 @@ def test_the_closing_lids_bound_holds_the_whole_cap_and_no_more(radius: float, h
     assert reach - 0.1 < distance.max() <= reach
 
 
-@pytest.mark.parametrize("t_s", [0.0, 0.33, 0.52, 0.9])
+@pytest.mark.parametrize("t_s", [0.0, 0.33, 0.47, 0.52, 0.6, 0.9])
 def test_a_moving_eye_renders_as_the_whole_scene_cast_afresh(room: SimRoom, odd_room: SimRoom,
                                                              t_s: float) -> None:
     # The moving-scene renderer re-casts only the pixels a moving part can change and tests
-    # the static points near a moving part's shadow for that shadow alone; the light must be
-    # what a full cast of the scene gives, with the eye turned, mid-saccade and mid-blink.
+    # the static points near a moving part's shadow for that shadow alone, and shows the shut
+    # lids' light, shaded once, where the closing lids are met; the light must be what a full
+    # cast of the scene gives, with the eye turned, mid-saccade, and closing, shut and
+    # opening in a blink.
     script = [ScriptEvent(t_s=0.3, kind="saccade", gaze_deg=(12.0, -6.0), duration_s=0.05),
               ScriptEvent(t_s=0.45, kind="blink", duration_s=0.2),
               ScriptEvent(t_s=0.8, kind="shift", shift_mm=(1.5, -1.0, 0.5), duration_s=0.2)]
     motion = MotionSpec(seed=4, drift_deg=0.05, saccade_rate_hz=0.0, script=script)
     spec = SceneSpec(kind="eye", eye=EyeSpec(gaze_deg=(5.0, 3.0), motion=motion))
-    for some_room in (room, odd_room):
+    _renders_as_cast_afresh(spec, t_s, (room, odd_room))
+
+
+@pytest.mark.parametrize("t_s", [0.47, 0.52])
+@pytest.mark.parametrize("eye", [
+    {"aperture_mm": (12.8, 8.0)},  # the lids' outer edge behind the face: the face in front
+    {"cornea_radius_mm": 6.5},  # the cornea beyond the lids' sphere: no shut-lid light kept
+])
+def test_a_blink_renders_as_cast_afresh_where_the_face_or_the_cornea_reach_the_lids(
+        room: SimRoom, eye: dict[str, Any], t_s: float) -> None:
+    blink = ScriptEvent(t_s=0.45, kind="blink", duration_s=0.2)
+    spec = SceneSpec(kind="eye", eye=EyeSpec(motion=MotionSpec(
+        seed=4, drift_deg=0.05, saccade_rate_hz=0.0, script=[blink]), **eye))
+    assert (build_scene(spec, t_s).closed is None) == ("cornea_radius_mm" in eye)
+    _renders_as_cast_afresh(spec, t_s, (room,))
+
+
+def _renders_as_cast_afresh(spec: SceneSpec, t_s: float, rooms: tuple[SimRoom, ...]) -> None:
+    for some_room in rooms:
         renderer = some_room.renderer
         built = build_scene(spec, t_s)
         projectors = list(renderer.projectors)
