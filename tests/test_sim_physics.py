@@ -718,6 +718,9 @@ def test_preparing_a_camera_casts_a_moving_eyes_static_part_before_its_first_fra
     sim.prepare("S1", ["P1"])
     (camera_id, _), part = next(iter(sim.renderer._static.items()))
     assert camera_id == "S1" and sorted(part.values) == ["P1", "ambient"]
+    # With it, the shut lids' light a blink's frames show (none of it while the eye is open).
+    assert part.closed_first is not None and part.closed_first.sum() > 5000
+    assert sorted(part.closed_values) == ["P1", "ambient"]
     # What was prepared is what a frame then uses (the same light as without preparing).
     prepared = sim.components("S1", 0.2, ["P1"])
     assert len(sim.renderer._static) == 1

@@ -276,7 +276,7 @@ class Renderer:
         # show the shut lids' light there, shaded once (_closed_layer): a blink's frames
         # re-cast only the opening.
         covered = np.zeros(0, dtype=np.intp)
-        if built.closed is not None:
+        if built.closed is not None and built.closed[0] is not None:
             first = self._closed_layer(camera_id, built, static, sources)
             lids = next(m for body, m in zip(moving.bodies, meets, strict=True)
                         if body is built.scene.bodies[built.closed[0]])
@@ -350,10 +350,12 @@ class Renderer:
                       sources: Sequence[str]) -> npt.NDArray[np.bool_]:
         """Which pixels (of those that meet the envelope) first meet ``built.closed``'s body
         at its fullest in front of the static part, and their light from ``sources`` (kept
-        with the static part; cast at the first frame that needs them, which takes ≈ 30 ms a
-        camera, as every shut-lid frame did without them).
+        with the static part, ≈ 20 ms a camera: a stream's cameras cast them when they are
+        prepared, and a blink's first frame would take ≈ 30 ms, as every shut-lid frame did
+        without them).
         Measured on one camera in one sitting: a shut-lid frame 16–18 ms, half shut 22, against
-        32–36 and 32 re-casting every ray that meets the closing lids (an open eye's 13–15)."""
+        32–36 and 32 re-casting every ray that meets the closing lids (an open eye's 13–15).
+        """
         assert built.closed is not None and built.static is not None
         cam = self.cameras[camera_id]
         scene = Scene([*built.static.bodies, built.closed[1]])
@@ -409,6 +411,8 @@ class Renderer:
                 part.shadow_idx[src] = part.hit_idx[near]
                 part.shadow_seg[src] = seg[near]
                 part.shadow_len2[src] = len2[near]
+        if built.closed is not None:
+            self._closed_layer(camera_id, built, part, sources)
         with self._lock:
             self._static[key] = part
             self._static.move_to_end(key)

@@ -184,11 +184,12 @@ class BuiltScene:
     static_key: str | None = None
     envelope: tuple[F64, float] | None = None
     """A sphere that holds every moving part whatever its motion (the eye: the lids' shell)."""
-    closed: tuple[int, Body] | None = None
-    """A moving body (its index in ``scene``) at its fullest, the same for the whole motion
-    (the closing lids shut): wherever that body is hit at all, it is hit where the full one
-    is, in front of every other moving part and lit as the full one is there (no moving part
-    can shade it), so a renderer can shade the full one's first hits once and reuse them."""
+    closed: tuple[int | None, Body] | None = None
+    """A moving body (its index in ``scene``; None while it is not there) at its fullest, the
+    same for the whole motion (the closing lids shut): wherever that body is hit at all, it is
+    hit where the full one is, in front of every other moving part and lit as the full one is
+    there (no moving part can shade it), so a renderer can shade the full one's first hits
+    once, with the static part, and reuse them."""
 
 
 def _sphere_points(centre: F64, radius: float, polar_deg: list[float], count: int,
@@ -229,7 +230,7 @@ class _Local:
     moving: list[tuple[int, F64, float]] = field(default_factory=list)
     """(body index, local centre, radius) of each moving body's bounding sphere."""
     envelope: tuple[F64, float] | None = None
-    closed: tuple[int, Body] | None = None
+    closed: tuple[int | None, Body] | None = None
 
 
 def _build_local(spec: SceneSpec, t_s: float) -> _Local:
@@ -354,13 +355,14 @@ def _build_local(spec: SceneSpec, t_s: float) -> _Local:
     cap_centre = centre + (limbus_depth + sagitta / 2) * gaze
     moving = [(1, cap_centre, math.hypot(half_limbus, sagitta / 2) + 0.05)]
     bodies = [Body([globe]), Body([cornea]), Body([lids]), face]
-    closed = None
     if closing is not None:
         bodies.append(Body([closing]))
         moving.append((4, *_cap_bound(head, lid_radius, max(half_w, half_h))))
-        if abs(cornea_offset) + eye.cornea_radius_mm < lid_radius:  # the cornea stays inside
-            closed = (4, Body([_LidShell(head, lid_radius, half_w, 0.0, constant_albedo(SKIN),
-                                         "lids", within=(half_w, half_h))]))
+    closed = None
+    if abs(cornea_offset) + eye.cornea_radius_mm < lid_radius:  # the cornea stays inside
+        closed = (4 if closing is not None else None,
+                  Body([_LidShell(head, lid_radius, half_w, 0.0, constant_albedo(SKIN), "lids",
+                                  within=(half_w, half_h))]))
     return _Local(bodies, np.zeros((0, 3)), eye_truth, moving,
                   (head.copy(), lid_radius + 0.1), closed)
 
