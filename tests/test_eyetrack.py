@@ -279,6 +279,36 @@ def test_the_warm_fit_in_the_windows_finds_the_global_fits_pose(
     assert np.linalg.norm(np.subtract(alone.centre_mm, reference.centre_mm)) < 0.5
 
 
+@pytest.mark.parametrize("off_deg", [2.5, 3.0, 3.5])
+def test_the_limbus_is_found_from_a_last_gaze_a_few_degrees_off(
+        simulated_eye: tuple[dict[str, Any], dict[str, Any], tuple[float, float], float],
+        off_deg: float) -> None:
+    # The frame after one caught mid-saccade: the eye turned on by less than the search's tilt
+    # step (6°), its limbus a few pixels from where the last gaze puts it. A tilted circle can
+    # score best there and lead nowhere; the search from the last gaze with every reach must
+    # still find it (it gave up, and the global fit took 0.46 s instead, in some directions).
+    cameras, frames, limits, full_scale = simulated_eye
+    ids = list(frames)[:2]
+    whole = [cameras[k] for k in ids]
+    images = [np.asarray(frames[k].image) for k in ids]
+    model = EyeModel(globe_radius_mm=12.0)
+    cloud = _unit_cloud(whole, images, limits, full_scale)
+    views = [LimbusView(c, i) for c, i in zip(whole, images, strict=True)]
+    reference = fit_eye(cloud, model, views)
+    g = np.asarray(reference.gaze)
+    u = np.cross(g, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(g, u)
+    off = math.radians(off_deg)
+    for azimuth in np.radians(np.arange(0, 360, 45)):
+        gaze = math.cos(off) * g + math.sin(off) * (math.cos(azimuth) * u + math.sin(azimuth) * v)
+        start = replace(reference, gaze=(float(gaze[0]), float(gaze[1]), float(gaze[2])))
+        followed = track_eye(cloud, model, start, views)
+        assert followed.gaze_source == "limbus (images)", math.degrees(azimuth)
+        angle = math.degrees(math.acos(min(1.0, float(np.dot(followed.gaze, g)))))
+        assert angle < 0.5, (math.degrees(azimuth), angle)  # one unit: ≈ 0.4° (README)
+
+
 def test_the_window_holds_the_eye_and_is_rounded_to_cache(
         simulated_eye: tuple[dict[str, Any], dict[str, Any], tuple[float, float], float],
         ) -> None:

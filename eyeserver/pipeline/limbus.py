@@ -554,17 +554,31 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
             # where the last gaze still fits best it is within a pixel or two, and the last
             # round alone finds it (the rounds before it only bring a far start closer), with
             # all rounds after a saccade's start or when that one fails.
-            rounds: list[Sequence[float]] = [REACHES_PX if search else REACHES_PX[1:]]
+            rounds: list[tuple[F64, Sequence[float], bool]] = [
+                (normal, REACHES_PX if search else REACHES_PX[1:], False)]
             if not search and np.array_equal(normal, start):
-                rounds.insert(0, REACHES_PX[-1:])
-            for reaches in rounds:
+                rounds.insert(0, (normal, REACHES_PX[-1:], False))
+            elif not search:
+                # A tilted circle scored best but led nowhere: the eye may have turned by less
+                # than the tilt's step, its limbus a few pixels from the last one, where no
+                # circle scores well (measured: the frame after one caught mid-saccade, 2.4°
+                # on, which the search from the last gaze with every reach finds, where the
+                # global fit took 0.46 s). Only a good fit counts from that wide a search: from
+                # a globe 4 mm off it fitted a circle 1.3 mm off, 0.8 px from its edges (the
+                # limbus: 0.1–0.2 px).
+                rounds.append((start, REACHES_PX, True))
+            for normal, reaches, good_only in rounds:
                 try:
-                    found.append(_refine(images, centre0 + depth * normal, normal,
-                                         limbus_radius, reaches))
+                    limbus = _refine(images, centre0 + depth * normal, normal, limbus_radius,
+                                     reaches)
                 except LimbusNotFoundError as exc:
                     failure = exc
                     continue
-                if found[-1].residual_px <= GOOD_RESIDUAL_PX:
+                if good_only and limbus.residual_px > GOOD_RESIDUAL_PX:
+                    failure = LimbusNotFoundError("the edges found fit no limbus circle")
+                    continue
+                found.append(limbus)
+                if limbus.residual_px <= GOOD_RESIDUAL_PX:
                     break
             if found and found[-1].residual_px <= GOOD_RESIDUAL_PX:
                 break
