@@ -567,9 +567,9 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
                 # a globe 4 mm off it fitted a circle 1.3 mm off, 0.8 px from its edges (the
                 # limbus: 0.1–0.2 px).
                 rounds.append((start, REACHES_PX, True))
-            for normal, reaches, good_only in rounds:
+            for axis, reaches, good_only in rounds:
                 try:
-                    limbus = _refine(images, centre0 + depth * normal, normal, limbus_radius,
+                    limbus = _refine(images, centre0 + depth * axis, axis, limbus_radius,
                                      reaches)
                 except LimbusNotFoundError as exc:
                     failure = exc

@@ -277,7 +277,8 @@ class Renderer:
         # re-cast only the opening.
         covered = np.zeros(0, dtype=np.intp)
         if built.closed is not None and built.closed[0] is not None:
-            first = self._closed_layer(camera_id, built, static, sources)
+            first = static.closed_first  # cast with the static part (_static_part)
+            assert first is not None
             lids = next(m for body, m in zip(moving.bodies, meets, strict=True)
                         if body is built.scene.bodies[built.closed[0]])
             cover = first[idx] & lids
@@ -347,10 +348,10 @@ class Renderer:
         return pixels[blocker < distance - (1e-3 + 1e-6 * distance)]
 
     def _closed_layer(self, camera_id: str, built: BuiltScene, static: _StaticPart,
-                      sources: Sequence[str]) -> npt.NDArray[np.bool_]:
-        """Which pixels (of those that meet the envelope) first meet ``built.closed``'s body
-        at its fullest in front of the static part, and their light from ``sources`` (kept
-        with the static part, ≈ 20 ms a camera: a stream's cameras cast them when they are
+                      sources: Sequence[str]) -> None:
+        """Fill in ``static`` which pixels (of those that meet the envelope) first meet
+        ``built.closed``'s body at its fullest in front of the static part, and their light
+        from ``sources`` (≈ 20 ms a camera: a stream's cameras cast them when they are
         prepared, and a blink's first frame would take ≈ 30 ms, as every shut-lid frame did
         without them).
         Measured on one camera in one sitting: a shut-lid frame 16–18 ms, half shut 22, against
@@ -373,7 +374,6 @@ class Renderer:
                 values = np.zeros(len(static.closed_first))
                 values[pixels] = shaded[source].values
                 static.closed_values[source] = values
-        return static.closed_first
 
     def _static_part(self, camera_id: str, built: BuiltScene, sources: Sequence[str],
                      ) -> _StaticPart:

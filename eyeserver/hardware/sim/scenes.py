@@ -336,8 +336,10 @@ def _build_local(spec: SceneSpec, t_s: float) -> _Local:
     # the part that closes over the opening: a moving part of its own, so the rest of the lids
     # stays in the static part and a blink re-casts only the rays that meet that part.
     lids = _LidShell(head, lid_radius, half_w, half_h, constant_albedo(SKIN), "lids")
-    closing = (_LidShell(head, lid_radius, half_w, half_h_now, constant_albedo(SKIN), "lids",
-                         within=(half_w, half_h)) if openness < 1.0 else None)
+
+    def closing_lids(opening_h: float) -> Body:
+        return Body([_LidShell(head, lid_radius, half_w, opening_h, constant_albedo(SKIN),
+                               "lids", within=(half_w, half_h))])
     face_hole = math.sqrt(max(lid_radius**2 - face_z**2, 1.0)) - 0.2
     face_plane = Plane(constant_albedo(SKIN), "skin", half_size=(60.0, 60.0),
                        hole=(0.0, 0.0, face_hole))
@@ -355,14 +357,13 @@ def _build_local(spec: SceneSpec, t_s: float) -> _Local:
     cap_centre = centre + (limbus_depth + sagitta / 2) * gaze
     moving = [(1, cap_centre, math.hypot(half_limbus, sagitta / 2) + 0.05)]
     bodies = [Body([globe]), Body([cornea]), Body([lids]), face]
-    if closing is not None:
-        bodies.append(Body([closing]))
+    closing = openness < 1.0
+    if closing:
+        bodies.append(closing_lids(half_h_now))
         moving.append((4, *_cap_bound(head, lid_radius, max(half_w, half_h))))
     closed = None
     if abs(cornea_offset) + eye.cornea_radius_mm < lid_radius:  # the cornea stays inside
-        closed = (4 if closing is not None else None,
-                  Body([_LidShell(head, lid_radius, half_w, 0.0, constant_albedo(SKIN), "lids",
-                                  within=(half_w, half_h))]))
+        closed = (4 if closing else None, closing_lids(0.0))  # the closing lids shut
     return _Local(bodies, np.zeros((0, 3)), eye_truth, moving,
                   (head.copy(), lid_radius + 0.1), closed)
 
