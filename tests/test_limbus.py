@@ -178,10 +178,13 @@ def test_one_unit_finds_the_limbus_about_the_cameras_when_the_cloud_gaze_is_far_
 
 def test_a_held_radius_places_the_globe_on_a_limbus_seen_without_sclera(
         calibrated_rooms: Any, tmp_path: Path) -> None:
-    # Turned away from the one unit that sees it, the eye shows its limbus whole and no sclera
-    # beside it (lids only). With the patient's radius the limbus alone places the globe
-    # (measured 0.08 mm; the cloud-only pose was 1.3 mm and 8° off), and the confidence says
-    # how little carries it.
+    # Turned away from the one unit that sees it, the eye shows its limbus whole and hardly
+    # any sclera beside it: a few hundred points squeezed against the lids, 0.4–0.5 mm off
+    # (the fringe analysis smears lid and sclera there). With the patient's radius the limbus
+    # places the globe (measured 0.06–0.08 mm; the cloud-only pose was 1.3 mm and 8° off), and
+    # the confidence says how little carries it (measured 0.43 with 161 sclera points; 0.001
+    # with 8 before the speckle filter kept the sclera's smaller patches; 0.9 and more for an
+    # eye in view).
     _, caldir = calibrated_rooms("default")
     spec = SceneSpec(kind="eye", position_mm=(1.29, 4.27, -10.6),
                      eye=EyeSpec(gaze_deg=(9.1, 0.0), globe_radius_mm=13.0))
@@ -193,7 +196,7 @@ def test_a_held_radius_places_the_globe_on_a_limbus_seen_without_sclera(
     assert pose.gaze_source == "limbus (images)"
     assert _angle_deg(pose.gaze, truth["gaze"]) < 0.5
     assert np.linalg.norm(np.subtract(pose.centre_mm, truth["centre_mm"])) < 0.15
-    assert pose.sclera_points < 30 and pose.confidence < 0.1
+    assert pose.sclera_points < 300 and pose.confidence < 0.6
 
 
 def _shell(rng: np.random.Generator, centre: np.ndarray, radii: np.ndarray,

@@ -841,7 +841,8 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
                 limbus.radius)
     # The globe's support, not its sclera points: lids taken for the sclera of an eye that
     # shows almost none lie near the sphere in hundreds of points too (measured: 1 pose of 200,
-    # 3.9 mm off with confidence 0.64: 43 points of support against 196–1,775 on 24 others).
+    # 3.9 mm off with confidence 0.64: 43 points of support against 196–1,775 on 24 others;
+    # its sclera had been lost to the speckle filter, see reconstruct.MIN_PATCH_PX).
     confidence = _confidence(globe.support, WELL_SEEN_LIMBUS_POINTS, globe.surface_mad_mm,
                              gaze)
     return _pose(globe.centre, centre_sd, globe.radius, gaze, globe.surface_mad_mm,
