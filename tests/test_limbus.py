@@ -177,7 +177,7 @@ def test_one_unit_finds_the_limbus_about_the_cameras_when_the_cloud_gaze_is_far_
     assert np.linalg.norm(limbus.centre - truth["limbus_centre_mm"]) < 0.05
 
 
-def test_a_held_radius_places_the_globe_on_a_limbus_seen_without_sclera(
+def test_a_held_radius_places_the_globe_on_a_limbus_seen_with_hardly_any_sclera(
         calibrated_rooms: Any, tmp_path: Path) -> None:
     # Turned away from the one unit that sees it, the eye shows its limbus whole and hardly
     # any sclera beside it: a few hundred points squeezed against the lids, 0.4–0.5 mm off
