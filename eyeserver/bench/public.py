@@ -235,7 +235,7 @@ def score_ftm(data_dir: Path = DATA_DIR, frequency: Literal["hf", "lf"] = "hf", 
         return np.asarray(demodulate(image, carrier, bandwidth=band.get("bandwidth", BANDWIDTH),
                                      taper=band.get("taper", TAPER),
                                      elongation=band.get("elongation", ELONGATION),
-                                     ).wrapped_phase, dtype=np.float64)
+                                     ).surface_phase(), dtype=np.float64)
 
     ours = phase_difference(phase(objects[0]), phase(references[0]))
     baseline = phase_difference(_baseline_phase(objects[0], carrier),

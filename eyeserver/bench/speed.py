@@ -436,7 +436,7 @@ def _multi_view_pass(frameset: FrameSet, samples: _Samples) -> dict[str, Any]:
             cid = cam.camera_id
             demodulated = samples.time(cid, "demodulation", demodulate, image, cam.carrier)
             dphi = samples.time(cid, "reference_subtraction", phase_difference,
-                                demodulated.wrapped_phase, cam.reference_phase)
+                                demodulated.surface_phase(), cam.reference_phase)
             # A fresh Phase every pass: the partner's pinhole view is computed in grid_order,
             # once per frame, as in unit_clouds.
             with _stand_in(reconstruct, "demodulate", _returning(demodulated)), \

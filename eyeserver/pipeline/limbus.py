@@ -176,15 +176,19 @@ def fringe_free(camera: CalibratedCamera, image: npt.ArrayLike,
     if window is not None:
         x0, y0, x1, y1 = window
         pixels = pixels[y0:y1, x0:x1]
-    result = demodulate(pixels, camera.carrier)
+    # The band's own fringe is what it takes out of the image: no bend bias needed.
+    result = demodulate(pixels, camera.carrier, measure_bends=False)
     return _smoothed(pixels - result.modulation * np.cos(result.wrapped_phase)), (x0, y0)
 
 
 def fringe_removed(camera: CalibratedCamera, image: npt.ArrayLike, phase: Phase) -> F32:
     """``I − B·cos φ`` from the reconstruction's :func:`~eyeserver.pipeline.reconstruct.
-    camera_phase` of ``image`` (φ its phase relative to the reference, plus the reference's),
-    for :attr:`LimbusView.flat`."""
+    camera_phase` of ``image`` (φ its phase relative to the reference, plus the reference's,
+    plus the bend bias taken out of it: the fringe the band passed), for
+    :attr:`LimbusView.flat`."""
     wrapped = phase.dphi + np.asarray(camera.reference_phase, dtype=np.float32)
+    if phase.bend_bias is not None:
+        wrapped += phase.bend_bias
     return np.asarray(np.asarray(image, dtype=np.float32) - phase.modulation * np.cos(wrapped),
                       dtype=np.float32)
 
@@ -670,10 +674,13 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
     band (θ ≈ 40–65°), so a radial bias of the reconstructed sclera is amplified about four
     times into the radius, and about five times into the centre along the gaze. Measured on
     60 rendered poses: sclera within 1 mm of the lids lies 0.1–0.25 mm outside the true
-    sphere, elsewhere within 0.03 mm; the radius comes out 0.12 mm too large for 11 mm globes
-    (steeper sclera) and 0.06 mm too small for 13 mm ones. Wider lid clearances (1.5, 2 mm) or
-    dropping steep points (surface tilted more than 40–50° from +Z) made the centre worse
-    (noise), not better.
+    sphere, elsewhere within 0.03 mm; the radius came out 0.12 mm too large for 11 mm globes
+    (steeper sclera) and 0.06 mm too small for 13 mm ones, most of it the FTM band's bias on
+    bent fringes, which the reconstruction now takes out
+    (:attr:`~eyeserver.pipeline.demodulate.Demodulated.bend_bias`: on 200 poses the radius's
+    mean error −0.04, −0.02 and −0.03 mm for 11, 12 and 13 mm). Wider lid clearances (1.5,
+    2 mm) or dropping steep points (surface tilted more than 40–50° from +Z) made the centre
+    worse (noise), not better.
     """
     cloud = np.asarray(points, dtype=np.float64)
     L, g, r = limbus.centre, limbus.normal, limbus.radius

@@ -331,7 +331,8 @@ def _area_px(camera: CalibratedCamera, pixels: int) -> int:
 def strong_modulation(camera: CalibratedCamera, image: npt.ArrayLike) -> float:
     """The modulation of ``image``'s strong fringes (:func:`fringe_strength`), what
     :func:`camera_phase` masks weak fringes against."""
-    return fringe_strength(demodulate(np.asarray(image), camera.carrier).modulation)
+    return fringe_strength(demodulate(np.asarray(image), camera.carrier,
+                                      measure_bends=False).modulation)
 
 
 def fringe_strength(modulation: npt.ArrayLike) -> float:
@@ -346,6 +347,9 @@ class Phase:
     dphi: F32
     modulation: F32
     valid: Bool
+    bend_bias: F32 | None = None
+    """The demodulation's :attr:`~eyeserver.pipeline.demodulate.Demodulated.bend_bias`, taken
+    out of ``dphi`` (None: none)."""
     _pinhole: F32 | None = field(default=None, repr=False)
 
     def pinhole_view(self, camera: CalibratedCamera) -> F32:
@@ -369,7 +373,9 @@ class Phase:
         pick = (slice(None, None, factor), slice(None, None, factor))
         return Phase(np.ascontiguousarray(self.dphi[pick]),
                      np.ascontiguousarray(self.modulation[pick]),
-                     np.ascontiguousarray(self.valid[pick]))
+                     np.ascontiguousarray(self.valid[pick]),
+                     None if self.bend_bias is None
+                     else np.ascontiguousarray(self.bend_bias[pick]))
 
 
 ORDER_SOURCES = ("multi-view", "spatial + multi-view", "spatial + depth prior", "depth prior")
@@ -421,7 +427,7 @@ def camera_phase(camera: CalibratedCamera, image: npt.ArrayLike,
     """
     pixels = np.asarray(image)
     result = demodulate(pixels, camera.carrier)
-    dphi = phase_difference(result.wrapped_phase, camera.reference_phase)
+    dphi = phase_difference(result.surface_phase(), camera.reference_phase)
     strong = (fringe_strength(result.modulation) if camera.strong_modulation is None
               else camera.strong_modulation)
     b = camera.border_px
@@ -437,7 +443,8 @@ def camera_phase(camera: CalibratedCamera, image: npt.ArrayLike,
     # end of the plate) over about a period: erode the mask by half a period on each side.
     half = max(1, round(EDGE_EROSION_PERIODS * b))
     eroded = cv2.erode(valid.astype(np.uint8), np.ones((2 * half + 1, 2 * half + 1), np.uint8))
-    return Phase(dphi=dphi, modulation=result.modulation, valid=np.asarray(eroded, dtype=bool))
+    return Phase(dphi=dphi, modulation=result.modulation, valid=np.asarray(eroded, dtype=bool),
+                 bend_bias=result.bend_bias)
 
 
 def _sample(image: F32, u: F64, v: F64) -> F32:
