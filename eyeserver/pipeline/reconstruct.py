@@ -417,8 +417,12 @@ class CameraCloud:
 
 
 def camera_phase(camera: CalibratedCamera, image: npt.ArrayLike,
-                 saturation_dn: float | None = None) -> Phase:
+                 saturation_dn: float | None = None, *, measure_bends: bool = True) -> Phase:
     """Demodulate ``image`` with the camera's carrier, relative to the reference, with its mask.
+
+    ``dphi`` is the surface's phase, less the band's bias on bent fringes
+    (:attr:`~eyeserver.pipeline.demodulate.Demodulated.bend_bias`) unless ``measure_bends`` is
+    False (faster where the surface's shape does not matter to the result).
 
     Masked: low modulation (shadows, dark paint, the background), saturation (more than
     :data:`SATURATED_SHARE` of the period around a pixel at or above
@@ -426,7 +430,7 @@ def camera_phase(camera: CalibratedCamera, image: npt.ArrayLike,
     corrupts, and half a fringe period around every edge of what remains.
     """
     pixels = np.asarray(image)
-    result = demodulate(pixels, camera.carrier)
+    result = demodulate(pixels, camera.carrier, measure_bends=measure_bends)
     dphi = phase_difference(result.surface_phase(), camera.reference_phase)
     strong = (fringe_strength(result.modulation) if camera.strong_modulation is None
               else camera.strong_modulation)

@@ -455,8 +455,13 @@ class RigReconstructor:
                 saturation = self._saturation or float(2 ** frame_a.meta.bit_depth - 1)
                 camera_a, points_a, image_a = self._view(a, np.asarray(frame_a.image))
                 camera_b, points_b, image_b = self._view(b, np.asarray(frame_b.image))
-                phases = (camera_phase(camera_a, image_a, saturation),
-                          camera_phase(camera_b, image_b, saturation))
+                # A followed eye's globe keeps its radius and is placed on the limbus, which
+                # the band's own phase shows: only the whole images' (global) fit needs the
+                # surface's phase less the band's bend bias (≈ 3 ms a frame set otherwise).
+                phases = (camera_phase(camera_a, image_a, saturation,
+                                       measure_bends=camera_a is self._cameras[a]),
+                          camera_phase(camera_b, image_b, saturation,
+                                       measure_bends=camera_b is self._cameras[b]))
                 for camera_id, camera, phase in ((a, camera_a, phases[0]),
                                                  (b, camera_b, phases[1])):
                     if camera is self._cameras[camera_id]:  # the whole image
