@@ -165,6 +165,7 @@ def calibrate_phase_height(document: dict[str, Any], plate_path: str | Path,
         ref_image = reference.load_image(ref_frames[0], camera_id)
         carrier = measure_carrier(ref_image)
         ref = demodulate(ref_image, carrier)
+        ref_phase = ref.surface_phase()
         stack = sorted((plate.frame(i).z_mm or 0.0, i) for i in _fringe_frames(plate, camera_id))
         if len(stack) < 3:
             raise CalibrationError(f"{plate.path}: camera {camera_id} has fringe images at "
@@ -178,7 +179,7 @@ def calibrate_phase_height(document: dict[str, Any], plate_path: str | Path,
         for z, index in stack:
             result = demodulate(plate.load_image(index, camera_id), carrier)
             z_values.append(z)
-            wrapped.append(phase_difference(result.surface_phase(), ref.surface_phase()))
+            wrapped.append(phase_difference(result.surface_phase(), ref_phase))
             valid.append(_valid(result.modulation) & ref_valid)
         unwrapped, chain = _unwrap_along_z(z_values, wrapped, valid, z_reference)
         x_grid, y_grid = pixel_grid_normalised(cam["width"], cam["height"], cam["K"],
@@ -237,7 +238,7 @@ def calibrate_phase_height(document: dict[str, Any], plate_path: str | Path,
                         "rmse_mm": fit.rmse_mm, "condition_number": fit.condition_number,
                         "per_z": per_z},
         }
-        arrays[f"reference_phase_{camera_id}"] = np.asarray(ref.surface_phase(), np.float32)
+        arrays[f"reference_phase_{camera_id}"] = np.asarray(ref_phase, np.float32)
     for unit in rig.units:
         if len(unit.cameras) < 2:
             section["units"][unit.id] = {"margin_rad": None, "orders_checked": 0,
