@@ -69,6 +69,10 @@ def test_speed_bench_times_the_pipeline(calibrated_rooms: Any,
     assert "tracking" not in report and "frame_to_pose_p99_ms" not in report  # skipped
     assert "tracking_replay" not in report
     assert report["goals_ms"] == {"frameset_2cam_ms": 10.0, "frameset_4cam_ms": 20.0}
+    # How fast the machine ran, beside the figures: one FFT of a camera image, well under the
+    # whole 2-camera frame-set (two of them and much more).
+    for when in ("start", "end"):
+        assert 0 < report["machine"][f"reference_fft_ms_at_{when}"] < report["frameset_2cam_ms"]
     for key in ("framesets_2cam_per_s", "framesets_4cam_per_s", "frameset_4cam_2threads_ms",
                 "framesets_4cam_2threads_per_s", "peak_rss_mib"):
         assert report[key] > 0, key
@@ -125,7 +129,7 @@ def test_speed_bench_times_the_pipeline(calibrated_rooms: Any,
     text = speed.format_text(report)
     for expected in ("≤ 10", "≤ 20", "fringe_order_grid", "fusion", "scikit-image unwrap_phase",
                      "plain FFT FTM", "OpenCV contrib FTP", "peak resident set",
-                     "capture →201 of all", "reconstruction of left"):
+                     "capture →201 of all", "reconstruction of left", "machine speed"):
         assert expected in text, expected
 
 
@@ -208,6 +212,8 @@ def test_tracking_bench_measures_live_tracking(calibrated_rooms: Any,
     assert max(blink["held"], blink["seen_as_blink"], blink["with_pose"]) \
         <= blink["frames_half_shut"]
     assert "lids half shut or more" in tracking.format_text(report)
+    assert report["reference_fft_ms"]["at_start"] > 0 and report["reference_fft_ms"]["at_end"] > 0
+    assert "machine speed" in tracking.format_text(report)
     # The saccade (8° against a 2° tolerance) holds the beam on the first frame after it,
     # seen out of tolerance or, where that frame showed no eye, lost.
     reaction = report["beam_hold_reaction"]

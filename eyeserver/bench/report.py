@@ -146,6 +146,14 @@ def render_speed(speed: dict[str, Any]) -> str:
                           f"and their processing took {_value(latency['processing_median'], 0)} "
                           f"ms (p99 {_value(latency.get('processing_p99'), 0)} ms); the rest is "
                           "the wait for a free worker and the sending.")
+        reference = speed.get("machine", {}).get("reference_fft_ms_at_start")
+        if reference is not None:
+            lines[-1] += (f" The machine's speed during the run: one 640 × 512 FFT in "
+                          f"{_value(reference, 2)} ms at its start, "
+                          f"{_value(speed['machine'].get('reference_fft_ms_at_end'), 2)} ms at "
+                          "its end (on this shared virtual machine the same code's figures "
+                          "moved by up to 2× within an hour: compare runs only at similar "
+                          "values).")
     alone = speed.get("tracking_replay")
     if alone:
         from eyeserver.bench.tracking import format_replayed

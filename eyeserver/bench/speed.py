@@ -64,6 +64,7 @@ from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
 
 import numpy as np
 import numpy.typing as npt
+import scipy.fft
 
 from eyeserver.core.clock import ManualClock
 from eyeserver.hardware.sim.config import RoomConfig
@@ -126,6 +127,24 @@ def machine() -> dict[str, Any]:
     return {"python": platform.python_version(), "numpy": np.__version__,
             "platform": platform.platform(), "processor": platform.processor() or "unknown",
             "cpu_count": os.cpu_count()}
+
+
+def reference_ms(repeats: int = 50) -> float:
+    """How fast the machine runs right now: the median time of one FFT of a 640 × 512 image
+    (``scipy.fft.rfft2``, one thread), a fixed piece of the pipeline's own work.
+
+    Timings are only comparable at similar values: on the shared 2-core virtual machine of
+    docs/benchmarks.md the same code's figures moved by up to 2× within an hour, with the load
+    average near zero throughout (a tracked frame alone 10–23 ms, NumPy's FFT of this image
+    4.4–7.4 ms).
+    """
+    image = np.random.default_rng(0).random((512, 640), dtype=np.float32)
+    samples = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        scipy.fft.rfft2(image, workers=1)
+        samples.append(time.perf_counter() - started)
+    return float(np.median(samples) * 1e3)
 
 
 def _summary(samples_s: Sequence[float]) -> dict[str, float]:
@@ -781,7 +800,7 @@ def traced_peak_mib(frameset: FrameSet, units: Sequence[UnitImages]) -> float:
 
 def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
         calibration: Path | None = None, room_file: Path | None = None,
-        api_requests: int = 10, tracking_seconds: int = 20,
+        api_requests: int = 10, tracking_seconds: int = 60,
         replay_seconds: int = 10, replay_workers: int = 2) -> dict[str, Any]:
     """The whole speed report as one JSON-able document (``calibration``: a calibration of the
     simulated rig; made on the spot when not given). ``room_file`` is the file ``config`` came
@@ -797,6 +816,7 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
 
     started = time.perf_counter()
     load_at_start = os.getloadavg()
+    reference_at_start = reference_ms()
     render = sim_render(config, frames, progress)
     with tempfile.TemporaryDirectory(prefix="eyeserver-speed-") as tmp:
         work = Path(tmp)
@@ -835,7 +855,9 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
                     "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS", "unset"),
                     # Other work on the cores inflates every figure: say how busy they were.
                     "load_average_at_start": [round(x, 2) for x in load_at_start],
-                    "load_average_at_end": [round(x, 2) for x in os.getloadavg()]},
+                    "load_average_at_end": [round(x, 2) for x in os.getloadavg()],
+                    "reference_fft_ms_at_start": round(reference_at_start, 2),
+                    "reference_fft_ms_at_end": round(reference_ms(), 2)},
         "units": "milliseconds per frame-set or call (median unless named p95); frame-sets "
                  "are images in memory → fused cloud",
         "goals_ms": dict(GOALS_MS),
@@ -909,6 +931,11 @@ def format_text(report: dict[str, Any]) -> str:
                      f"{report['machine']['load_average_at_start']}, at end "
                      f"{report['machine']['load_average_at_end']}: other work on the cores "
                      "inflates every figure")
+    if "reference_fft_ms_at_start" in report["machine"]:
+        lines.append("machine speed: one 640 × 512 FFT took "
+                     f"{report['machine']['reference_fft_ms_at_start']:.2f} ms at start, "
+                     f"{report['machine']['reference_fft_ms_at_end']:.2f} ms at end (compare "
+                     "figures only between runs at similar values)")
     lines.append("")
     lines.append(f"{'simulated room render':<34}{'median ms':>10}{'p95 ms':>10}")
     for key, value in report["sim_render"].items():

@@ -37,6 +37,7 @@ from websockets.sync.client import ClientConnection, connect
 
 from eyeserver.bench.daemon import DaemonError, DaemonProcess, zip_directory
 from eyeserver.bench.simcal import calibrate_room
+from eyeserver.bench.speed import reference_ms
 from eyeserver.core.clock import MonotonicClock
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.motion import EyeMotion, MotionSpec
@@ -146,8 +147,12 @@ def run(seconds: float = 60.0, *, calibration: Path | None = None,
         env = {"EYESERVER_TRACKING_WORKERS": str(workers)}
         if room_file is not None:
             env["EYESERVER_ROOM_FILE"] = str(room_file)
+        at_start = reference_ms()
         with DaemonProcess(base / "daemon-data", log=base / "daemon.log", env=env) as daemon:
-            return _run(daemon, seconds, calibration, progress)
+            report = _run(daemon, seconds, calibration, progress)
+        report["reference_fft_ms"] = {"at_start": round(at_start, 2),
+                                      "at_end": round(reference_ms(), 2)}
+        return report
 
 
 def _run(daemon: DaemonProcess, seconds: float, calibration: Path,
@@ -411,6 +416,11 @@ def format_text(report: dict[str, Any]) -> str:
             f"processing ≤ {_fmt(blink['processing_ms_max_around'])} ms around it")
     if clients.get("silent_closed"):
         lines.append(f"  the client that never read was closed: {clients['silent_closed']}")
+    reference = report.get("reference_fft_ms")
+    if reference:
+        lines.append(f"  machine speed: one 640 × 512 FFT took {reference['at_start']:.2f} ms "
+                     f"before, {reference['at_end']:.2f} ms after (compare runs only at similar "
+                     "values)")
     if report.get("error"):
         lines.append(f"  the session ended by itself: {report['error']}")
     return "\n".join(lines)

@@ -50,9 +50,9 @@ def add_parser(subparsers: Subparsers) -> None:
     speed.add_argument("--api-requests", type=_non_negative_int, default=10, metavar="N",
                        help="captures and reconstructions of each kind timed through the API "
                        "of a daemon on loopback (default 10; 0 skips them)")
-    speed.add_argument("--tracking-seconds", type=_non_negative_int, default=20, metavar="S",
+    speed.add_argument("--tracking-seconds", type=_non_negative_int, default=60, metavar="S",
                        help="live tracking through a daemon for the frame → pose latency, as "
-                       "'eyeserver bench tracking' (default 20; 0 skips it)")
+                       "'eyeserver bench tracking' (default 60; 0 skips it)")
     speed.add_argument("--replay-seconds", type=_non_negative_int, default=10, metavar="S",
                        help="live tracking's pipeline alone: S seconds of the moving eye "
                        "rendered beforehand, replayed at 25 Hz through the tracking worker "
