@@ -17,7 +17,9 @@ strays by 5–13°: the cloud's sclera ends a fringe period outside the limbus, 
    wrong shell altogether; limbus circles tilted 0–30° about it are scored by the mean outward
    intensity step along their projections, and so are circles about the cornea's dark disc
    (the dark region with the largest inscribed circle, triangulated from the cameras) looking
-   towards them; the best one starts.
+   towards them; the best one starts. Live tracking starts from the last frame's limbus: the
+   last round of step 4 alone from there, and the scoring (of circles tilted up to 12°) only
+   when that fits poorly or turns the gaze by more than a degree (a saccade).
 3. **Edges.** Along the outward normal of the projected circle (120 samples per camera), the
    *innermost* rising edge at least 40 % as strong as the strongest one on that profile, with
    sub-pixel position from a parabola through the derivative. Innermost, because outside the
