@@ -159,9 +159,9 @@ def render_speed(speed: dict[str, Any]) -> str:
         from eyeserver.bench.tracking import format_replayed
         lines += ["", f"Live tracking's {format_replayed(alone)}: what the reconstruction and "
                   "fit achieve when the cameras cost no CPU (live, the simulated room renders "
-                  f"each frame set of the tracked unit, "
-                  f"{_value(speed.get('sim_render_2cam_ms'), 0)} ms of a still eye, on the same "
-                  "cores)."]
+                  "each frame set of the tracked unit, "
+                  f"{_value(speed.get('sim_render_2cam_ms'), 0)} ms of the moving eye, on the "
+                  "same cores)."]
     lines += ["", f"The speed run took {speed.get('duration_s')} s.", ""]
     return "\n".join(lines)
 
