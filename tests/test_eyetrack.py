@@ -21,6 +21,7 @@ from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.scenes import SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.io.rig_file import rig_from_dict
+from eyeserver.pipeline import limbus as limbus_module
 from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError, fit_eye
 from eyeserver.pipeline.eyetrack import (
     WINDOW_QUANTUM_PX,
@@ -310,6 +311,38 @@ def test_the_limbus_is_found_from_a_last_gaze_a_few_degrees_off(
         assert followed.gaze_source == "limbus (images)", math.degrees(azimuth)
         angle = math.degrees(math.acos(min(1.0, float(np.dot(followed.gaze, g)))))
         assert angle < 0.5, (math.degrees(azimuth), angle)  # one unit: ≈ 0.4° (README)
+
+
+def test_a_followed_limbus_is_scored_against_tilted_circles_only_after_a_turn(
+        simulated_eye: tuple[dict[str, Any], dict[str, Any], tuple[float, float], float],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # Live tracking's common case, the eye where the last frame left it, takes the last round
+    # of the edge search alone from the last gaze; scoring tilted circles (the start search)
+    # is for a gaze that turned (FOLLOWED_TURN_DEG), as after a saccade.
+    cameras, frames, limits, full_scale = simulated_eye
+    ids = list(frames)[:2]
+    whole = [cameras[k] for k in ids]
+    images = [np.asarray(frames[k].image) for k in ids]
+    model = EyeModel(globe_radius_mm=12.0)
+    cloud = _unit_cloud(whole, images, limits, full_scale)
+    views = [LimbusView(c, i) for c, i in zip(whole, images, strict=True)]
+    reference = fit_eye(cloud, model, views)
+    started = []
+    scored = limbus_module._start
+    monkeypatch.setattr(limbus_module, "_start",
+                        lambda *args, **kwargs: started.append(1) or scored(*args, **kwargs))
+    g = np.asarray(reference.gaze)
+    for off_deg, searched in ((0.0, False), (0.3, False), (3.5, True)):
+        started.clear()
+        tilted = np.cross(g, [0.0, 1.0, 0.0])
+        gaze = math.cos(math.radians(off_deg)) * g + math.sin(math.radians(off_deg)) * (
+            tilted / np.linalg.norm(tilted))
+        start = replace(reference, gaze=(float(gaze[0]), float(gaze[1]), float(gaze[2])))
+        followed = track_eye(cloud, model, start, views)
+        assert followed.gaze_source == "limbus (images)"
+        angle = math.degrees(math.acos(min(1.0, float(np.dot(followed.gaze, g)))))
+        assert angle < 0.5, (off_deg, angle)
+        assert bool(started) is searched, off_deg
 
 
 def test_the_window_holds_the_eye_and_is_rounded_to_cache(

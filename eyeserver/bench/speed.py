@@ -135,8 +135,8 @@ def reference_ms(repeats: int = 50) -> float:
 
     Timings are only comparable at similar values: on the shared 2-core virtual machine of
     docs/benchmarks.md the same code's figures moved by up to 2× within an hour, with the load
-    average near zero throughout (a tracked frame alone 10–23 ms, NumPy's FFT of this image
-    4.4–7.4 ms).
+    average near zero throughout (a tracked frame alone 10–22 ms, NumPy's FFT of this image
+    4.4–8.7 ms).
     """
     image = np.random.default_rng(0).random((512, 640), dtype=np.float32)
     samples = []
