@@ -283,6 +283,33 @@ def test_the_warm_fit_in_the_windows_finds_the_global_fits_pose(
     assert np.linalg.norm(np.subtract(alone.centre_mm, reference.centre_mm)) < 0.5
 
 
+def _one_unit_eye(simulated_eye: tuple[dict[str, Any], dict[str, Any], tuple[float, float],
+                                        float]
+                  ) -> tuple[EyeModel, CloudLike, list[LimbusView], EyePose]:
+    """One unit's model (radius held), cloud and views of the simulated eye, and the pose
+    fit_eye finds in them."""
+    cameras, frames, limits, full_scale = simulated_eye
+    ids = list(frames)[:2]
+    whole = [cameras[k] for k in ids]
+    images = [np.asarray(frames[k].image) for k in ids]
+    model = EyeModel(globe_radius_mm=12.0)
+    cloud = _unit_cloud(whole, images, limits, full_scale)
+    views = [LimbusView(c, i) for c, i in zip(whole, images, strict=True)]
+    return model, cloud, views, fit_eye(cloud, model, views)
+
+
+def _turned(pose: EyePose, off_deg: float, azimuth_rad: float) -> EyePose:
+    """``pose`` with its gaze turned by ``off_deg`` towards ``azimuth_rad`` about it."""
+    g = np.asarray(pose.gaze)
+    u = np.cross(g, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(g, u)
+    off = math.radians(off_deg)
+    gaze = math.cos(off) * g + math.sin(off) * (math.cos(azimuth_rad) * u
+                                                 + math.sin(azimuth_rad) * v)
+    return replace(pose, gaze=(float(gaze[0]), float(gaze[1]), float(gaze[2])))
+
+
 @pytest.mark.parametrize("off_deg", [2.5, 3.0, 3.5])
 def test_the_limbus_is_found_from_a_last_gaze_a_few_degrees_off(
         simulated_eye: tuple[dict[str, Any], dict[str, Any], tuple[float, float], float],
@@ -291,22 +318,10 @@ def test_the_limbus_is_found_from_a_last_gaze_a_few_degrees_off(
     # step (6°), its limbus a few pixels from where the last gaze puts it. A tilted circle can
     # score best there and lead nowhere; the search from the last gaze with every reach must
     # still find it (it gave up, and the global fit took 0.46 s instead, in some directions).
-    cameras, frames, limits, full_scale = simulated_eye
-    ids = list(frames)[:2]
-    whole = [cameras[k] for k in ids]
-    images = [np.asarray(frames[k].image) for k in ids]
-    model = EyeModel(globe_radius_mm=12.0)
-    cloud = _unit_cloud(whole, images, limits, full_scale)
-    views = [LimbusView(c, i) for c, i in zip(whole, images, strict=True)]
-    reference = fit_eye(cloud, model, views)
+    model, cloud, views, reference = _one_unit_eye(simulated_eye)
     g = np.asarray(reference.gaze)
-    u = np.cross(g, [0.0, 1.0, 0.0])
-    u /= np.linalg.norm(u)
-    v = np.cross(g, u)
-    off = math.radians(off_deg)
     for azimuth in np.radians(np.arange(0, 360, 45)):
-        gaze = math.cos(off) * g + math.sin(off) * (math.cos(azimuth) * u + math.sin(azimuth) * v)
-        start = replace(reference, gaze=(float(gaze[0]), float(gaze[1]), float(gaze[2])))
+        start = _turned(reference, off_deg, azimuth)
         followed = track_eye(cloud, model, start, views)
         assert followed.gaze_source == "limbus (images)", math.degrees(azimuth)
         angle = math.degrees(math.acos(min(1.0, float(np.dot(followed.gaze, g)))))
@@ -319,26 +334,19 @@ def test_a_followed_limbus_is_scored_against_tilted_circles_only_after_a_turn(
     # Live tracking's common case, the eye where the last frame left it, takes the last round
     # of the edge search alone from the last gaze; scoring tilted circles (the start search)
     # is for a gaze that turned (FOLLOWED_TURN_DEG), as after a saccade.
-    cameras, frames, limits, full_scale = simulated_eye
-    ids = list(frames)[:2]
-    whole = [cameras[k] for k in ids]
-    images = [np.asarray(frames[k].image) for k in ids]
-    model = EyeModel(globe_radius_mm=12.0)
-    cloud = _unit_cloud(whole, images, limits, full_scale)
-    views = [LimbusView(c, i) for c, i in zip(whole, images, strict=True)]
-    reference = fit_eye(cloud, model, views)
-    started = []
+    model, cloud, views, reference = _one_unit_eye(simulated_eye)
+    started: list[int] = []
     scored = limbus_module._start
-    monkeypatch.setattr(limbus_module, "_start",
-                        lambda *args, **kwargs: started.append(1) or scored(*args, **kwargs))
+
+    def counted(*args: Any, **kwargs: Any) -> Any:
+        started.append(1)
+        return scored(*args, **kwargs)
+
+    monkeypatch.setattr(limbus_module, "_start", counted)
     g = np.asarray(reference.gaze)
     for off_deg, searched in ((0.0, False), (0.3, False), (3.5, True)):
         started.clear()
-        tilted = np.cross(g, [0.0, 1.0, 0.0])
-        gaze = math.cos(math.radians(off_deg)) * g + math.sin(math.radians(off_deg)) * (
-            tilted / np.linalg.norm(tilted))
-        start = replace(reference, gaze=(float(gaze[0]), float(gaze[1]), float(gaze[2])))
-        followed = track_eye(cloud, model, start, views)
+        followed = track_eye(cloud, model, _turned(reference, off_deg, 0.0), views)
         assert followed.gaze_source == "limbus (images)"
         angle = math.degrees(math.acos(min(1.0, float(np.dot(followed.gaze, g)))))
         assert angle < 0.5, (off_deg, angle)
