@@ -192,10 +192,11 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
 
 def test_tracking_bench_measures_live_tracking(calibrated_rooms: Any,
                                               capsys: pytest.CaptureFixture[str]) -> None:
-    """A short run through a daemon on loopback (the figures are the bench's, not checked)."""
+    """A short run through a daemon on loopback, its room rendered ahead (the figures are the
+    bench's, not checked)."""
     _, caldir = calibrated_rooms("default")
     report = _json(capsys, ["bench", "tracking", "--json", "--seconds", "15", "--calibration",
-                            str(caldir)])
+                            str(caldir), "--prerendered"])
     frames, latency = report["frames"], report["latency_ms"]
     assert report["error"] is None
     assert frames["processed"] > 0
@@ -214,6 +215,18 @@ def test_tracking_bench_measures_live_tracking(calibrated_rooms: Any,
     assert "lids half shut or more" in tracking.format_text(report)
     assert report["reference_fft_ms"]["at_start"] > 0 and report["reference_fft_ms"]["at_end"] > 0
     assert "machine speed" in tracking.format_text(report)
+    # Every camera frame of the stream came from the frames rendered ahead (and one more, in
+    # flight when tracking stopped; the warm-up frame's time is not a whole period: rendered
+    # at once).
+    ahead = report["prerendered"]
+    assert ahead["seconds"] == 15 + 3 + tracking.PRERENDER_MARGIN_S
+    assert set(ahead["cameras"]) == {"S1", "S2"}
+    for camera in ahead["cameras"].values():
+        assert frames["acquired"] <= camera["used"] <= frames["acquired"] + 1
+        assert camera["live"] <= 1
+    slowest = report["slowest"]
+    assert len(slowest) == 8 and slowest[0]["latency_ms"] >= slowest[-1]["latency_ms"]
+    assert "rendered ahead" in tracking.format_text(report)
     # The saccade (8° against a 2° tolerance) holds the beam on the first frame after it,
     # seen out of tolerance or, where that frame showed no eye, lost.
     reaction = report["beam_hold_reaction"]

@@ -295,6 +295,31 @@ def test_a_motion_script_starts_and_stops(client: Client) -> None:
     assert still.json()["scene"]["eye"]["motion"] is None
 
 
+def test_the_moving_eye_is_rendered_ahead_for_a_unit(client: Client) -> None:
+    still_eye = client.post(f"{API}/sim/eye/prerender", json={"unit": "left", "seconds": 0.2})
+    script = {"drift_deg": 0.05, "saccade_rate_hz": 0}
+    client.put(f"{API}/sim/eye", json={"motion": script})
+    ahead = client.post(f"{API}/sim/eye/prerender", json={"unit": "left", "seconds": 0.2})
+    status = client.get(f"{API}/sim/eye/prerender")
+    script_s = client.get(f"{API}/sim/eye").json()["t_s"]
+    wrong = [client.post(f"{API}/sim/eye/prerender", json=body) for body in (
+        {"unit": "middle", "seconds": 1}, {"unit": "left", "seconds": 0},
+        {"unit": "left", "seconds": 1000}, {"unit": "left"})]
+    client.put(f"{API}/sim/eye", json={"motion": None})
+    forgotten = client.get(f"{API}/sim/eye/prerender")
+
+    assert still_eye.status_code == 422 and "not a moving eye" in still_eye.json()["detail"]
+    assert ahead.status_code == 200, ahead.text
+    body = ahead.json()
+    assert body["unit"] == "left" and body["frames"] == 5 and body["rate_hz"] == 25.0
+    assert body["megabytes"] == pytest.approx(2 * 5 * 640 * 512 / 1e6, abs=0.1)
+    assert status.json() == {c: {"left": 5, "used": 0, "live": 0} for c in body["cameras"]}
+    assert 0 <= script_s < 1.0  # the script restarted when the frames were ready
+    assert [w.status_code for w in wrong] == [422, 422, 422, 422]
+    assert "no unit 'middle'" in wrong[0].json()["detail"]
+    assert forgotten.json() == {}
+
+
 @pytest.mark.parametrize("body", [{"limbus_diameter_mm": 15.5, "cornea_radius_mm": 7.0},
                                   {"globe_radius_mm": 30}, {"motion": {"blink_rate_hz": -1}},
                                   {"spin": 1}])

@@ -24,7 +24,7 @@ from eyeserver.calibration.chessboard import board_points, detect_chessboard
 from eyeserver.core.clock import ManualClock
 from eyeserver.hardware.sim import motion as motion_module
 from eyeserver.hardware.sim.config import RoomConfig, room_from_dict
-from eyeserver.hardware.sim.drivers import build_sim_rig
+from eyeserver.hardware.sim.drivers import SimCamera, build_sim_rig
 from eyeserver.hardware.sim.geometry import RayHits, pose_matrix
 from eyeserver.hardware.sim.motion import EyeMotion, MotionSpec, ScriptEvent
 from eyeserver.hardware.sim.optics import CameraModel
@@ -750,3 +750,57 @@ def test_a_blink_renders_with_the_static_part_prepared_for_the_open_eye() -> Non
         whole = fresh.renderer.components("S1", built.scene, 1, ["P1"])
         np.testing.assert_allclose(blinking.fringe["P1"], whole.fringe["P1"], atol=1e-4)
         np.testing.assert_allclose(blinking.ambient, whole.ambient, atol=1e-4)
+
+
+# --- rendering ahead ----------------------------------------------------------------------------
+
+
+def test_frames_rendered_ahead_are_what_the_room_renders_at_their_time() -> None:
+    """A stream on whole camera periods takes the frames rendered ahead: bit for bit the room's
+    render at that moment with the same noise draws; frames at other times or settings render
+    at once, and a new scene forgets them."""
+    period_ns, start_ns = 40_000_000, 7_000_000_000
+    motion = MotionSpec(seed=2, drift_deg=0.5, saccade_rate_hz=0.0, blink_rate_hz=0.0)
+    spec = SceneSpec(kind="eye", eye=EyeSpec(motion=motion))
+    sim = SimRoom(_small_room(5), clock=ManualClock(start_ns))
+    with build_sim_rig(sim) as rig:
+        sim.set_scene(SceneSpec(kind="plate"))
+        camera = rig.unit("left").cameras[0]
+        assert isinstance(camera, SimCamera)
+        with pytest.raises(ValueError, match="does not move"):
+            camera.prerender(0.2, 25.0, ("P1",))
+        sim.set_scene(spec)
+        for each in rig.unit("left").cameras:
+            assert isinstance(each, SimCamera)
+            assert each.prerender(0.2, 25.0, ("P1",)) is sim.scene
+        sim.clock.advance(3.0)  # rendering ahead took a while: the script restarts after it
+        epoch_ns = start_ns + 3 * 1_000_000_000
+        assert sim.restart_scene(spec, epoch_ns)
+        assert sim.prerendered() == {c: {"left": 5, "used": 0, "live": 0} for c in ("S1", "S2")}
+        steps = [rig.acquire(["left"], at_ns=epoch_ns + k * period_ns)[0] for k in range(3)]
+        assert sim.prerendered()["S1"] == {"left": 2, "used": 3, "live": 0}
+        # Off the periods (1 ms late): rendered at once; the frame it passed is forgotten.
+        late = rig.acquire(["left"], at_ns=epoch_ns + 3 * period_ns + 1_000_000)[0]
+        assert sim.prerendered()["S1"] == {"left": 1, "used": 3, "live": 1}
+
+        # The same scene at the same times in a room of its own, with the noise drawn in the
+        # same order from the generator rendering ahead drew from.
+        twin = SimRoom(_small_room(5), clock=ManualClock(epoch_ns))
+        twin.set_scene(spec)
+        for index, camera_id in enumerate(("S1", "S2")):
+            rng = np.random.default_rng([5, index, 1])
+            for step in steps:
+                meta = step.frames[camera_id].meta
+                expected = twin.render(camera_id, t_s=meta.t_ns / 1e9, projectors={"P1": 1.0},
+                                       exposure_us=meta.exposure_us, gain_db=meta.gain_db,
+                                       rng=rng)
+                np.testing.assert_array_equal(step.frames[camera_id].image, expected)
+            assert not np.array_equal(late.frames[camera_id].image,
+                                      steps[-1].frames[camera_id].image)
+        # Other settings render at once; a new scene forgets what was rendered ahead.
+        camera.set_exposure_us(camera.exposure_us / 2)
+        rig.acquire(["left"], at_ns=epoch_ns + 4 * period_ns)
+        assert sim.prerendered()["S1"] == {"left": 1, "used": 3, "live": 2}
+        sim.set_scene(spec)
+        assert sim.prerendered() == {}
+        assert not sim.restart_scene(spec.model_copy(), epoch_ns)

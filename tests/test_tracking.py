@@ -456,7 +456,7 @@ class _FakeRig:
 
 
 START_NS = 10_000_000_000
-PREPARE_S = 1.5
+PREPARE_S = 1.52  # the stream starts on a whole camera period (40 ms) of the clock
 STREAM_NS = START_NS + round(PREPARE_S * 1e9)
 
 
@@ -496,11 +496,14 @@ def test_the_rig_source_takes_a_warm_up_frame_before_the_stream() -> None:
     warm = source.warm_up_frame()
     frames = [source.next_frame() for _ in range(2)]
     # Prepared once, for both; the warm-up frame is taken at once, the stream's time set after
-    # it: its first frame is frame 0, due when the warm-up frame has arrived.
+    # it: its first frame is frame 0, due at the first whole camera period of the clock after
+    # the warm-up frame has arrived (10 ms after a whole period: 30 ms later), where frames
+    # rendered ahead are (the simulated room's pre-rendered stream).
     assert rig.prepared == [["left"]]
     assert warm is not None and warm.frame == -1 and warm.t_ns == STREAM_NS + 2_000_000
     assert [f.frame for f in frames if f] == [0, 1] and source.missed == 0
-    assert rig.calls == [(0.0, 0.0), (10.0, 10.0), (20.0, 50.0)]
+    assert rig.calls == [(0.0, 0.0), (10.0, 40.0), (44.0, 80.0)]
+    assert all(f.steps[0].pulse.t_ns % 40_000_000 == 0 for f in frames if f)
 
 
 def test_the_finders_are_warmed_side_by_side_before_the_stream_where_the_eye_should_be(

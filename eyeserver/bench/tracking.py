@@ -15,6 +15,11 @@ drift, a scripted saccade out of tolerance and back, a blink) and live tracking 
 * the blink: the processed frames with the lids half shut or more (the script's truth), how
   many held the beam and were seen as a blink, the processing around it;
 * what the 19 reading clients received (messages per second) and what the silent one lost.
+
+With ``prerendered``, the simulated room renders the tracked unit's frames of the whole script
+before tracking starts (``POST /api/v1/sim/eye/prerender``): the stream then costs the cores
+what real cameras' frames cost the host, nothing, and the figures are the daemon's own. Live
+(the default), the room renders every frame set on the cores the daemon runs on.
 """
 
 from __future__ import annotations
@@ -66,6 +71,8 @@ BLINK_S = 0.3
 TOLERANCE_GAZE_DEG = 2.0
 TOLERANCE_MM = 0.5
 CLIENTS = 20
+PRERENDER_MARGIN_S = 10.0
+"""Script rendered ahead beyond the tracked seconds: the start (workers, warm-up) and stop."""
 
 Progress = Callable[[str], None]
 
@@ -135,9 +142,10 @@ def _percentile(values: list[float], q: float) -> float | None:
 
 def run(seconds: float = 60.0, *, calibration: Path | None = None,
         room_file: Path | None = None, work: Path | None = None, workers: int = 2,
-        progress: Progress = _quiet) -> dict[str, Any]:
-    """Track for ``seconds`` on a daemon on loopback (``workers``: its ``tracking_workers``)
-    and measure; the report (JSON-able)."""
+        prerendered: bool = False, progress: Progress = _quiet) -> dict[str, Any]:
+    """Track for ``seconds`` on a daemon on loopback (``workers``: its ``tracking_workers``;
+    ``prerendered``: the room's frames rendered before tracking, see the module) and measure;
+    the report (JSON-able)."""
     with tempfile.TemporaryDirectory(prefix="eyeserver-bench-tracking-") as scratch:
         base = work or Path(scratch)
         if calibration is None:
@@ -149,13 +157,13 @@ def run(seconds: float = 60.0, *, calibration: Path | None = None,
             env["EYESERVER_ROOM_FILE"] = str(room_file)
         at_start = reference_ms()
         with DaemonProcess(base / "daemon-data", log=base / "daemon.log", env=env) as daemon:
-            report = _run(daemon, seconds, calibration, progress)
+            report = _run(daemon, seconds, calibration, prerendered, progress)
         report["reference_fft_ms"] = {"at_start": round(at_start, 2),
                                       "at_end": round(reference_ms(), 2)}
         return report
 
 
-def _run(daemon: DaemonProcess, seconds: float, calibration: Path,
+def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: bool,
          progress: Progress) -> dict[str, Any]:
     client = daemon.client
     progress("importing the calibration, placing the eye, capturing the reference at rest")
@@ -181,6 +189,13 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path,
                           "duration_s": 0.03},
                          {"t_s": blink_s, "kind": "blink", "duration_s": BLINK_S}]}
     _checked(client.put(f"{API}/sim/eye", json={"motion": motion}), "eye motion")
+    ahead = None
+    if prerendered:
+        script_s = lead_s + seconds + PRERENDER_MARGIN_S
+        progress(f"rendering {script_s:g} s of the moving eye ahead (unit left's cameras; "
+                 "about as long again)")
+        ahead = _checked(client.post(f"{API}/sim/eye/prerender", json={
+            "unit": "left", "seconds": script_s}, timeout=3600), "rendering ahead")
     before = time.monotonic_ns()
     eye = _checked(client.get(f"{API}/sim/eye"), "eye truth")
     after = time.monotonic_ns()
@@ -206,9 +221,27 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path,
                                                       silent, readers, progress)
     report = _report(seconds, elapsed_s, started, start_ns, status, reference, readers, silent,
                      saccade_end_ns)
+    report["slowest"] = _slowest(readers[0], epoch_ns)
+    report["script"] = {"saccade_s": saccade_s, "blink_s": blink_s}
     report["blink"] = _blink(readers[0], EyeMotion(MotionSpec.model_validate(motion)), epoch_ns,
                              blink_s)
+    report["prerendered"] = None if ahead is None else {
+        "seconds": ahead["seconds"], "took_s": ahead["took_s"],
+        "megabytes": ahead["megabytes"],
+        "cameras": _checked(client.get(f"{API}/sim/eye/prerender"), "rendered ahead")}
     return report
+
+
+def _slowest(reader: _Reader, epoch_ns: int, count: int = 8) -> list[dict[str, Any]]:
+    """The ``count`` pose messages with the longest latency to the reader, slowest first: when
+    in the script (``script_s``; the saccade and the blink are at known times), the latency,
+    the frame's delivery and processing, what was seen of the eye."""
+    arrived = [(a - m["t_ns"], m) for a, m in reader.messages if m.get("type") == "pose"]
+    arrived.sort(key=lambda item: item[0], reverse=True)
+    return [{"frame": m["frame"], "script_s": round((m["t_ns"] - epoch_ns) / 1e9, 2),
+             "latency_ms": round(latency / 1e6, 1), "delivery_ms": m.get("delivery_ms"),
+             "processing_ms": m["processing_ms"], "eye": m["eye"]}
+            for latency, m in arrived[:count]]
 
 
 def _blink(reader: _Reader, motion: EyeMotion, epoch_ns: int, blink_s: float
@@ -369,8 +402,11 @@ def format_text(report: dict[str, Any]) -> str:
     f, lat, reaction, clients = (report["frames"], report["latency_ms"],
                                  report["beam_hold_reaction"], report["clients"])
     share = f["processed_share"]
+    ahead = report.get("prerendered")
+    room = ("the simulated room rendered ahead" if ahead else
+            "the simulated room, rendered live on the same cores")
     lines = [
-        f"live tracking, {report['elapsed_s']} s on the simulated room (unit "
+        f"live tracking, {report['elapsed_s']} s on {room} (unit "
         f"{report['unit']}, cameras at {report['rate_hz']:g} Hz): {report.get('stream_s')} s "
         f"of camera periods, the first pose {_fmt(report.get('first_pose_after_start_s'))} s "
         "after the start (workers started, cameras prepared)",
@@ -414,6 +450,19 @@ def format_text(report: dict[str, Any]) -> str:
             f"with the lids half shut or more, {blink['held']} held the beam, "
             f"{blink['seen_as_blink']} seen as a blink, {blink['with_pose']} with a pose; "
             f"processing ≤ {_fmt(blink['processing_ms_max_around'])} ms around it")
+    slowest = report.get("slowest")
+    if slowest:
+        lines.append("  slowest frames (latency ms at script time s, eye): " + ", ".join(
+            f"{m['latency_ms']:.0f} at {m['script_s']:.2f} ({m['eye']})" for m in slowest)
+            + f"; saccade at {report['script']['saccade_s']:g} s, blink at "
+            f"{report['script']['blink_s']:g} s")
+    if ahead:
+        used = sum(c["used"] for c in ahead["cameras"].values())
+        live = sum(c["live"] for c in ahead["cameras"].values())
+        lines.append(
+            f"  rendered ahead: {ahead['seconds']:g} s of the script in {ahead['took_s']:g} s "
+            f"({ahead['megabytes']:g} MB); camera frames taken from it {used}, rendered at "
+            f"once {live} (the warm-up frame's, and any off the stream's times)")
     if clients.get("silent_closed"):
         lines.append(f"  the client that never read was closed: {clients['silent_closed']}")
     reference = report.get("reference_fft_ms")

@@ -113,6 +113,11 @@ def add_parser(subparsers: Subparsers) -> None:
     tracking.add_argument("--workers", type=_positive_int, default=2, metavar="N",
                           help="the daemon's tracking worker processes (setting "
                           "tracking_workers; default 2)")
+    tracking.add_argument("--prerendered", action="store_true",
+                          help="render the tracked unit's frames of the whole script before "
+                          "tracking (POST /api/v1/sim/eye/prerender), so that the stream costs "
+                          "the cores nothing, as real cameras: the daemon's own latency "
+                          "(default: the room renders each frame live, on the same cores)")
     tracking.set_defaults(handler=_tracking)
 
 
@@ -162,6 +167,7 @@ def _tracking(args: argparse.Namespace) -> int:
     from eyeserver.bench import tracking
 
     report = tracking.run(args.seconds, calibration=args.calibration, room_file=args.room,
-                          workers=args.workers, progress=_progress)
+                          workers=args.workers, prerendered=args.prerendered,
+                          progress=_progress)
     print(json.dumps(report, indent=1) if args.json else tracking.format_text(report))
     return 0

@@ -14,7 +14,10 @@ would mix them. Unplugging a device is allowed at any time: that is the fault be
 from __future__ import annotations
 
 import logging
+import math
+import time
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Final
 
 from pydantic import ValidationError
@@ -27,7 +30,7 @@ from eyeserver.hardware.sim.stage import SIM_STAGE_TRAVEL_MM
 from eyeserver.hardware.sim.truth import room_truth
 from eyeserver.service.core import Service
 
-__all__ = ["STAGE_TRAVEL_MM", "SimRoomControl", "Vec3"]
+__all__ = ["PRERENDER_MAX_S", "STAGE_TRAVEL_MM", "SimRoomControl", "Vec3"]
 
 Vec3 = tuple[float, float, float]
 
@@ -36,6 +39,10 @@ STAGE_TRAVEL_MM: Final = SIM_STAGE_TRAVEL_MM
 
 It covers the phase-to-height calibration's −10…+25 mm (DESIGN §5) with 5 mm to spare each way.
 """
+
+PRERENDER_MAX_S: Final = 120.0
+"""Longest script a unit's cameras render ahead (:meth:`SimRoomControl.prerender_eye`): 25
+frame sets a second of two 640 × 512 8-bit images keep ≈ 16 MB a second in memory."""
 
 _log = logging.getLogger(__name__)
 
@@ -147,6 +154,80 @@ class SimRoomControl:
             raise ValueError("; ".join(f"{'.'.join(str(p) for p in e['loc']) or 'eye'}: "
                                        f"{e['msg']}" for e in exc.errors())) from None
         return self.place(spec, actor=actor)
+
+    def prerender_eye(self, unit_id: str, seconds: float, *, actor: str | None = None,
+                      ) -> dict[str, Any]:
+        """Render the moving eye's next ``seconds`` ahead for live tracking with ``unit_id``,
+        then restart its script: what the unit's cameras will see at the camera rate
+        (:data:`~eyeserver.service.tracking.CAMERA_RATE_HZ`), lit by the unit's projector as
+        it is set now, rendered beforehand (one thread per camera; a few seconds of work per
+        second of script) so that a stream of them costs the host's cores nothing, as real
+        cameras' frames do. The script restarts at the last whole camera period of the room's
+        clock (live tracking's frames fall on whole periods:
+        :class:`~eyeserver.service.tracking.RigFrameSource`). Frames at other times, or past
+        the end, render as usual. Any scene change forgets them.
+
+        Returns ``unit``, ``cameras``, ``seconds``, ``rate_hz``, ``frames`` (per camera),
+        ``megabytes`` (kept in memory) and ``took_s``.
+
+        Raises
+        ------
+        KeyError
+            The rig has no unit ``unit_id``.
+        ValueError
+            ``seconds`` is not within 0…:data:`PRERENDER_MAX_S`, or the scene is not a moving
+            eye.
+        StateConflictError
+            An operation holds the hardware, or the scene changed while it was rendered.
+        """
+        # Imported here: the tracking module imports the service's heavier parts.
+        from eyeserver.service.tracking import CAMERA_RATE_HZ
+
+        if not 0 < seconds <= PRERENDER_MAX_S:
+            raise ValueError(f"seconds must be within 0…{PRERENDER_MAX_S:g}, not {seconds}")
+        unit = self._service.rig.unit(unit_id)
+        spec = self._room.scene
+        if spec.kind != "eye" or not spec.moving:
+            raise ValueError("the scene is not a moving eye (PUT /api/v1/sim/eye with a motion "
+                             "places one): nothing to render ahead")
+        cameras = [c for c in unit.cameras if isinstance(c, SimCamera)]
+        with self._service.idle_moment("render the eye ahead"):
+            pass  # not while an operation streams; the rendering itself holds nothing
+        started = time.monotonic()
+        _log.info("rendering the simulated eye ahead", extra={
+            "unit": unit_id, "seconds": seconds, "actor": actor})
+
+        def render(camera: SimCamera) -> object:
+            def progress(done: float) -> None:
+                _log.info("rendering ahead", extra={"camera_id": camera.id,
+                                                    "done_percent": round(100 * done)})
+            return camera.prerender(seconds, CAMERA_RATE_HZ, (unit.projector.id,), progress)
+
+        with ThreadPoolExecutor(max(1, len(cameras)), thread_name_prefix="sim-prerender") as pool:
+            rendered = list(pool.map(render, cameras))
+        period_ns = round(1e9 / CAMERA_RATE_HZ)
+        with self._service.idle_moment("render the eye ahead"):
+            # The last whole period: the script's clock reads its true time from now on.
+            epoch_ns = self._room.clock.now_ns() // period_ns * period_ns
+            if any(s is not spec for s in rendered) or not self._room.restart_scene(spec,
+                                                                                   epoch_ns):
+                raise StateConflictError("the simulated scene changed while it was rendered "
+                                         "ahead; render it again")
+        frames = math.ceil(seconds * CAMERA_RATE_HZ)
+        megabytes = sum(frames * c.width * c.height * (1 if c.bit_depth == 8 else 2)
+                        for c in cameras) / 1e6
+        took_s = time.monotonic() - started
+        _log.info("simulated eye rendered ahead; its script restarts now", extra={
+            "unit": unit_id, "frames": frames, "megabytes": round(megabytes), "took_s":
+            round(took_s, 1)})
+        return {"unit": unit_id, "cameras": [c.id for c in cameras], "seconds": seconds,
+                "rate_hz": CAMERA_RATE_HZ, "frames": frames, "megabytes": round(megabytes, 1),
+                "took_s": round(took_s, 1)}
+
+    def prerendered(self) -> dict[str, dict[str, int]]:
+        """Per camera with frames of the current scene rendered ahead: ``left``, ``used``
+        and ``live`` (frames that found none for their time and settings)."""
+        return self._room.prerendered()
 
     def eye_truth(self, t_s: float | None = None) -> dict[str, Any]:
         """The eye scene and the eye's true pose at clock time ``t_s`` (default: now):

@@ -321,9 +321,12 @@ class RigFrameSource:
     Frame ``n`` is due at ``start + n / rate_hz``: its pulse is scheduled for that moment as
     soon as the last frame set has arrived (:meth:`~eyeserver.hardware.rig.Rig.acquire` with
     ``at_ns``), so the frames come at a steady rate with exact times, and the simulated room
-    renders each before it is due, as a camera's frame costs the host nothing. The cameras are
-    prepared for the stream (:meth:`~eyeserver.hardware.rig.Rig.prepare_stream`) before the
-    first frame's time is set. An acquisition
+    renders each before it is due, as a camera's frame costs the host nothing. ``start`` is
+    the first whole period of the clock (a multiple of ``1 / rate_hz`` since its zero) after
+    the cameras were prepared for the stream
+    (:meth:`~eyeserver.hardware.rig.Rig.prepare_stream`): the frames' times are known
+    beforehand, where a simulated room rendered ahead has its frames
+    (:meth:`~eyeserver.service.simroom.SimRoomControl.prerender_eye`). An acquisition
     that overruns its period makes the frames whose time has passed *missed* (counted in
     :attr:`missed`), so the frame numbers keep counting camera periods.
     """
@@ -365,7 +368,7 @@ class RigFrameSource:
         clock = self._clock
         if self._start_ns is None:
             self._prepare()
-            self._start_ns = clock.now_ns()
+            self._start_ns = -(-clock.now_ns() // self._period_ns) * self._period_ns
         due_ns = self._start_ns + self._next * self._period_ns
         now = clock.now_ns()
         if now > due_ns + self._period_ns // 2:  # late by more than half a period: missed

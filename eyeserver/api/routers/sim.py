@@ -23,7 +23,7 @@ from eyeserver.api.deps import ServiceDep
 from eyeserver.api.schemas import ErrorResponse
 from eyeserver.hardware.sim.motion import MotionSpec
 from eyeserver.hardware.sim.scenes import SceneSpec
-from eyeserver.service.simroom import STAGE_TRAVEL_MM, SimRoomControl, Vec3
+from eyeserver.service.simroom import PRERENDER_MAX_S, STAGE_TRAVEL_MM, SimRoomControl, Vec3
 
 __all__ = ["NO_SIM_ROOM", "router"]
 
@@ -180,6 +180,61 @@ async def put_eye(request: SimEyeRequest, room: SimRoomDep, caller: OperatorDep,
         return room.eye_truth()
 
     return SimEyeResponse.model_validate(await run_in_threadpool(place))
+
+
+class PrerenderRequest(BaseModel):
+    """Which unit's cameras render the moving eye ahead, and for how long."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    unit: str = Field(description="The unit that will track (the treated eye's side).",
+                      examples=["left"])
+    seconds: float = Field(gt=0, le=PRERENDER_MAX_S, description="Seconds of the eye's "
+                           "script to render, from its restart (≈ 16 MB of memory a second "
+                           "for two 8-bit cameras).", examples=[65.0])
+
+
+class PrerenderResponse(BaseModel):
+    """What was rendered ahead; the eye's script restarted when it was done."""
+
+    unit: str
+    cameras: list[str]
+    seconds: float
+    rate_hz: float = Field(description="Frames a second, at whole camera periods of the clock.")
+    frames: int = Field(description="Frames rendered per camera.")
+    megabytes: float = Field(description="Memory the frames hold until they are used.")
+    took_s: float = Field(description="How long the rendering took.")
+
+
+@router.post("/eye/prerender", summary="Render the moving eye ahead for live tracking",
+             responses={**_BUSY, 422: {"model": ErrorResponse, "description": "No such unit, "
+                                       "or the scene is not a moving eye."}})
+async def post_prerender(request: PrerenderRequest, room: SimRoomDep, caller: OperatorDep,
+                         ) -> PrerenderResponse:
+    """Render what the unit's cameras will see of the moving eye (PUT /sim/eye with a motion)
+    over its next ``seconds``, at the camera rate, before answering (a few seconds of work
+    per second of script; progress in the daemon's log), then restart the eye's script. Live
+    tracking with that unit then takes these frames instead of rendering each on the cores it
+    runs on, as real cameras' frames cost the host nothing: it measures what the daemon
+    itself adds. Frames at other times or settings, or after the end, render as usual; any
+    scene change forgets them. 409 while the hardware is busy."""
+    def render() -> dict[str, Any]:
+        try:
+            return room.prerender_eye(request.unit, request.seconds, actor=caller.name)
+        except KeyError:
+            raise HTTPException(422, f"the rig has no unit {request.unit!r}") from None
+        except ValueError as exc:
+            raise HTTPException(422, str(exc)) from None
+
+    return PrerenderResponse.model_validate(await run_in_threadpool(render))
+
+
+@router.get("/eye/prerender", summary="What is left of the frames rendered ahead")
+async def get_prerender(room: SimRoomDep) -> dict[str, dict[str, int]]:
+    """Per camera with frames of the current scene rendered ahead: ``left`` (not yet taken),
+    ``used`` (frames that took one) and ``live`` (frames rendered at once: none for their time
+    or settings). Empty when nothing was rendered ahead of this scene."""
+    return room.prerendered()
 
 
 @router.get("/truth", summary="The scene's ground truth")

@@ -24,7 +24,7 @@ import os
 import queue
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Final, Literal, Protocol, TypeVar, get_args
@@ -117,6 +117,15 @@ class RenderSource(Protocol):
     def prepare(self, camera_id: str, projectors: Sequence[str]) -> None:
         """Make what renders of ``camera_id`` lit by ``projectors`` will reuse (caches of the
         scene in front of it), so that the first of them costs no more than the next."""
+        ...
+
+    def prerender(self, camera_id: str, *, seconds: float, rate_hz: float,
+                  projectors: Mapping[str, float], exposure_us: float, gain_db: float,
+                  rng: np.random.Generator, progress: Callable[[float], None] | None = None,
+                  ) -> object:
+        """Render ``camera_id``'s exposures of the moving scene ahead, for the first
+        ``seconds`` of its script at ``rate_hz``
+        (:meth:`eyeserver.hardware.sim.room.SimRoom.prerender`); returns the scene."""
         ...
 
     def render(self, camera_id: str, *, t_s: float, projectors: Mapping[str, float],
@@ -509,6 +518,30 @@ class SimCamera(_SimFaults, Camera):
             if exposure is None:
                 raise DeviceTimeoutError(self.id, f"no triggered frame within {timeout_s} s")
             return self._deliver(exposure)
+
+    def prerender(self, seconds: float, rate_hz: float, projector_ids: Sequence[str],
+                  progress: Callable[[float], None] | None = None) -> object:
+        """Have the room render this camera's exposures of its moving scene ahead (see
+        :meth:`RenderSource.prerender`), as pulses lighting ``projector_ids`` would take them
+        now: the projectors' state, this camera's exposure and gain. The noise comes from a
+        generator of its own (``[room.seed, camera index, 1]``), so a seed reproduces the
+        frames. Returns the scene rendered.
+
+        Raises
+        ------
+        ValueError
+            The scene does not move, or bad ``seconds`` or ``rate_hz``.
+        DeviceDisconnectedError
+            The camera is unplugged.
+        """
+        self._check_connected()
+        room = self._wiring.room
+        lit = self._wiring.lit_projectors(TriggerStep(projectors=tuple(projector_ids),
+                                                      cameras=(self.id,)))
+        rng = np.random.default_rng([int(room.seed), room.camera_ids().index(self.id), 1])
+        return room.prerender(self.id, seconds=seconds, rate_hz=rate_hz, projectors=lit,
+                              exposure_us=self.exposure_us, gain_db=self.gain_db, rng=rng,
+                              progress=progress)
 
     def _prepare_stream(self, projectors: tuple[str, ...]) -> None:
         # The room's first render of a moving scene casts its static part whole (≈ 1 s a

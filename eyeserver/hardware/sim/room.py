@@ -3,12 +3,19 @@
 :class:`SimRoom` is what the simulated drivers render through (``render``) and what tests, benches
 and the simulated-rig API place scenes in (``set_scene``). Ground truth lives in
 :mod:`eyeserver.hardware.sim.truth`, never here on the path the pipeline sees.
+
+A moving scene can be rendered ahead (:meth:`SimRoom.prerender`): a camera's exposures at the
+times a stream will take them, kept until a frame asks for one. Real cameras cost the host no
+CPU; the simulated ones render on the host's cores, beside the pipeline they feed. A stream of
+pre-rendered frames measures what the daemon itself adds (``eyeserver bench tracking
+--prerendered``).
 """
 
 from __future__ import annotations
 
+import math
 import threading
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -17,6 +24,43 @@ from eyeserver.core.clock import Clock, MonotonicClock
 from eyeserver.hardware.sim.config import RoomConfig, load_room
 from eyeserver.hardware.sim.render import Components, Renderer
 from eyeserver.hardware.sim.scenes import SceneSpec, build_scene
+
+Image = npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
+_RecordKey = tuple[int, tuple[tuple[str, float], ...], float, float]
+
+
+def _record_key(offset_us: int, projectors: Mapping[str, float], exposure_us: float,
+                gain_db: float) -> _RecordKey:
+    """What a pre-rendered exposure must match: its scene time (µs), lit projectors and
+    intensities, exposure and gain."""
+    return (offset_us, tuple(sorted(projectors.items())), float(exposure_us), float(gain_db))
+
+
+class _Recording:
+    """A camera's exposures of one scene rendered ahead, in time order, and what became of the
+    frames asked for since."""
+
+    def __init__(self, spec: SceneSpec, room_lights: bool) -> None:
+        self.spec = spec
+        self.room_lights = room_lights
+        self.frames: dict[_RecordKey, Image] = {}
+        self.used = 0
+        self.live = 0
+
+    def take(self, key: _RecordKey) -> Image | None:
+        """The exposure for ``key``, forgetting it and any earlier one (a stream never goes
+        back); None when there is none."""
+        image = self.frames.pop(key, None)
+        while self.frames:
+            first = next(iter(self.frames))
+            if first[0] >= key[0]:
+                break
+            del self.frames[first]
+        if image is None:
+            self.live += 1
+        else:
+            self.used += 1
+        return image
 
 
 class SimRoom:
@@ -31,6 +75,7 @@ class SimRoom:
         self._room_lights = False
         self._scene_epoch_ns = 0
         self._lock = threading.Lock()
+        self._recordings: dict[str, _Recording] = {}
 
     # --- the rig as the drivers see it -----------------------------------------------------
 
@@ -63,6 +108,7 @@ class SimRoom:
         with self._lock:
             self._scene = spec
             self._scene_epoch_ns = self.clock.now_ns()
+            self._recordings.clear()
 
     def scene_time(self, t_s: float) -> float:
         """Seconds since the scene was set, for a clock time ``t_s``."""
@@ -88,6 +134,10 @@ class SimRoom:
         with self._lock:
             spec = self._scene
             scene_t = self.scene_time(t_s)
+        return self._components(camera_id, spec, scene_t, projectors)
+
+    def _components(self, camera_id: str, spec: SceneSpec, scene_t: float,
+                    projectors: Iterable[str]) -> Components:
         if camera_id not in self.renderer.cameras:
             raise KeyError(f"no camera {camera_id!r} in this room")
         render = self.config.render
@@ -110,18 +160,96 @@ class SimRoom:
         self.components(camera_id, self.clock.now_ns() / 1e9, projectors)
 
     def render(self, camera_id: str, *, t_s: float, projectors: Mapping[str, float],
-               exposure_us: float, gain_db: float, rng: np.random.Generator,
-               ) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
+               exposure_us: float, gain_db: float, rng: np.random.Generator) -> Image:
         """One noisy exposure of ``camera_id`` at clock time ``t_s`` (seconds).
 
-        ``projectors`` maps each lit projector to its relative intensity (0…1).
+        ``projectors`` maps each lit projector to its relative intensity (0…1). An exposure
+        rendered ahead for this moment and these settings (:meth:`prerender`) is taken instead
+        (``rng`` is then not drawn from).
         """
         unknown = set(projectors) - set(self.renderer.projectors)
         if unknown:
             raise KeyError(f"no projector {sorted(unknown)} in this room")
-        components = self.components(camera_id, t_s, [p for p, i in projectors.items() if i > 0])
+        with self._lock:
+            spec, epoch_ns = self._scene, self._scene_epoch_ns
+            recording = self._recordings.get(camera_id)
+            if (recording is not None and recording.spec is spec
+                    and recording.room_lights == self._room_lights):
+                offset_us = round((t_s * 1e9 - epoch_ns) / 1e3)
+                image = recording.take(_record_key(offset_us, projectors, exposure_us, gain_db))
+                if image is not None:
+                    return image
+        return self._expose(camera_id, spec, max(0.0, t_s - epoch_ns / 1e9), projectors,
+                            exposure_us, gain_db, rng)
+
+    def _expose(self, camera_id: str, spec: SceneSpec, scene_t: float,
+                projectors: Mapping[str, float], exposure_us: float, gain_db: float,
+                rng: np.random.Generator) -> Image:
+        components = self._components(camera_id, spec, scene_t,
+                                      [p for p, i in projectors.items() if i > 0])
         lighting = self.config.lighting
         ambient = lighting.room_light_dn if self._room_lights else lighting.ambient_dn
         return self.renderer.expose(camera_id, components, ambient_dn=ambient,
                                     projectors=projectors, exposure_us=exposure_us,
                                     gain_db=gain_db, rng=rng)
+
+    # --- rendering ahead -------------------------------------------------------------------
+
+    def prerender(self, camera_id: str, *, seconds: float, rate_hz: float,
+                  projectors: Mapping[str, float], exposure_us: float, gain_db: float,
+                  rng: np.random.Generator, progress: Callable[[float], None] | None = None,
+                  ) -> SceneSpec:
+        """Render ``camera_id``'s exposures of the scene in front of it now, ahead, for the
+        first ``seconds`` of its script: one at every ``1 / rate_hz`` from the script's start
+        (pulses at whole periods after it, mid-exposure half ``exposure_us`` later), with these
+        settings and noise from ``rng``. They replace the camera's earlier ones and are kept
+        until a frame of the same scene asks for one (:meth:`render`) or the scene changes.
+
+        Frames are taken by scene time: :meth:`restart_scene` restarts the script at a moment
+        when the stream's pulses will fall at those times. ``progress`` gets the share done
+        (0–1) every few percent. Returns the scene rendered. A moving scene only: a still one
+        is rendered once and reused anyway.
+
+        Raises
+        ------
+        ValueError
+            The scene does not move, or ``seconds`` or ``rate_hz`` is not positive.
+        """
+        if not (seconds > 0 and rate_hz > 0):
+            raise ValueError(f"seconds and rate_hz must be positive, not {seconds}, {rate_hz}")
+        with self._lock:
+            spec = self._scene
+        if not spec.moving:
+            raise ValueError(f"the scene ({spec.kind}) does not move: nothing to render ahead")
+        period_us = round(1e6 / rate_hz)
+        count = math.ceil(seconds * rate_hz)
+        recording = _Recording(spec, self._room_lights)
+        for k in range(count):
+            offset_us = k * period_us + round(exposure_us / 2)
+            recording.frames[_record_key(offset_us, projectors, exposure_us, gain_db)] = \
+                self._expose(camera_id, spec, offset_us / 1e6, projectors, exposure_us,
+                             gain_db, rng)
+            if progress is not None and (k + 1) % max(1, count // 20) == 0:
+                progress((k + 1) / count)
+        with self._lock:
+            if self._scene is spec:
+                self._recordings[camera_id] = recording
+        return spec
+
+    def restart_scene(self, spec: SceneSpec, epoch_ns: int) -> bool:
+        """Restart ``spec``'s script at clock time ``epoch_ns``, keeping what was rendered
+        ahead of it; False (nothing changed) when the scene in front of the cameras is no
+        longer ``spec``."""
+        with self._lock:
+            if self._scene is not spec:
+                return False
+            self._scene_epoch_ns = int(epoch_ns)
+            return True
+
+    def prerendered(self) -> dict[str, dict[str, int]]:
+        """Per camera with exposures rendered ahead of the current scene: ``left`` (not yet
+        asked for), ``used`` (frames that took one) and ``live`` (frames rendered at once,
+        none matching)."""
+        with self._lock:
+            return {camera_id: {"left": len(r.frames), "used": r.used, "live": r.live}
+                    for camera_id, r in self._recordings.items() if r.spec is self._scene}
