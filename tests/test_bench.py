@@ -248,3 +248,28 @@ def test_the_replay_bench_counts_every_frame_it_hands_the_tracking_worker(
     assert latency["p99"] >= latency["median"] > 0
     assert report["first_frame_latency_ms"] > 0
     assert "of 50 frames processed" in tracking.format_replayed(report)
+
+
+def test_the_speed_report_shows_live_tracking_rendered_live_and_ahead() -> None:
+    """The two runs of ``eyeserver bench tracking`` land in the speed report and its page,
+    each with its own figures (made-up reports: the runs themselves are tested above)."""
+    def run(median: float, p99: float) -> dict[str, Any]:
+        return {"seconds": 60, "slowest": [{"latency_ms": p99 + 20, "script_s": 33.09}],
+                "reference_fft_ms": {"at_start": 0.61, "at_end": 0.64},
+                "latency_ms": {"end_to_end_median": median, "end_to_end_p99": p99,
+                               "delivery_median": 8.0, "delivery_p99": 9.0,
+                               "processing_median": 20.0, "processing_p99": 28.0},
+                "frames": {"processed": 1494, "camera_periods": 1494, "dropped": 0,
+                           "missed": 0, "processed_share": 1.0}}
+
+    figures = speed.tracking_figures(run(38.0, 90.0), run(30.0, 39.0))
+    assert (figures["frame_to_pose_p99_ms"], figures["prerendered_frame_to_pose_p99_ms"]) \
+        == (90.0, 39.0)
+    assert figures["frame_to_pose_goal_p99_ms"] == 40.0
+    assert "rendered before tracking" in figures["tracking_prerendered"]["what"]
+    page = render_speed({"pending": {}, **figures})
+    assert "38 ms median, 90 ms p99" in page and "30 ms median, 39 ms p99" in page
+    assert "110 at 33.09" in page and "0.61 ms at its start" in page
+    text = "\n".join(speed.tracking_lines(figures))
+    assert "the simulated room rendered ahead): frame → pose message 30 ms median" in text
+    assert speed.tracking_figures(None, None) == {}

@@ -128,32 +128,8 @@ def render_speed(speed: dict[str, Any]) -> str:
         lines.append("")
     for key, why in speed.get("pending", {}).items():
         lines.append(f"- Pending `{key}`: {why}")
-    live = speed.get("tracking")
-    if live:
-        frames = live["frames"]
-        lines += ["", f"Live tracking ({live['seconds']} s at 25 Hz; {live['what']}): frame → "
-                  f"pose {_value(speed.get('frame_to_pose_median_ms'), 0)} ms median, "
-                  f"{_value(speed.get('frame_to_pose_p99_ms'), 0)} ms p99 (goal p99 "
-                  f"{_value(speed.get('frame_to_pose_goal_p99_ms'), 0)} ms); "
-                  f"{frames['processed']} of {frames['camera_periods']} camera frames "
-                  f"processed (goal 99 %), {frames['dropped']} dropped and {frames['missed']} "
-                  "missed, all counted."]
-        latency = live.get("latency_ms", {})
-        if latency.get("delivery_median") is not None:
-            lines[-1] += (f" Of that latency, the frames reached the daemon "
-                          f"{_value(latency['delivery_median'], 0)} ms (median; p99 "
-                          f"{_value(latency.get('delivery_p99'), 0)} ms) after mid-exposure, "
-                          f"and their processing took {_value(latency['processing_median'], 0)} "
-                          f"ms (p99 {_value(latency.get('processing_p99'), 0)} ms); the rest is "
-                          "the wait for a free worker and the sending.")
-        reference = speed.get("machine", {}).get("reference_fft_ms_at_start")
-        if reference is not None:
-            lines[-1] += (f" The machine's speed during the run: one 640 × 512 FFT in "
-                          f"{_value(reference, 2)} ms at its start, "
-                          f"{_value(speed['machine'].get('reference_fft_ms_at_end'), 2)} ms at "
-                          "its end (on this shared virtual machine the same code's figures "
-                          "moved by up to 2× within an hour: compare runs only at similar "
-                          "values).")
+    for key, prefix in (("tracking", ""), ("tracking_prerendered", "prerendered_")):
+        lines += _tracking_paragraph(speed, key, prefix)
     alone = speed.get("tracking_replay")
     if alone:
         from eyeserver.bench.tracking import format_replayed
@@ -164,6 +140,42 @@ def render_speed(speed: dict[str, Any]) -> str:
                   "same cores)."]
     lines += ["", f"The speed run took {speed.get('duration_s')} s.", ""]
     return "\n".join(lines)
+
+
+def _tracking_paragraph(speed: dict[str, Any], key: str, prefix: str) -> list[str]:
+    """One live-tracking run of the speed report (``key``: ``tracking`` or
+    ``tracking_prerendered``, whose figures start with ``prefix``)."""
+    live = speed.get(key)
+    if not live:
+        return []
+    frames = live["frames"]
+    text = (f"Live tracking ({live['seconds']} s at 25 Hz; {live['what']}): frame → pose "
+            f"{_value(speed.get(f'{prefix}frame_to_pose_median_ms'), 0)} ms median, "
+            f"{_value(speed.get(f'{prefix}frame_to_pose_p99_ms'), 0)} ms p99 (goal p99 "
+            f"{_value(speed.get('frame_to_pose_goal_p99_ms'), 0)} ms); "
+            f"{frames['processed']} of {frames['camera_periods']} camera frames processed "
+            f"(goal 99 %), {frames['dropped']} dropped and {frames['missed']} missed, all "
+            "counted.")
+    latency = live.get("latency_ms", {})
+    if latency.get("delivery_median") is not None:
+        text += (f" Of that latency, the frames reached the daemon "
+                 f"{_value(latency['delivery_median'], 0)} ms (median; p99 "
+                 f"{_value(latency.get('delivery_p99'), 0)} ms) after mid-exposure, and their "
+                 f"processing took {_value(latency['processing_median'], 0)} ms (p99 "
+                 f"{_value(latency.get('processing_p99'), 0)} ms); the rest is the wait for a "
+                 "free worker and the sending.")
+    slowest = live.get("slowest")
+    if slowest:
+        text += (" Slowest frames (ms at script time, s): " + ", ".join(
+            f"{m['latency_ms']:.0f} at {m['script_s']:.2f}" for m in slowest[:5]) + ".")
+    reference = live.get("reference_fft_ms")
+    if reference:
+        text += (f" The machine's speed during the run: one 640 × 512 FFT in "
+                 f"{_value(reference['at_start'], 2)} ms at its start, "
+                 f"{_value(reference['at_end'], 2)} ms at its end (on this shared virtual "
+                 "machine the same code's figures moved by up to 2× within an hour: compare "
+                 "runs only at similar values).")
+    return ["", text]
 
 
 def render_pose(pose: dict[str, Any]) -> list[str]:

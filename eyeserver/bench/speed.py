@@ -798,6 +798,36 @@ def traced_peak_mib(frameset: FrameSet, units: Sequence[UnitImages]) -> float:
 # --- the report -----------------------------------------------------------------------------
 
 
+
+def tracking_figures(live: dict[str, Any] | None, ahead: dict[str, Any] | None
+                     ) -> dict[str, Any]:
+    """The speed report's part for ``eyeserver bench tracking``'s reports, the simulated room
+    rendered ``live`` and rendered ``ahead`` (either None: not run)."""
+    report: dict[str, Any] = {}
+    for key, prefix, run_report, how in (
+            ("tracking", "", live, "the simulated room renders each frame set on the same "
+             "cores"),
+            ("tracking_prerendered", "prerendered_", ahead, "the simulated room's frames "
+             "rendered before tracking (eyeserver bench tracking --prerendered): the cameras "
+             "cost the cores nothing, as real ones")):
+        if run_report is None:
+            continue
+        latency, counted = run_report["latency_ms"], run_report["frames"]
+        report[key] = {
+            "seconds": run_report["seconds"],
+            "what": "eyeserver bench tracking: a daemon on loopback tracks the moving simulated "
+                    f"eye at 25 Hz, {how}; latency from a frame's mid-exposure to its pose "
+                    "message received by a WebSocket client",
+            "latency_ms": latency, "frames": counted, "slowest": run_report["slowest"],
+            "reference_fft_ms": run_report["reference_fft_ms"]}
+        report[f"{prefix}frame_to_pose_median_ms"] = latency["end_to_end_median"]
+        report[f"{prefix}frame_to_pose_p99_ms"] = latency["end_to_end_p99"]
+        report[f"{prefix}tracking_processed_share"] = counted["processed_share"]
+    if report:
+        report["frame_to_pose_goal_p99_ms"] = TRACKING_GOAL_P99_MS
+    return report
+
+
 def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
         calibration: Path | None = None, room_file: Path | None = None,
         api_requests: int = 10, tracking_seconds: int = 60,
@@ -806,8 +836,9 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
     simulated rig; made on the spot when not given). ``room_file`` is the file ``config`` came
     from (None: the default room), for the daemon of the API timings; ``api_requests`` requests
     of each kind are timed through the API (0: none); live tracking runs ``tracking_seconds``
-    through a daemon (:mod:`eyeserver.bench.tracking`, 0: not run) for the frame → pose
-    latency, and its pipeline alone on ``replay_seconds`` of frames rendered beforehand
+    through a daemon twice (:mod:`eyeserver.bench.tracking`, 0: not run) for the frame → pose
+    latency, the simulated room rendered live and rendered ahead, and its pipeline alone on
+    ``replay_seconds`` of frames rendered beforehand
     (:func:`~eyeserver.bench.tracking.replayed` with ``replay_workers`` worker processes, 0:
     not run)."""
     from eyeserver.bench import tracking
@@ -827,12 +858,18 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
         api = None
         if api_requests:
             api = api_latency(calibration, work, api_requests, room_file, progress)
-        live = None
+        live = ahead = None
         if tracking_seconds:
-            progress(f"live tracking for {tracking_seconds} s (frame → pose latency)")
+            progress(f"live tracking for {tracking_seconds} s (frame → pose latency), the room "
+                     "rendered live")
             (work / "tracking").mkdir()
             live = tracking.run(tracking_seconds, calibration=calibration, room_file=room_file,
                                 work=work / "tracking", progress=progress)
+            progress(f"live tracking for {tracking_seconds} s, the room rendered ahead")
+            (work / "tracking-ahead").mkdir()
+            ahead = tracking.run(tracking_seconds, calibration=calibration,
+                                 room_file=room_file, work=work / "tracking-ahead",
+                                 prerendered=True, progress=progress)
         alone = None
         if replay_seconds:
             progress(f"live tracking's pipeline alone, {replay_seconds} s replayed")
@@ -893,18 +930,7 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
         report["sim_render_2cam_ms"] = render["moving_eye_2cam"]["median_ms"]
     if "moving_eye_4cam" in render:
         report["sim_render_4cam_ms"] = render["moving_eye_4cam"]["median_ms"]
-    if live is not None:
-        latency, counted = live["latency_ms"], live["frames"]
-        report["tracking"] = {
-            "seconds": live["seconds"],
-            "what": "eyeserver bench tracking: a daemon on loopback tracks the moving simulated "
-                    "eye at 25 Hz; latency from a frame's mid-exposure to its pose message "
-                    "received by a WebSocket client",
-            "latency_ms": latency, "frames": counted}
-        report["frame_to_pose_median_ms"] = latency["end_to_end_median"]
-        report["frame_to_pose_p99_ms"] = latency["end_to_end_p99"]
-        report["frame_to_pose_goal_p99_ms"] = TRACKING_GOAL_P99_MS
-        report["tracking_processed_share"] = counted["processed_share"]
+    report.update(tracking_figures(live, ahead))
     if alone is not None:
         report["tracking_replay"] = alone
         report["pipeline_frame_to_pose_median_ms"] = alone["latency_ms"]["median"]
@@ -920,6 +946,28 @@ def _ms(value: float) -> str:
 
 def _whole_ms(value: float | None) -> str:
     return "n/a" if value is None else f"{value:.0f} ms"
+
+
+
+def tracking_lines(report: dict[str, Any]) -> list[str]:
+    """:func:`format_text`'s lines for the live-tracking runs of a speed report."""
+    lines: list[str] = []
+    for key, prefix, room in (("tracking", "", "rendered live on the same cores"),
+                              ("tracking_prerendered", "prerendered_", "rendered ahead")):
+        live = report.get(key)
+        if not live:
+            continue
+        share = live["frames"]["processed_share"]
+        lines.append("")
+        lines.append(f"live tracking ({live['seconds']} s at 25 Hz, the simulated room {room}): "
+                     f"frame → pose message "
+                     f"{_whole_ms(report[f'{prefix}frame_to_pose_median_ms'])} median, "
+                     f"{_whole_ms(report[f'{prefix}frame_to_pose_p99_ms'])} p99 (goal p99 "
+                     f"{TRACKING_GOAL_P99_MS:.0f} ms); "
+                     f"{'n/a' if share is None else f'{100 * share:.1f}'} % of the camera "
+                     f"frames processed (goal 99 %), the rest dropped (newest frame wins) "
+                     f"or missed, and counted")
+    return lines
 
 
 def format_text(report: dict[str, Any]) -> str:
@@ -1028,18 +1076,7 @@ def format_text(report: dict[str, Any]) -> str:
         lines.append(f"memory: peak resident set {memory['peak_rss_mib']:.0f} MiB (before the "
                      f"reconstruction timings {memory['peak_rss_before_reconstruction_mib']:.0f}"
                      f" MiB); Python-visible peak of one frame-set: {traced}")
-    live = report.get("tracking")
-    if live:
-        frames = live["frames"]
-        share = frames["processed_share"]
-        lines.append("")
-        lines.append(f"live tracking ({live['seconds']} s at 25 Hz): frame → pose message "
-                     f"{_whole_ms(report['frame_to_pose_median_ms'])} median, "
-                     f"{_whole_ms(report['frame_to_pose_p99_ms'])} p99 (goal p99 "
-                     f"{TRACKING_GOAL_P99_MS:.0f} ms); "
-                     f"{'n/a' if share is None else f'{100 * share:.1f}'} % of the camera "
-                     f"frames processed (goal 99 %), the rest dropped (newest frame wins) "
-                     f"or missed, and counted")
+    lines += tracking_lines(report)
     if report.get("tracking_replay"):
         from eyeserver.bench.tracking import format_replayed
         lines.append(format_replayed(report["tracking_replay"]))
