@@ -193,7 +193,7 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: 
     if prerendered:
         script_s = lead_s + seconds + PRERENDER_MARGIN_S
         progress(f"rendering {script_s:g} s of the moving eye ahead (unit left's cameras; "
-                 "about as long again)")
+                 "≈ 0.3–0.5 s a second of script)")
         ahead = _checked(client.post(f"{API}/sim/eye/prerender", json={
             "unit": "left", "seconds": script_s}, timeout=3600), "rendering ahead")
     before = time.monotonic_ns()
