@@ -798,7 +798,6 @@ def traced_peak_mib(frameset: FrameSet, units: Sequence[UnitImages]) -> float:
 # --- the report -----------------------------------------------------------------------------
 
 
-
 def tracking_figures(live: dict[str, Any] | None, ahead: dict[str, Any] | None
                      ) -> dict[str, Any]:
     """The speed report's part for ``eyeserver bench tracking``'s reports, the simulated room
@@ -946,7 +945,6 @@ def _ms(value: float) -> str:
 
 def _whole_ms(value: float | None) -> str:
     return "n/a" if value is None else f"{value:.0f} ms"
-
 
 
 def tracking_lines(report: dict[str, Any]) -> list[str]:

@@ -212,8 +212,9 @@ class PrerenderResponse(BaseModel):
 async def post_prerender(request: PrerenderRequest, room: SimRoomDep, caller: OperatorDep,
                          ) -> PrerenderResponse:
     """Render what the unit's cameras will see of the moving eye (PUT /sim/eye with a motion)
-    over its next ``seconds``, at the camera rate, before answering (a few seconds of work
-    per second of script; progress in the daemon's log), then restart the eye's script. Live
+    over its next ``seconds``, at the camera rate, before answering (≈ 0.3–0.5 s of work a
+    second of script on a 2-core machine; progress in the daemon's log), then restart the
+    eye's script. Live
     tracking with that unit then takes these frames instead of rendering each on the cores it
     runs on, as real cameras' frames cost the host nothing: it measures what the daemon
     itself adds. Frames at other times or settings, or after the end, render as usual; any
