@@ -71,6 +71,8 @@ BLINK_S = 0.3
 TOLERANCE_GAZE_DEG = 2.0
 TOLERANCE_MM = 0.5
 CLIENTS = 20
+UNIT = "left"
+"""The patient's unit: the one that tracks (and whose frames are rendered ahead)."""
 PRERENDER_MARGIN_S = 10.0
 """Script rendered ahead beyond the tracked seconds: the start (workers, warm-up) and stop."""
 
@@ -171,7 +173,7 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: 
                                     headers={"content-type": "application/zip"}), "import")
     _checked(client.post(f"{API}/calibrations/{imported['id']}/activate"), "activation")
     _checked(client.put(f"{API}/patients/{PATIENT}", json={
-        "eye": "right", "unit": "left", "tolerance_mm": TOLERANCE_MM,
+        "eye": "right", "unit": UNIT, "tolerance_mm": TOLERANCE_MM,
         "tolerance_gaze_deg": TOLERANCE_GAZE_DEG}), "patient")
     _checked(client.put(f"{API}/sim/eye", json={"motion": None, "gaze_deg": [0.0, 0.0]}),
              "still eye")
@@ -192,10 +194,10 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: 
     ahead = None
     if prerendered:
         script_s = lead_s + seconds + PRERENDER_MARGIN_S
-        progress(f"rendering {script_s:g} s of the moving eye ahead (unit left's cameras; "
+        progress(f"rendering {script_s:g} s of the moving eye ahead (unit {UNIT}'s cameras; "
                  "≈ 0.3–0.5 s a second of script)")
         ahead = _checked(client.post(f"{API}/sim/eye/prerender", json={
-            "unit": "left", "seconds": script_s}, timeout=3600), "rendering ahead")
+            "unit": UNIT, "seconds": script_s}, timeout=3600), "rendering ahead")
     before = time.monotonic_ns()
     eye = _checked(client.get(f"{API}/sim/eye"), "eye truth")
     after = time.monotonic_ns()

@@ -160,10 +160,10 @@ class SimRoomControl:
         """Render the moving eye's next ``seconds`` ahead for live tracking with ``unit_id``,
         then restart its script: what the unit's cameras will see at the camera rate
         (:data:`~eyeserver.service.tracking.CAMERA_RATE_HZ`), lit by the unit's projector as
-        it is set now, rendered beforehand (one thread per camera; a few seconds of work per
-        second of script) so that a stream of them costs the host's cores nothing, as real
-        cameras' frames do. The script restarts at the last whole camera period of the room's
-        clock (live tracking's frames fall on whole periods:
+        it is set now, rendered beforehand (one thread per camera; ≈ 0.3–0.5 s of work a
+        second of script on 2 cores) so that a stream of them costs the host's cores nothing,
+        as real cameras' frames do. The script restarts at the last whole camera period of
+        the room's clock (live tracking's frames fall on whole periods:
         :class:`~eyeserver.service.tracking.RigFrameSource`). Frames at other times, or past
         the end, render as usual. Any scene change forgets them.
 
