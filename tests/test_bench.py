@@ -175,8 +175,15 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
     assert report["limbus_centre_error_mm"]["max"] < 0.05
     assert report["centre_error_mm"]["max"] < 0.6
     assert 0.8 < report["shift"]["measured_shift_mm"] < 1.2 and report["shift"]["fails_tolerance"]
+    # How often the errors lie within the poses' stated sds (too few poses here to judge them;
+    # test_limbus checks them on one pose per rig, the bench on 200).
+    calibration = report["uncertainty"]
+    assert 0.0 <= calibration["centre_axes_within_1_sd"] \
+        <= calibration["centre_axes_within_2_sd"] <= 1.0
+    assert 0.0 <= calibration["gaze_within_1_sd"] <= calibration["gaze_within_2_sd"] <= 1.0
     section = "\n".join(render_pose(report))
     assert "## Eye pose" in section and "a fail against the 0.2 mm tolerance" in section
+    assert "stated uncertainties: centre errors within 1 and 2 sd on" in section
 
     # One unit with the patient's radius held, as live tracking measures.
     one = _json(capsys, ["bench", "pose", "--json", "--poses", "2", "--unit", "left",

@@ -118,10 +118,14 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
                 row: dict[str, Any] = {"globe_radius_mm": truth["globe_radius_mm"],
                                        "error": error}
                 if pose is not None:
+                    error_mm = np.asarray(pose.centre_mm) - truth["centre_mm"]
                     row.update({
-                        "centre_error_mm": float(np.linalg.norm(
-                            np.asarray(pose.centre_mm) - truth["centre_mm"])),
+                        "centre_error_mm": float(np.linalg.norm(error_mm)),
+                        "centre_error_in_sd": [float(e / sd) for e, sd in
+                                               zip(np.abs(error_mm), pose.centre_sd_mm,
+                                                   strict=True)],
                         "gaze_error_deg": _angle_deg(pose.gaze, truth["gaze"]),
+                        "gaze_sd_deg": pose.gaze_sd_deg,
                         "radius_error_mm": pose.globe_radius_mm - truth["globe_radius_mm"],
                         "limbus_error_mm": None if pose.limbus_centre_mm is None
                         else float(np.linalg.norm(np.asarray(pose.limbus_centre_mm)
@@ -168,7 +172,27 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
         "surface_mad_mm": _stats([r["surface_mad_mm"] for r in fitted]),
         "sclera_points": _stats([float(r["sclera_points"]) for r in fitted]),
         "fit_ms": _stats([r["fit_ms"] for r in fitted]),
+        "uncertainty": _calibration(fitted),
         "by_globe_radius": by_radius, "shift": shift, "cases": rows}
+
+
+def _calibration(fitted: list[dict[str, Any]]) -> dict[str, Any]:
+    """How often the errors lie within one and two of the pose's stated standard deviations,
+    beside what a normal error would give: per axis of the centre (68 and 95 %), and for the
+    gaze's angle, whose stated sd is that of a tilt in two axes at once (63 and 98 %)."""
+    axes = np.concatenate([r["centre_error_in_sd"] for r in fitted]) if fitted else np.zeros(0)
+    gaze = np.array([r["gaze_error_deg"] / r["gaze_sd_deg"] for r in fitted
+                     if r["gaze_sd_deg"] > 0])
+
+    def within(values: Any, k: float) -> float | None:
+        return float(np.mean(values <= k)) if len(values) else None
+
+    return {"centre_axes_within_1_sd": within(axes, 1.0),
+            "centre_axes_within_2_sd": within(axes, 2.0),
+            "gaze_within_1_sd": within(gaze, 1.0), "gaze_within_2_sd": within(gaze, 2.0),
+            "normal": {"centre_axes_within_1_sd": 0.683, "centre_axes_within_2_sd": 0.954,
+                       "gaze_within_1_sd": 1.0 - math.exp(-1.0),
+                       "gaze_within_2_sd": 1.0 - math.exp(-4.0)}}
 
 
 def format_text(report: dict[str, Any]) -> str:
@@ -191,6 +215,17 @@ def format_text(report: dict[str, Any]) -> str:
            line("sclera points", "sclera_points", "-"),
            line("fit time (ms)", "fit_ms", "-")]
     out.append("gaze from: " + ", ".join(f"{k} {v}" for k, v in report["gaze_sources"].items()))
+    calibration = report.get("uncertainty")
+    if calibration and calibration["centre_axes_within_1_sd"] is not None:
+        normal = calibration["normal"]
+        out.append("stated uncertainties: centre errors within 1 / 2 sd on "
+                   f"{calibration['centre_axes_within_1_sd']:.0%} / "
+                   f"{calibration['centre_axes_within_2_sd']:.0%} of the axes (normal: "
+                   f"{normal['centre_axes_within_1_sd']:.0%} / "
+                   f"{normal['centre_axes_within_2_sd']:.0%}), gaze "
+                   f"{calibration['gaze_within_1_sd']:.0%} / "
+                   f"{calibration['gaze_within_2_sd']:.0%} "
+                   f"({normal['gaze_within_1_sd']:.0%} / {normal['gaze_within_2_sd']:.0%})")
     shift = report["shift"]
     if "measured_shift_mm" in shift:
         verdict = "FAIL (detected)" if shift["fails_tolerance"] else "pass (missed!)"

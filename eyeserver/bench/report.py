@@ -204,6 +204,17 @@ def render_pose(pose: dict[str, Any]) -> list[str]:
                      f"{_value(by['centre_error_mm']['p95'])} p95; gaze "
                      f"{_value(by['gaze_error_deg']['median'])}° median, "
                      f"{_value(by['gaze_error_deg']['p95'])}° p95")
+    calibration = pose.get("uncertainty")
+    if calibration and calibration["centre_axes_within_1_sd"] is not None:
+        normal = calibration["normal"]
+        lines.append("- the poses' stated uncertainties: centre errors within 1 and 2 sd on "
+                     f"{calibration['centre_axes_within_1_sd']:.0%} and "
+                     f"{calibration['centre_axes_within_2_sd']:.0%} of the axes (a normal "
+                     f"error: {normal['centre_axes_within_1_sd']:.0%}, "
+                     f"{normal['centre_axes_within_2_sd']:.0%}), gaze within 1 and 2 sd on "
+                     f"{calibration['gaze_within_1_sd']:.0%} and "
+                     f"{calibration['gaze_within_2_sd']:.0%} of the poses "
+                     f"({normal['gaze_within_1_sd']:.0%}, {normal['gaze_within_2_sd']:.0%})")
     shift = pose["shift"]
     if "measured_shift_mm" in shift:
         lines.append(f"- a {shift['true_shift_mm']} mm shift between two captures measured "
