@@ -3,7 +3,7 @@
 The rendered patient eye is reconstructed and fitted as ``eyeserver pose`` does; truth is read
 only afterwards. Measured on the default rig over 200 random poses (eyeserver bench pose: ±5 mm,
 ±10°, globes 11/12/13 mm): gaze 0.17° median (p95 0.41°), limbus centre 0.013 mm (p95 0.026
-mm), globe centre 0.12 mm (p95 0.29 mm; the radius comes from a narrow band of sclera).
+mm), globe centre 0.077 mm (p95 0.23 mm; the radius comes from a narrow band of sclera).
 """
 
 from __future__ import annotations

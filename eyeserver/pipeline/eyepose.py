@@ -135,6 +135,13 @@ class EyePose:
 
     centre_mm: tuple[float, float, float]
     centre_sd_mm: tuple[float, float, float]
+    """One standard deviation per WCS axis. Like ``limbus_sd_mm`` and ``gaze_sd_deg`` (a tilt's
+    in two axes at once) it counts what no number of points averages away: edges and points
+    within a fringe period share their error, and the sclera's bias from capture to capture
+    (:data:`~eyeserver.pipeline.limbus.SCLERA_BIAS_MM`) moves a fitted globe's depth
+    (``eyeserver bench pose`` reports how often the errors lie within one and two). A pose
+    from the cloud alone (``gaze_source`` other than ``"limbus (images)"``) still counts its
+    points as independent: its sds are too small."""
     globe_radius_mm: float
     limbus_centre_mm: tuple[float, float, float] | None
     limbus_sd_mm: float | None

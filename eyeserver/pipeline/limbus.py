@@ -112,8 +112,8 @@ MIN_SCLERA_POINTS = 30
 SCLERA_BIAS_MM = 0.02
 """The reconstructed sclera's systematic radial error in one capture (mm): the spread, over
 150 rendered poses, of the sclera's mean distance from the true globe (each point weighted as
-it weighs in ``h``). It does not average over the points: it sets the floor of the globe
-depth's uncertainty (:func:`globe_on_limbus`)."""
+it weighs in ``h``; 0.018 mm on 200 others). It does not average over the points: it sets the
+floor of the globe depth's uncertainty (:func:`globe_on_limbus`)."""
 
 SHELL_SEARCH_MM = 2.0
 """How far beyond the first votes for ``h`` the sclera's shell is looked for."""
