@@ -38,7 +38,7 @@ that is spherical: the lids are shells in front of it. So:
    by :mod:`eyeserver.pipeline.limbus` from the rough pose of steps 2–3, it sets the gaze and
    the limbus centre, and the globe is the sphere through it that the sclera lies on
    (:func:`pose_on_limbus`). Measured on 200 rendered poses: gaze 0.17° median (p95 0.41°),
-   limbus centre 0.013 mm, globe centre 0.091 mm median (p95 0.23 mm). Without images, or
+   limbus centre 0.013 mm, globe centre 0.077 mm median (p95 0.23 mm). Without images, or
    where no limbus is found, the cloud-only pose of steps 2–3 stands (``gaze_source`` says
    which; with images that showed no limbus, at a confidence scaled by
    :data:`UNSEEN_LIMBUS`).
