@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from eyeserver.bench.report import uncertainty_coverage
 from eyeserver.bench.simcal import calibrate_room
 from eyeserver.bench.speed import machine
 from eyeserver.errors import EyeserverError
@@ -215,17 +216,9 @@ def format_text(report: dict[str, Any]) -> str:
            line("sclera points", "sclera_points", "-"),
            line("fit time (ms)", "fit_ms", "-")]
     out.append("gaze from: " + ", ".join(f"{k} {v}" for k, v in report["gaze_sources"].items()))
-    calibration = report.get("uncertainty")
-    if calibration and calibration["centre_axes_within_1_sd"] is not None:
-        normal = calibration["normal"]
-        out.append("stated uncertainties: centre errors within 1 / 2 sd on "
-                   f"{calibration['centre_axes_within_1_sd']:.0%} / "
-                   f"{calibration['centre_axes_within_2_sd']:.0%} of the axes (normal: "
-                   f"{normal['centre_axes_within_1_sd']:.0%} / "
-                   f"{normal['centre_axes_within_2_sd']:.0%}), gaze "
-                   f"{calibration['gaze_within_1_sd']:.0%} / "
-                   f"{calibration['gaze_within_2_sd']:.0%} "
-                   f"({normal['gaze_within_1_sd']:.0%} / {normal['gaze_within_2_sd']:.0%})")
+    coverage = uncertainty_coverage(report)
+    if coverage is not None:
+        out.append(coverage)
     shift = report["shift"]
     if "measured_shift_mm" in shift:
         verdict = "FAIL (detected)" if shift["fails_tolerance"] else "pass (missed!)"

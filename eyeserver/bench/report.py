@@ -178,6 +178,22 @@ def _tracking_paragraph(speed: dict[str, Any], key: str, prefix: str) -> list[st
     return ["", text]
 
 
+def uncertainty_coverage(pose: dict[str, Any]) -> str | None:
+    """How often the pose bench's errors lay within its poses' stated sds, beside a normal
+    error's shares, in words (None when nothing was fitted or the report predates it)."""
+    calibration = pose.get("uncertainty")
+    if not calibration or calibration["centre_axes_within_1_sd"] is None:
+        return None
+    normal = calibration["normal"]
+    return ("stated uncertainties: centre errors within 1 and 2 sd on "
+            f"{calibration['centre_axes_within_1_sd']:.0%} and "
+            f"{calibration['centre_axes_within_2_sd']:.0%} of the axes (a normal error: "
+            f"{normal['centre_axes_within_1_sd']:.0%}, {normal['centre_axes_within_2_sd']:.0%}), "
+            f"gaze within 1 and 2 sd on {calibration['gaze_within_1_sd']:.0%} and "
+            f"{calibration['gaze_within_2_sd']:.0%} of the poses "
+            f"({normal['gaze_within_1_sd']:.0%}, {normal['gaze_within_2_sd']:.0%})")
+
+
 def render_pose(pose: dict[str, Any]) -> list[str]:
     """The eye pose section (``eyeserver bench pose``)."""
     def row(name: str, key: str, goal: str) -> str:
@@ -204,17 +220,9 @@ def render_pose(pose: dict[str, Any]) -> list[str]:
                      f"{_value(by['centre_error_mm']['p95'])} p95; gaze "
                      f"{_value(by['gaze_error_deg']['median'])}° median, "
                      f"{_value(by['gaze_error_deg']['p95'])}° p95")
-    calibration = pose.get("uncertainty")
-    if calibration and calibration["centre_axes_within_1_sd"] is not None:
-        normal = calibration["normal"]
-        lines.append("- the poses' stated uncertainties: centre errors within 1 and 2 sd on "
-                     f"{calibration['centre_axes_within_1_sd']:.0%} and "
-                     f"{calibration['centre_axes_within_2_sd']:.0%} of the axes (a normal "
-                     f"error: {normal['centre_axes_within_1_sd']:.0%}, "
-                     f"{normal['centre_axes_within_2_sd']:.0%}), gaze within 1 and 2 sd on "
-                     f"{calibration['gaze_within_1_sd']:.0%} and "
-                     f"{calibration['gaze_within_2_sd']:.0%} of the poses "
-                     f"({normal['gaze_within_1_sd']:.0%}, {normal['gaze_within_2_sd']:.0%})")
+    coverage = uncertainty_coverage(pose)
+    if coverage is not None:
+        lines.append(f"- the poses' {coverage}")
     shift = pose["shift"]
     if "measured_shift_mm" in shift:
         lines.append(f"- a {shift['true_shift_mm']} mm shift between two captures measured "
