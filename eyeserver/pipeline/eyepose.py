@@ -68,6 +68,7 @@ from scipy.spatial import cKDTree
 
 from eyeserver.errors import EyeserverError
 from eyeserver.pipeline.limbus import LimbusNotFoundError, LimbusView, find_limbus, globe_on_limbus
+from eyeserver.pipeline.sclera import refit
 
 __all__ = ["CloudLike", "EyeModel", "EyePose", "Gaze", "PoseError", "checked_cloud", "cloud_gaze",
            "fit_eye", "fit_sphere", "pose_from_cloud", "pose_on_limbus"]
@@ -137,9 +138,12 @@ class EyePose:
     centre_sd_mm: tuple[float, float, float]
     """One standard deviation per WCS axis. Like ``limbus_sd_mm`` and ``gaze_sd_deg`` (a tilt's
     in two axes at once) it counts what no number of points averages away: edges and points
-    within a fringe period share their error, and the sclera's bias from capture to capture
-    (:data:`~eyeserver.pipeline.limbus.SCLERA_BIAS_MM`) moves a fitted globe's depth
-    (``eyeserver bench pose`` reports how often the errors lie within one and two). A pose
+    within a fringe period share their error, and the sclera as a whole is trusted only to its
+    systematic error from capture to capture (:data:`~eyeserver.pipeline.sclera.
+    SCLERA_BIAS_MM` for the sclera remeasured in the images,
+    :data:`~eyeserver.pipeline.limbus.SCLERA_BIAS_MM` for the cloud's while tracking), which
+    moves a fitted globe's depth (``eyeserver bench pose`` reports how often the errors lie
+    within one and two). A pose
     from the cloud alone (``gaze_source`` other than ``"limbus (images)"``) still counts its
     points as independent: its sds are too small."""
     globe_radius_mm: float
@@ -822,14 +826,17 @@ def cloud_gaze(points: F64, sclera: F64, centre: F64, radius: float, centre_sd: 
 
 def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, centre: F64,
                    rough_gaze: F64, radius: float, fixed_radius: float | None, started: float,
-                   *, search: bool = True) -> EyePose | None:
+                   *, search: bool = True, remeasure: bool = True) -> EyePose | None:
     """The pose from the limbus found in ``views`` and the sclera of ``points`` that carries
     it (:mod:`eyeserver.pipeline.limbus`), from a rough globe and gaze; None where no limbus
     is found.
 
     ``fixed_radius`` holds the globe's radius (the patient's model, or the last frame's while
     tracking); ``search`` as :func:`~eyeserver.pipeline.limbus.find_limbus`. ``started`` is
-    the fit's start (``time.perf_counter()``) for ``fit_ms``.
+    the fit's start (``time.perf_counter()``) for ``fit_ms``. ``remeasure``: the globe and gaze
+    from the sclera measured again in the images with the limbus
+    (:func:`~eyeserver.pipeline.sclera.refit`; live tracking, whose radius is held, leaves it
+    out for time).
     """
     try:
         limbus = find_limbus(views, centre, rough_gaze, radius, model.limbus_diameter_mm / 2,
@@ -837,23 +844,34 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
         globe = globe_on_limbus(points, limbus, fixed_radius)
     except LimbusNotFoundError:
         return None
-    g = limbus.normal
-    depth = float((limbus.centre - globe.centre) @ g)
-    # Per axis: the limbus centre's spread, the depth's along the gaze, and the tilt's lever
-    # arm across it.
-    lever = depth * math.radians(limbus.gaze_sd_deg)
-    centre_sd = np.sqrt(limbus.centre_sd_mm**2 / 3.0 + (globe.depth_sd_mm * g) ** 2
-                        + lever**2 * (1.0 - g**2))
-    gaze = Gaze(g, limbus.gaze_sd_deg, LIMBUS_FROM_IMAGES, limbus.centre, limbus.centre_sd_mm,
-                limbus.radius)
+    refitted = (refit(views, limbus, globe.centre, globe.radius, globe.sclera, points,
+                      fixed_radius)
+                if remeasure and len(globe.sclera) >= MIN_SCLERA_POINTS else None)
+    if refitted is not None:
+        centre_out, radius_out = refitted.centre, refitted.radius
+        centre_sd = np.sqrt(np.clip(np.diag(refitted.centre_cov), 0.0, None))
+        gaze = Gaze(refitted.gaze, refitted.gaze_sd_deg, LIMBUS_FROM_IMAGES,
+                    refitted.limbus_centre, refitted.limbus_sd_mm, limbus.radius)
+        surface_mad = float(np.median(np.abs(
+            np.linalg.norm(globe.sclera - centre_out, axis=1) - radius_out)))
+    else:
+        g = limbus.normal
+        depth = float((limbus.centre - globe.centre) @ g)
+        # Per axis: the limbus centre's spread, the depth's along the gaze, and the tilt's
+        # lever arm across it.
+        lever = depth * math.radians(limbus.gaze_sd_deg)
+        centre_sd = np.sqrt(limbus.centre_sd_mm**2 / 3.0 + (globe.depth_sd_mm * g) ** 2
+                            + lever**2 * (1.0 - g**2))
+        gaze = Gaze(g, limbus.gaze_sd_deg, LIMBUS_FROM_IMAGES, limbus.centre,
+                    limbus.centre_sd_mm, limbus.radius)
+        centre_out, radius_out, surface_mad = globe.centre, globe.radius, globe.surface_mad_mm
     # The globe's support, not its sclera points: lids taken for the sclera of an eye that
     # shows almost none lie near the sphere in hundreds of points too (measured: 1 pose of 200,
     # 3.9 mm off with confidence 0.64: 43 points of support against 196–1,775 on 24 others;
     # its sclera had been lost to the speckle filter, see reconstruct.MIN_PATCH_PX).
-    confidence = _confidence(globe.support, WELL_SEEN_LIMBUS_POINTS, globe.surface_mad_mm,
-                             gaze)
-    return _pose(globe.centre, centre_sd, globe.radius, gaze, globe.surface_mad_mm,
-                 globe.points, confidence, started)
+    confidence = _confidence(globe.support, WELL_SEEN_LIMBUS_POINTS, surface_mad, gaze)
+    return _pose(centre_out, centre_sd, radius_out, gaze, surface_mad, globe.points, confidence,
+                 started)
 
 
 def pose_from_cloud(centre: F64, centre_sd: F64, radius: float, gaze: Gaze, surface_mad: float,

@@ -308,7 +308,7 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
     if views:
         found = pose_on_limbus(points, views, model, centre,
                                np.asarray(previous.gaze, dtype=np.float64), radius, radius,
-                               started, search=False)
+                               started, search=False, remeasure=False)
         if found is not None:
             return found
         last_gaze = np.asarray(previous.gaze, dtype=np.float64)

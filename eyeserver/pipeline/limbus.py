@@ -43,6 +43,10 @@ strays by 5–13°: the cloud's sclera ends a fringe period outside the limbus, 
    are left out; what remains is a narrow band whose systematic error (≈ 0.02 mm from pose to
    pose, amplified 3–8 times) limits ``h``, and so the centre's depth, to ≈ 0.1–0.2 mm, where
    the limbus centre is good to ≈ 0.02 mm; the depth's stated uncertainty carries it.
+6. **Again.** A pose measurement then measures that sclera again from its own fringes, up to
+   where they end, and fits the globe with the limbus's tilt and centre free within their
+   uncertainties (:mod:`eyeserver.pipeline.sclera`); live tracking, whose radius is held,
+   keeps step 5's globe.
 
 Not modelled: a pupil or iris pattern inside the limbus (rising edges inside the cornea would
 be taken for the limbus; a real eye's pupil edge is weaker than the limbus in near infrared but
@@ -55,7 +59,7 @@ from __future__ import annotations
 import contextlib
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
@@ -180,6 +184,8 @@ class Globe:
     within 0.1 mm of ``h`` when the radius is fitted (the lids' votes spread over millimetres,
     so lids taken for the sclera, where almost no sclera is seen, have little support), the
     sclera points when the radius is held."""
+    sclera: F64 = field(default_factory=lambda: np.empty((0, 3)), repr=False, compare=False)
+    """The cloud's points taken for the sclera (clear of the lids and the limbus)."""
 
 
 def fringe_free(camera: CalibratedCamera, image: npt.ArrayLike,
@@ -824,4 +830,5 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
     return Globe(centre=L - depth * g, radius=math.hypot(depth, r), depth_sd_mm=depth_sd,
                  points=int(sclera.sum()),
                  surface_mad_mm=float(np.median(np.abs(offset[sclera]))),
-                 support=int(sclera.sum()) if fixed_radius is not None else int(near.sum()))
+                 support=int(sclera.sum()) if fixed_radius is not None else int(near.sum()),
+                 sclera=cloud[sclera])
