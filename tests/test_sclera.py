@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -19,8 +20,9 @@ import pytest
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
-from eyeserver.pipeline import sclera
+from eyeserver.pipeline import eyepose, sclera
 from eyeserver.pipeline.demodulate import Carrier, demodulate
+from eyeserver.pipeline.eyepose import EyeModel, fit_eye, radius_bounds
 from eyeserver.pipeline.limbus import Limbus
 from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
 from tests.conftest import ROOMS
@@ -173,3 +175,33 @@ def test_the_remeasured_sclera_lies_on_the_globe_not_on_the_sphere_it_was_measur
         after = float(np.median(np.linalg.norm(again - centre, axis=1) - radius))
         assert abs(before) > 0.02 and abs(after) < 0.01, (view.camera.camera_id, before, after)
     assert remeasured >= 2
+
+
+def test_a_remeasured_globe_of_no_eyes_size_is_not_trusted(
+        calibrated_rooms: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # One unit's sclera with the radius free gave globes of 17.8 and 18.3 mm, 5–7 mm off, with
+    # confidences up to 0.58 (bench pose --unit left): a radius beyond the model's bounds now
+    # fails a verification (confidence below 0.5) whatever else looks good.
+    _, caldir = calibrated_rooms("default")
+    with SimSession.open(load_room(ROOMS["default"]), seed=3) as session:
+        session.record(SceneSpec(kind="eye"), tmp_path / "eye")
+    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye")
+    views = limbus_views(caldir, tmp_path / "eye")
+    model = EyeModel.population()
+    # Everything else that sets the confidence held at 0.9, the radius alone differing.
+    monkeypatch.setattr(eyepose, "_confidence", lambda *args: 0.9)
+    good = fit_eye(cloud, model, views)
+    real_refit = eyepose.refit
+
+    def too_large(*args: Any) -> sclera.GlobeFit | None:
+        fit = real_refit(*args)
+        assert fit is not None
+        return replace(fit, radius=radius_bounds(model)[1] + 0.3)
+
+    monkeypatch.setattr(eyepose, "refit", too_large)
+    bad = fit_eye(cloud, model, views)
+
+    assert good.confidence == pytest.approx(0.9)
+    assert bad.globe_radius_mm > radius_bounds(model)[1]
+    assert bad.confidence == pytest.approx(0.9 * eyepose.IMPLAUSIBLE_RADIUS)
+    assert bad.confidence < 0.5

@@ -37,11 +37,12 @@ that is spherical: the lids are shells in front of it. So:
 4. **The limbus in the images** (when the fit is given the fringe images, ``views``): found
    by :mod:`eyeserver.pipeline.limbus` from the rough pose of steps 2–3, it sets the gaze and
    the limbus centre, and the globe is the sphere through it that the sclera lies on
-   (:func:`pose_on_limbus`). Measured on 200 rendered poses: gaze 0.17° median (p95 0.41°),
-   limbus centre 0.013 mm, globe centre 0.077 mm median (p95 0.23 mm). Without images, or
-   where no limbus is found, the cloud-only pose of steps 2–3 stands (``gaze_source`` says
-   which; with images that showed no limbus, at a confidence scaled by
-   :data:`UNSEEN_LIMBUS`).
+   (:func:`pose_on_limbus`), the sclera measured again from its own fringes and the globe
+   fitted with the limbus (:mod:`eyeserver.pipeline.sclera`). Measured on 200 rendered poses:
+   gaze 0.12° median (p95 0.26°), limbus centre 0.013 mm, globe centre 0.053 mm median (p95
+   0.15 mm). Without images, or where no limbus is found, the cloud-only pose of steps 2–3
+   stands (``gaze_source`` says which; with images that showed no limbus, at a confidence
+   scaled by :data:`UNSEEN_LIMBUS`).
 
 Torsion is invisible to the surface of a sphere with a round limbus (DESIGN §4): reported as None.
 
@@ -58,7 +59,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -71,7 +72,7 @@ from eyeserver.pipeline.limbus import LimbusNotFoundError, LimbusView, find_limb
 from eyeserver.pipeline.sclera import refit
 
 __all__ = ["CloudLike", "EyeModel", "EyePose", "Gaze", "PoseError", "checked_cloud", "cloud_gaze",
-           "fit_eye", "fit_sphere", "pose_from_cloud", "pose_on_limbus"]
+           "fit_eye", "fit_sphere", "pose_from_cloud", "pose_on_limbus", "radius_bounds"]
 
 
 class CloudLike(Protocol):
@@ -202,6 +203,10 @@ WELL_SEEN_POINTS = 300
 WELL_SEEN_LIMBUS_POINTS = 100
 """The same when the limbus comes from the images: the sclera then only sets one number, the
 globe's depth behind the limbus, from the points clear of lids and limbus."""
+
+IMPLAUSIBLE_RADIUS = 0.3
+"""Scales the confidence of a pose whose globe radius lies outside the model's bounds
+(:func:`radius_bounds`): below the 0.5 that fails a verification."""
 
 UNSEEN_LIMBUS = 0.3
 """Scales the confidence of a pose from the cloud alone when the images were there and showed
@@ -679,6 +684,15 @@ def checked_cloud(cloud: CloudLike) -> tuple[F64, F64]:
     return points, weights
 
 
+def radius_bounds(model: EyeModel) -> tuple[float, float]:
+    """The globe radii the model takes for an eye (mm): 0.7–1.45 times the prior radius when
+    the radius is fitted, within 5 % of a held one."""
+    fixed = model.globe_radius_mm
+    if fixed is not None:
+        return 0.95 * fixed, 1.05 * fixed
+    return 0.7 * model.prior_radius_mm, 1.45 * model.prior_radius_mm
+
+
 def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ()) -> EyePose:
     """Fit the eye model to a fused cloud: globe centre and radius, limbus, gaze, confidence.
 
@@ -711,8 +725,7 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
     if len(points) < MIN_SCLERA_POINTS:
         raise PoseError(f"no eye found: the cloud holds {len(points)} points")
     fixed = model.globe_radius_mm
-    prior = model.prior_radius_mm
-    r_bounds = (0.7 * prior, 1.45 * prior) if fixed is None else (0.95 * fixed, 1.05 * fixed)
+    r_bounds = radius_bounds(model)
     candidates, off_plane = _globe_candidates(points, r_bounds, fixed)
     # The face's plane crosses every sphere about the eye in a ring of many points: its points
     # never take part in the globe's fit.
@@ -745,7 +758,7 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
     centre_sd = np.sqrt(np.clip(np.diag(cov)[:3], 0.0, None))
 
     gaze = cloud_gaze(points, sclera, centre, radius, centre_sd, model)
-    plausible = 1.0 if r_bounds[0] <= radius <= r_bounds[1] else 0.3
+    plausible = 1.0 if r_bounds[0] <= radius <= r_bounds[1] else IMPLAUSIBLE_RADIUS
     if views:
         on_limbus = pose_on_limbus(points, views, model, centre, gaze.direction, radius, fixed,
                                    started)
@@ -869,7 +882,14 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     # shows almost none lie near the sphere in hundreds of points too (measured: 1 pose of 200,
     # 3.9 mm off with confidence 0.64: 43 points of support against 196–1,775 on 24 others;
     # its sclera had been lost to the speckle filter, see reconstruct.MIN_PATCH_PX).
-    confidence = _confidence(globe.support, WELL_SEEN_LIMBUS_POINTS, surface_mad, gaze)
+    # How sharp the limbus itself is, not the gaze the sclera sharpened; and a radius beyond the
+    # model's bounds is no eye's (one unit's sclera with the radius free: 5.1 and 6.9 mm off
+    # with radii of 17.8 and 18.3 mm and confidences 0.58 and 0.35; `bench pose --unit left`).
+    sharpness = replace(gaze, sd_deg=max(gaze.sd_deg, limbus.gaze_sd_deg))
+    low, high = radius_bounds(model)
+    plausible = 1.0 if low <= radius_out <= high else IMPLAUSIBLE_RADIUS
+    confidence = plausible * _confidence(globe.support, WELL_SEEN_LIMBUS_POINTS, surface_mad,
+                                         sharpness)
     return _pose(centre_out, centre_sd, radius_out, gaze, surface_mad, globe.points, confidence,
                  started)
 
