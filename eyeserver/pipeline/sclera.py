@@ -98,6 +98,13 @@ ROBUST_MM = 0.05
 PASSES = 2
 """Remeasure-and-fit passes, each about the last pass's globe."""
 
+OUTSIDE_MM = 0.4
+"""Points of the cloud this far outside the sphere are not its sclera: they can hide it."""
+
+IN_FRONT_MM = 0.25
+"""A pixel whose ray meets a point of the cloud this much before the sphere does not see the
+sphere (a lid in front of it)."""
+
 
 def remeasured(views: Sequence[LimbusView], centre: F64, radius: float, sclera: F64,
                cloud: F64 | None = None) -> F64:
@@ -120,25 +127,17 @@ def remeasured(views: Sequence[LimbusView], centre: F64, radius: float, sclera: 
     return np.concatenate(parts) if parts else np.empty((0, 3))
 
 
-OUTSIDE_MM = 0.4
-"""Points of the cloud this far outside the sphere are not its sclera: they can hide it."""
-
-IN_FRONT_MM = 0.25
-"""A pixel whose ray meets a point of the cloud this much before the sphere does not see the
-sphere (a lid in front of it)."""
-
-
 def _camera_points(view: LimbusView, centre: F64, radius: float, tree: cKDTree,
                    occluders: F64) -> F64:
+    """:func:`remeasured` in one camera, in the window about the sclera's projection."""
     cam = view.camera
     height, width = cam.shape
     uv = project(np.asarray(tree.data, dtype=np.float64), cam.K, cam.dist, cam.R, cam.T)
     seen = np.all(np.isfinite(uv), axis=1)
     if seen.sum() < MIN_POINTS:
         return np.empty((0, 3))
-    half = WINDOW_PX
-    x0, y0 = np.floor(uv[seen].min(axis=0)).astype(int) - half
-    x1, y1 = np.ceil(uv[seen].max(axis=0)).astype(int) + half + 1
+    x0, y0 = np.floor(uv[seen].min(axis=0)).astype(int) - WINDOW_PX
+    x1, y1 = np.ceil(uv[seen].max(axis=0)).astype(int) + WINDOW_PX + 1
     x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
     if x1 - x0 < WINDOW_PX or y1 - y0 < WINDOW_PX:
         return np.empty((0, 3))
@@ -324,8 +323,8 @@ def refit(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: floa
           sclera: F64, cloud: F64, fixed_radius: float | None) -> GlobeFit | None:
     """The globe and gaze from the sclera remeasured about the globe ``centre``, ``radius``
     (:func:`~eyeserver.pipeline.limbus.globe_on_limbus`'s, whose ``sclera`` points say where
-    it is seen) and the limbus, in :data:`PASSES` passes; None where too little sclera is
-    remeasured."""
+    it is seen; ``cloud`` what may hide it, see :func:`remeasured`) and the limbus, in
+    :data:`PASSES` passes; None where too little sclera is remeasured."""
     fit = None
     for _ in range(PASSES):
         points = remeasured(views, centre, radius, sclera, cloud)
