@@ -144,9 +144,8 @@ class EyePose:
     SCLERA_BIAS_MM` for the sclera remeasured in the images,
     :data:`~eyeserver.pipeline.limbus.SCLERA_BIAS_MM` for the cloud's while tracking), which
     moves a fitted globe's depth (``eyeserver bench pose`` reports how often the errors lie
-    within one and two). A pose
-    from the cloud alone (``gaze_source`` other than ``"limbus (images)"``) still counts its
-    points as independent: its sds are too small."""
+    within one and two). A pose from the cloud alone (``gaze_source`` other than
+    ``"limbus (images)"``) still counts its points as independent: its sds are too small."""
     globe_radius_mm: float
     limbus_centre_mm: tuple[float, float, float] | None
     limbus_sd_mm: float | None

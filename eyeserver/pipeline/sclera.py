@@ -206,8 +206,9 @@ def _local_offsets(image: F64, psi: F64, mask: npt.NDArray[np.bool_]) -> tuple[F
     over the mask's pixels in the :data:`WINDOW_PX` square about it, and its standard
     deviation from the fit's residual (inf where no fit was made).
 
-    Linear in ``(a, B cos δ, −B sin δ)``: the nine sums of the normal equations are box filters
-    of the masked products (OpenCV), the 3 × 3 systems solved together. ``a`` and ``B`` are
+    Linear in ``(a, B cos δ, −B sin δ)``: the sums of the normal equations (and ``ΣI²`` for the
+    residual) are box filters of the masked products (OpenCV), the 3 × 3 systems solved
+    together. ``a`` and ``B`` are
     held constant in a window: shading that changes the amplitude by 7 % across one reads as
     ≈ 0.013 rad of phase (synthetic fringes). Letting them vary linearly takes that out on
     noise-free fringes, but within less than a fringe period a linear amplitude is nearly a
