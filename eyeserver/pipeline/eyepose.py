@@ -860,6 +860,7 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
                       fixed_radius)
                 if remeasure and len(globe.sclera) >= MIN_SCLERA_POINTS else None)
     if refitted is not None:
+        limbus = refitted.limbus  # found again in the images with the fringe divided out
         centre_out, radius_out = refitted.centre, refitted.radius
         centre_sd = np.sqrt(np.clip(np.diag(refitted.centre_cov), 0.0, None))
         gaze = Gaze(refitted.gaze, refitted.gaze_sd_deg, LIMBUS_FROM_IMAGES,

@@ -72,8 +72,8 @@ from eyeserver.pipeline.demodulate import demodulate
 from eyeserver.pipeline.geometry import project
 from eyeserver.pipeline.reconstruct import CalibratedCamera, Phase
 
-__all__ = ["Globe", "Limbus", "LimbusNotFoundError", "LimbusView", "find_limbus", "fringe_free",
-           "globe_on_limbus"]
+__all__ = ["Globe", "Limbus", "LimbusNotFoundError", "LimbusView", "circle_points", "find_limbus",
+           "fringe_free", "globe_on_limbus", "refined"]
 
 F64 = npt.NDArray[np.float64]
 F32 = npt.NDArray[np.float32]
@@ -663,6 +663,31 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
     if not found:
         raise failure if str(failure) else LimbusNotFoundError("no limbus found")
     return min(found, key=lambda limbus: limbus.residual_px)
+
+
+def refined(views: Sequence[LimbusView], limbus: Limbus) -> Limbus:
+    """The last round of edges and circle (module steps 3 and 4) again, from ``limbus``: for
+    views whose :attr:`~LimbusView.flat` was made with a better fringe removal
+    (:func:`~eyeserver.pipeline.sclera.sharpened`).
+
+    Raises
+    ------
+    LimbusNotFoundError
+        Fewer than two cameras see enough of it, or the edges fit no circle.
+    """
+    images = []
+    for view in views:
+        with contextlib.suppress(LimbusNotFoundError):
+            images.append(_Image(view, _window(view, limbus.centre, limbus.radius)))
+    if len(images) < 2:
+        raise LimbusNotFoundError("fewer than two cameras see the limbus")
+    return _refine(images, limbus.centre, limbus.normal, limbus.radius, REACHES_PX[-1:])
+
+
+def circle_points(limbus: Limbus, angles: F64) -> F64:
+    """Points ``(M, 3)`` of the limbus circle at ``angles`` about its normal."""
+    on, _ = _circles(limbus.centre[None], limbus.normal[None], limbus.radius, angles)
+    return on
 
 
 def _votes(cloud: F64, limbus: Limbus, chosen: npt.NDArray[np.bool_]) -> tuple[F64, F64]:

@@ -53,11 +53,18 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import numpy.typing as npt
+from scipy.ndimage import distance_transform_edt
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
 from eyeserver.pipeline.geometry import project, rays_from_normalised, undistorted_normalised
-from eyeserver.pipeline.limbus import Limbus, LimbusView
+from eyeserver.pipeline.limbus import (
+    Limbus,
+    LimbusNotFoundError,
+    LimbusView,
+    circle_points,
+    refined,
+)
 from eyeserver.pipeline.reconstruct import CalibratedCamera
 
 __all__ = ["GlobeFit", "globe_and_gaze", "refit", "remeasured"]
@@ -111,6 +118,14 @@ IN_FRONT_MM = 0.25
 sphere (a lid in front of it)."""
 
 
+LIMBUS_MARGIN_MM = 0.05
+"""Sclera pixels closer than this to the limbus's plane are not fitted for the illumination
+(the edge's blur)."""
+
+MIN_ILLUMINATION = 0.25
+"""The illumination divided out is at least this share of the sclera's mean."""
+
+
 def remeasured(views: Sequence[LimbusView], centre: F64, radius: float, sclera: F64,
                cloud: F64 | None = None) -> F64:
     """The sclera's points measured again from each camera's fringes, about a sphere.
@@ -123,51 +138,41 @@ def remeasured(views: Sequence[LimbusView], centre: F64, radius: float, sclera: 
     """
     tree = cKDTree(sclera)
     centre = np.asarray(centre, dtype=np.float64)
-    occluders = np.empty((0, 3)) if cloud is None else np.asarray(cloud, dtype=np.float64)
-    # What lies outside the sphere can hide it (the lids, ≈ 1–3 mm outside); the sclera
-    # itself, however far the hypothesis is off, cannot.
-    reach = np.linalg.norm(occluders - centre, axis=1) - radius
-    occluders = occluders[(reach > OUTSIDE_MM) & (reach < 4.0)]
+    occluders = _occluders(cloud, centre, radius)
     parts = [_camera_points(view, centre, radius, tree, occluders) for view in views]
     return np.concatenate(parts) if parts else np.empty((0, 3))
+
+
+def _occluders(cloud: F64 | None, centre: F64, radius: float) -> F64:
+    """The cloud's points that can hide a sphere from a camera: what lies outside it (the lids,
+    ≈ 1–3 mm outside); the sclera itself, however far the hypothesis is off, cannot."""
+    occluders: F64 = np.empty((0, 3)) if cloud is None else np.asarray(cloud, dtype=np.float64)
+    reach = np.linalg.norm(occluders - centre, axis=1) - radius
+    kept: F64 = occluders[(reach > OUTSIDE_MM) & (reach < 4.0)]
+    return kept
 
 
 def _camera_points(view: LimbusView, centre: F64, radius: float, tree: cKDTree,
                    occluders: F64) -> F64:
     """:func:`remeasured` in one camera, in the window about the sclera's projection."""
     cam = view.camera
-    height, width = cam.shape
     uv = project(np.asarray(tree.data, dtype=np.float64), cam.K, cam.dist, cam.R, cam.T)
     seen = np.all(np.isfinite(uv), axis=1)
     if seen.sum() < MIN_POINTS:
         return np.empty((0, 3))
-    x0, y0 = np.floor(uv[seen].min(axis=0)).astype(int) - WINDOW_PX
-    x1, y1 = np.ceil(uv[seen].max(axis=0)).astype(int) + WINDOW_PX + 1
-    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
-    if x1 - x0 < WINDOW_PX or y1 - y0 < WINDOW_PX:
+    window = _window_about(cam, uv[seen], WINDOW_PX)
+    if window is None:
         return np.empty((0, 3))
-    v, u = np.mgrid[y0:y1, x0:x1].astype(np.float64)
-    x, y = undistorted_normalised(u, v, cam.K, cam.dist)
-    rays = rays_from_normalised(x, y, cam.R)
-    unit = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
-    origin = cam.centre
-    # The ray's first meeting with the sphere.
-    oc = origin - centre
-    b = unit @ oc
-    disc = b * b - (oc @ oc - radius * radius)
-    hit = disc > 0
-    t = -b - np.sqrt(np.where(hit, disc, 0.0))
-    hit &= t < _nearest_along_rays(cam, occluders, (x0, y0, x1, y1)) + IN_FRONT_MM
-    on_sphere = origin + t[..., None] * unit
-    near = np.zeros(hit.shape, dtype=bool)
-    if hit.any():
-        distance, _ = tree.query(on_sphere[hit], distance_upper_bound=NEAR_MM)
-        near[hit] = np.isfinite(distance)
+    pixels = _SpherePixels(cam, window, centre, radius, occluders)
+    near = np.zeros(pixels.seen.shape, dtype=bool)
+    if pixels.seen.any():
+        distance, _ = tree.query(pixels.on_sphere[pixels.seen], distance_upper_bound=NEAR_MM)
+        near[pixels.seen] = np.isfinite(distance)
     if near.sum() < MIN_POINTS:
         return np.empty((0, 3))
-    dphi = np.where(near, cam.model.phase(x, y, on_sphere[..., 2]), 0.0)
-    psi = dphi + np.asarray(cam.reference_phase[y0:y1, x0:x1], dtype=np.float64)
-    image = np.asarray(view.image, dtype=np.float64)[y0:y1, x0:x1]
+    dphi = np.where(near, pixels.dphi, 0.0)
+    psi = dphi + pixels.reference
+    image = pixels.crop(view.image)
     mask = near & np.isfinite(dphi)
     offset = np.zeros(mask.shape)
     for _ in range(ROUNDS):
@@ -177,9 +182,112 @@ def _camera_points(view: LimbusView, centre: F64, radius: float, tree: cKDTree,
         mask &= fitted & (np.abs(offset) <= MAX_OFFSET_RAD)
     if mask.sum() < MIN_POINTS:
         return np.empty((0, 3))
-    z = cam.model.height(x[mask], y[mask], dphi[mask] + offset[mask])
-    ray = rays[mask]
+    z = cam.model.height(pixels.x[mask], pixels.y[mask], dphi[mask] + offset[mask])
+    ray = pixels.rays[mask]
+    origin = cam.centre
     return np.asarray(origin + ((z - origin[2]) / ray[:, 2])[:, None] * ray, dtype=np.float64)
+
+
+def _window_about(cam: CalibratedCamera, uv: F64, margin: int
+                  ) -> tuple[int, int, int, int] | None:
+    """The image window ``(x0, y0, x1, y1)`` holding ``uv`` and ``margin`` pixels about them,
+    or None where too little of it lies in the image."""
+    height, width = cam.shape
+    x0, y0 = np.floor(uv.min(axis=0)).astype(int) - margin
+    x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + margin + 1
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    if x1 - x0 < WINDOW_PX or y1 - y0 < WINDOW_PX:
+        return None
+    return int(x0), int(y0), int(x1), int(y1)
+
+
+class _SpherePixels:
+    """Where each pixel of a window ``(x0, y0, x1, y1)`` sees a sphere, and the phase the
+    calibration predicts there."""
+
+    def __init__(self, cam: CalibratedCamera, window: tuple[int, int, int, int], centre: F64,
+                 radius: float, occluders: F64) -> None:
+        self.window = window
+        x0, y0, x1, y1 = window
+        v, u = np.mgrid[y0:y1, x0:x1].astype(np.float64)
+        self.x, self.y = undistorted_normalised(u, v, cam.K, cam.dist)
+        self.rays = rays_from_normalised(self.x, self.y, cam.R)
+        unit = self.rays / np.linalg.norm(self.rays, axis=-1, keepdims=True)
+        # The ray's first meeting with the sphere.
+        oc = cam.centre - centre
+        b = unit @ oc
+        disc = b * b - (oc @ oc - radius * radius)
+        self.hit = disc > 0
+        """The ray meets the sphere."""
+        t = -b - np.sqrt(np.where(self.hit, disc, 0.0))
+        self.seen = self.hit & (t < _nearest_along_rays(cam, occluders, window) + IN_FRONT_MM)
+        """... and nothing of the cloud hides it there."""
+        self.on_sphere = cam.centre + t[..., None] * unit
+        self.dphi = np.where(self.hit, cam.model.phase(self.x, self.y, self.on_sphere[..., 2]),
+                             np.nan)
+        """The phase relative to the reference that the sphere gives (NaN off it)."""
+        self.reference = self.crop(cam.reference_phase)
+
+    def crop(self, image: npt.ArrayLike) -> F64:
+        x0, y0, x1, y1 = self.window
+        return np.asarray(np.asarray(image)[y0:y1, x0:x1], dtype=np.float64)
+
+
+def sharpened(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: float,
+              cloud: F64 | None = None) -> Limbus:
+    """The limbus found again (its last round of edges, :func:`~eyeserver.pipeline.limbus.
+    refined`) in images whose fringe is divided out: in each camera, ``I / (a + p·cos ψ +
+    q·sin ψ)`` with ``ψ`` the phase the globe hypothesis (``centre``, ``radius``) predicts and
+    ``a, p, q`` fitted over :data:`WINDOW_PX` squares of the sclera beyond the
+    limbus (:data:`LIMBUS_MARGIN_MM`), carried to the limbus and the cornea from the nearest
+    fit. ``limbus`` itself where no camera pair gives a circle."""
+    centre = np.asarray(centre, dtype=np.float64)
+    occluders = _occluders(cloud, centre, radius)
+    divided = [LimbusView(view.camera, view.image, flat) if (
+        flat := _illumination_divided(view, limbus, centre, radius, occluders)) is not None
+        else view for view in views]
+    try:
+        return refined(divided, limbus)
+    except LimbusNotFoundError:
+        return limbus
+
+
+def _illumination_divided(view: LimbusView, limbus: Limbus, centre: F64, radius: float,
+                          occluders: F64) -> npt.NDArray[np.float32] | None:
+    """:func:`sharpened`'s image for one camera, in the units of the sclera's mean intensity
+    (None where too little sclera is seen near the limbus)."""
+    cam = view.camera
+    on = circle_points(limbus, np.linspace(0.0, 2 * math.pi, 90, endpoint=False))
+    uv = project(on, cam.K, cam.dist, cam.R, cam.T)
+    if not np.all(np.isfinite(uv)):
+        return None
+    window = _window_about(cam, uv, 2 * WINDOW_PX)
+    if window is None:
+        return None
+    pixels = _SpherePixels(cam, window, centre, radius, occluders)
+    psi = pixels.dphi + pixels.reference
+    along = np.where(pixels.hit, (pixels.on_sphere - limbus.centre) @ limbus.normal, np.inf)
+    sclera = pixels.seen & (along < -LIMBUS_MARGIN_MM) & np.isfinite(psi)
+    if sclera.sum() < WINDOW_PX**2:
+        return None
+    image = pixels.crop(view.image)
+    # Fits are needed only near the limbus: the band of the sphere from a millimetre behind
+    # the sclera's margin to half a millimetre in front of the limbus.
+    near = (along > -LIMBUS_MARGIN_MM - 1.0) & (along < 0.5)
+    fit = _window_fits(image, psi, sclera, WINDOW_PX, near)
+    coefficients = np.zeros((*sclera.shape, 3))
+    coefficients[fit.fitted] = fit.solution
+    # Every pixel takes the nearest fit's background and fringe, at its own phase.
+    _, (rows, cols) = distance_transform_edt(~fit.fitted, return_indices=True)
+    a, p, q = np.moveaxis(coefficients[rows, cols], -1, 0)
+    scale = float(np.median(a[sclera]))
+    if not scale > 0:
+        return None
+    illumination = np.where(np.isfinite(psi), a + p * np.cos(psi) + q * np.sin(psi), a)
+    out = np.array(view.image, dtype=np.float32)
+    x0, y0, x1, y1 = window
+    out[y0:y1, x0:x1] = scale * image / np.maximum(illumination, MIN_ILLUMINATION * scale)
+    return out
 
 
 def _nearest_along_rays(cam: CalibratedCamera, points: F64,
@@ -206,44 +314,70 @@ def _local_offsets(image: F64, psi: F64, mask: npt.NDArray[np.bool_]) -> tuple[F
     over the mask's pixels in the :data:`WINDOW_PX` square about it, and its standard
     deviation from the fit's residual (inf where no fit was made).
 
-    Linear in ``(a, B cos δ, −B sin δ)``: the sums of the normal equations (and ``ΣI²`` for the
-    residual) are box filters of the masked products (OpenCV), the 3 × 3 systems solved
-    together. ``a`` and ``B`` are
-    held constant in a window: shading that changes the amplitude by 7 % across one reads as
+    Linear in ``(a, B cos δ, −B sin δ)`` (:func:`_window_fits`). ``a`` and ``B`` are held
+    constant in a window: shading that changes the amplitude by 7 % across one reads as
     ≈ 0.013 rad of phase (synthetic fringes). Letting them vary linearly takes that out on
     noise-free fringes, but within less than a fringe period a linear amplitude is nearly a
     phase: on 36 rendered poses the globe centre came out 0.26 mm off (median, 15-px windows)
     against 0.056 mm.
     """
-    weight = mask.astype(np.float64)
-    c, s = np.cos(psi), np.sin(psi)
+    fit = _window_fits(image, psi, mask, WINDOW_PX, mask)
+    solution = fit.solution
+    amplitude = np.hypot(solution[:, 1], solution[:, 2])
+    sigma = np.sqrt(fit.residual / np.maximum(fit.count - 3.0, 1.0))
+    delta = np.zeros(mask.shape)
+    delta[fit.fitted] = np.arctan2(-solution[:, 2], solution[:, 1])
+    sd = np.full(mask.shape, np.inf)
+    # The phase's sd from the residual: σ / (B·√(n/2)).
+    sd[fit.fitted] = np.where(fit.well & (amplitude > 0),
+                              sigma / np.maximum(amplitude, 1e-12) / np.sqrt(fit.count / 2.0),
+                              np.inf)
+    return delta, sd
 
-    def box(values: F64) -> F64:
-        return np.asarray(cv2.boxFilter(values * weight, -1, (WINDOW_PX, WINDOW_PX),
-                                        normalize=False, borderType=cv2.BORDER_CONSTANT),
-                          dtype=np.float64)
+
+@dataclass(frozen=True)
+class _WindowFits:
+    fitted: npt.NDArray[np.bool_]
+    """Where a fit was made."""
+    solution: F64
+    """``(a, p, q)`` of ``I = a + p·cos ψ + q·sin ψ`` at each fitted pixel (K, 3); zeros where
+    the system is singular (not ``well``)."""
+    well: npt.NDArray[np.bool_]
+    count: F64
+    """The mask's pixels in each fitted pixel's window."""
+    residual: F64
+    """Their sum of squared residuals."""
+
+
+def _window_fits(image: F64, psi: F64, mask: npt.NDArray[np.bool_], size: int,
+                 where: npt.NDArray[np.bool_]) -> _WindowFits:
+    """``I = a + p·cos ψ + q·sin ψ`` fitted by least squares over the mask's pixels in the
+    ``size`` square about each pixel of ``where`` that has at least :data:`MIN_SHARE` of its
+    window in the mask. The sums of the normal equations (and ``ΣI²`` for the residual) are
+    box filters of the masked products (OpenCV), the 3 × 3 systems solved together."""
+    weight = mask.astype(np.float64)
+    c, s = np.cos(np.where(mask, psi, 0.0)), np.sin(np.where(mask, psi, 0.0))
+    values = np.where(mask, image, 0.0)
+
+    def box(product: F64) -> F64:
+        return np.asarray(cv2.boxFilter(product * weight, -1, (size, size), normalize=False,
+                                        borderType=cv2.BORDER_CONSTANT), dtype=np.float64)
 
     n, sc, ss = box(np.ones_like(c)), box(c), box(s)
     scs = box(c * s)
-    fitted = mask & (n >= MIN_SHARE * WINDOW_PX**2)
+    fitted = where & (n >= MIN_SHARE * size**2)
     normal = np.stack([np.stack([n, sc, ss], axis=-1), np.stack([sc, box(c * c), scs], axis=-1),
                        np.stack([ss, scs, box(s * s)], axis=-1)], axis=-2)[fitted]
-    rhs = np.stack([box(image), box(image * c), box(image * s)], axis=-1)[fitted]
-    well = np.linalg.cond(normal) < 1e8
+    rhs = np.stack([box(values), box(values * c), box(values * s)], axis=-1)[fitted]
+    # Well conditioned (det / trace³ bounds 1 / cond from below; np.linalg.cond's SVDs of the
+    # many 3 × 3 systems cost 20 times as much).
+    well = np.linalg.det(normal) > 1e-10 * np.trace(normal, axis1=-2, axis2=-1) ** 3
     solution = np.zeros_like(rhs)
     solution[well] = np.linalg.solve(normal[well], rhs[well][..., None])[..., 0]
-    amplitude = np.hypot(solution[:, 1], solution[:, 2])
-    # The residual's sum of squares from the normal equations (ΣI² − x·rhs), and the phase's
-    # sd it gives: σ / (B·√(n/2)).
-    count = n[fitted]
-    residual = np.maximum(box(image * image)[fitted] - np.einsum("ij,ij->i", solution, rhs), 0.0)
-    sigma = np.sqrt(residual / np.maximum(count - 3.0, 1.0))
-    delta = np.zeros(mask.shape)
-    delta[fitted] = np.arctan2(-solution[:, 2], solution[:, 1])
-    sd = np.full(mask.shape, np.inf)
-    sd[fitted] = np.where(well & (amplitude > 0),
-                          sigma / np.maximum(amplitude, 1e-12) / np.sqrt(count / 2.0), np.inf)
-    return delta, sd
+    # The residual's sum of squares from the normal equations: ΣI² − x·rhs.
+    residual = np.maximum(box(values * values)[fitted]
+                          - np.einsum("ij,ij->i", solution, rhs), 0.0)
+    return _WindowFits(fitted, solution, well, n[fitted], residual)
 
 
 @dataclass(frozen=True)
@@ -258,6 +392,8 @@ class GlobeFit:
     """3 × 3 covariance of ``centre`` (mm²)."""
     gaze_sd_deg: float
     limbus_sd_mm: float
+    limbus: Limbus
+    """The limbus it was fitted with."""
 
 
 def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: float | None
@@ -322,7 +458,8 @@ def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: floa
                     centre_cov=spread(centre_of),
                     gaze_sd_deg=math.degrees(math.sqrt(float(np.trace(
                         spread(lambda x: unpack(x)[1]))))),
-                    limbus_sd_mm=math.sqrt(float(np.trace(spread(lambda x: unpack(x)[0])))))
+                    limbus_sd_mm=math.sqrt(float(np.trace(spread(lambda x: unpack(x)[0])))),
+                    limbus=limbus)
 
 
 def refit(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: float,
@@ -336,6 +473,7 @@ def refit(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: floa
         points = remeasured(views, centre, radius, sclera, cloud)
         if len(points) < MIN_POINTS:
             return fit
+        limbus = sharpened(views, limbus, centre, radius, cloud)
         depth = math.sqrt(max(radius**2 - limbus.radius**2, 1.0))
         fit = globe_and_gaze(points, limbus, depth, fixed_radius)
         centre, radius = fit.centre, fit.radius
