@@ -44,9 +44,11 @@ strays by 5–13°: the cloud's sclera ends a fringe period outside the limbus, 
    pose, amplified 3–8 times) limits ``h``, and so the centre's depth, to ≈ 0.1–0.2 mm, where
    the limbus centre is good to ≈ 0.02 mm; the depth's stated uncertainty carries it.
 6. **Again.** A pose measurement then measures that sclera again from its own fringes, up to
-   where they end, and fits the globe with the limbus's tilt and centre free within their
-   uncertainties (:mod:`eyeserver.pipeline.sclera`); live tracking, whose radius is held,
-   keeps step 5's globe.
+   where they end, finds the limbus again (:func:`refined`) in the images with the sclera's
+   illumination divided out instead of the band's fringe subtracted, and fits the globe with
+   the limbus's tilt and centre free within their uncertainties
+   (:mod:`eyeserver.pipeline.sclera`); live tracking, whose radius is held, keeps step 5's
+   globe.
 
 Not modelled: a pupil or iris pattern inside the limbus (rising edges inside the cornea would
 be taken for the limbus; a real eye's pupil edge is weaker than the limbus in near infrared but

@@ -24,24 +24,44 @@ in front of it from this camera, :data:`IN_FRONT_MM`), windows whose phase is un
 fringes, :data:`MAX_PHASE_SD_RAD`) and pixels that end more than :data:`MAX_OFFSET_RAD` off;
 the fit is made again about the first one's phase (:data:`ROUNDS`).
 
-:func:`globe_and_gaze` then fits the globe to these points together with the limbus: centre
-``L' − h·g'`` with ``g'`` the limbus normal tilted and ``L'`` its centre shifted, each held to
-the limbus's measurement within its uncertainty. The sclera counts as a whole, good to
+The limbus found again. The limbus's edges (:mod:`~eyeserver.pipeline.limbus`) are found in the
+band's fringe-free intensity ``I − B·cos φ``, whose ``B`` and ``φ`` the band blends across the
+limbus just as it blends the sclera's phase: fringe is left on the sclera beside the edge and
+put onto the cornea, and each edge moves with the fringe's phase there. :func:`sharpened`
+divides each camera's image by the illumination ``a + p·cos ψ + q·sin ψ``: ``ψ`` the phase the
+globe hypothesis predicts, ``a, p, q`` fitted over :data:`WINDOW_PX` squares of the sclera beyond
+the limbus (from :data:`LIMBUS_MARGIN_MM` behind the limbus's plane on, clear of the edge's
+blur), each pixel up to the limbus and inside it taking the nearest window's. What is left is the
+albedo's step, whatever the fringe's phase at the edge; the limbus's last round of edges and
+circle runs again in that image. Dividing needs no position of the edge, where subtracting a
+fringe cut off at the edge would. The window and the margin were chosen on 36 poses (not those
+of the bench): 15-px windows from 0.25 mm left the edges on the far side of the limbus (as a
+camera sees it) 0.1–0.2 px outwards, the shading towards the limbus not followed (globe centre
+0.046 mm median, 0.13 mm p95); 9-px windows from 0.05 mm 0.034 and 0.093 mm; from 0.02 mm, with
+the edge's blur in the fit, 0.037 and 0.11 mm.
+
+:func:`globe_and_gaze` then fits the globe to the remeasured points together with the limbus:
+centre ``L' − h·g'`` with ``g'`` the limbus normal tilted and ``L'`` its centre shifted, each held
+to the limbus's measurement within its uncertainty. The sclera counts as a whole, good to
 :data:`SCLERA_BIAS_MM` (what does not average away over its points), so it moves the gaze only
-where it says so more precisely than the limbus does.
+where it says so more precisely than the limbus does. :func:`refit` runs :data:`PASSES` passes
+of the three, each about the last one's globe.
 
 Measured with ``eyeserver bench pose`` (200 rendered poses, the population model with the
-radius fitted): globe centre 0.077 → 0.053 mm median, 0.23 → 0.15 mm p95, 13-mm globes
-0.107 → 0.070 mm; gaze 0.17° → 0.12°, p95 0.41° → 0.26°; on another draw (``--seed 1``)
-0.088 → 0.050 mm and 0.21 → 0.13 mm, gaze 0.17° → 0.11°. It costs ≈ 0.1 s a fit; live
+radius fitted), before any of this → with the sclera remeasured → with the limbus found again
+too: globe centre 0.077 → 0.053 → 0.033 mm median, 0.23 → 0.15 → 0.098 mm p95, 13-mm globes
+0.107 → 0.070 → 0.035 mm; gaze 0.17° → 0.12° → 0.065°, p95 0.41° → 0.26° → 0.15°; limbus
+centre 0.013 → 0.007 mm; on another draw (``--seed 1``) centre 0.088 → 0.050 → 0.030 mm median,
+0.21 → 0.13 → 0.084 mm p95, gaze 0.17° → 0.11° → 0.054°. It costs ≈ 0.2 s a fit; live
 tracking (radius held) leaves it out. On the sclera of a rendered 13-mm eye turned away, each
 camera's points lay 0.02–0.03 mm inside the globe before and within 0.003 mm after, measured
-about a sphere 0.2 mm off (``tests/test_sclera.py``). What is left is the limbus's: on the six
-worst of 36 other poses (0.11–0.16 mm off) the remeasured points lie within 0.007 mm of the
-true globe per camera (median) and, with the true limbus circle, place the centre within
-0.003–0.036 mm; the found limbus is 0.1–0.4° off there, and trusting the sclera more (0.002–
-0.004 mm) left the centre as it was (0.060–0.067 against 0.054 mm median): seen on one side of
-the globe, the sclera does not pin the tilt.
+about a sphere 0.2 mm off, and the limbus found again tilts 0.09° from the true gaze where the
+band's tilted 0.28° (``tests/test_sclera.py``). What is left: the limbus found lies in front of
+the true one along the gaze on 34 of 36 poses, by 0.006 mm on average (sd 0.004 mm), which the
+globe's depth amplifies (the five poses furthest off, 0.07–0.12 mm, are off along the gaze).
+The edges on the far side of the limbus, as a camera sees it, lie outwards of those on the near
+side (noise-free renders: by 0.03–0.1 px); part of it is the calibration (one camera's
+projection of the limbus 0.03 px off the renderer's on either side), the rest is not found.
 """
 
 from __future__ import annotations
@@ -67,7 +87,7 @@ from eyeserver.pipeline.limbus import (
 )
 from eyeserver.pipeline.reconstruct import CalibratedCamera
 
-__all__ = ["GlobeFit", "globe_and_gaze", "refit", "remeasured"]
+__all__ = ["GlobeFit", "globe_and_gaze", "refit", "remeasured", "sharpened"]
 
 F64 = npt.NDArray[np.float64]
 
