@@ -23,7 +23,7 @@ from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.pipeline import eyepose, sclera
 from eyeserver.pipeline.demodulate import Carrier, demodulate
 from eyeserver.pipeline.eyepose import EyeModel, fit_eye, radius_bounds
-from eyeserver.pipeline.limbus import Limbus
+from eyeserver.pipeline.limbus import Limbus, LimbusView
 from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
 from tests.conftest import ROOMS
 
@@ -216,6 +216,17 @@ def test_the_limbus_found_again_with_the_fringe_divided_out_is_sharper(
     assert divided.residual_px < band.residual_px
     # The pose's gaze is the sharper limbus's, with the sclera's word on it.
     assert math.degrees(math.acos(min(1.0, float(np.asarray(pose.gaze) @ gaze)))) < 0.15
+
+
+def test_where_no_limbus_is_found_again_the_first_one_stands(turned: tuple[Path, Path]) -> None:
+    caldir, bundle = turned
+    views = limbus_views(caldir, bundle)
+    truth = json.loads((bundle / "truth.json").read_text())["eye"]
+    centre, gaze = np.asarray(truth["centre_mm"]), np.asarray(truth["gaze"])
+    limbus = _limbus(np.asarray(truth["limbus_centre_mm"]), gaze, 5.85, 0.2, 0.02)
+    # Dark images (a blink, the projector off): no sclera to fit, no edge to find.
+    dark = [LimbusView(view.camera, np.zeros_like(view.image)) for view in views]
+    assert sclera.sharpened(dark, limbus, centre, float(truth["globe_radius_mm"])) is limbus
 
 
 def test_a_remeasured_globe_of_no_eyes_size_is_not_trusted(

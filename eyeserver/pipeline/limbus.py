@@ -675,7 +675,8 @@ def refined(views: Sequence[LimbusView], limbus: Limbus) -> Limbus:
     Raises
     ------
     LimbusNotFoundError
-        Fewer than two cameras see enough of it, or the edges fit no circle.
+        Fewer than two cameras see enough of it, or the edges fit no circle (or lie further than
+        :data:`MAX_RESIDUAL_PX` from it, as :func:`find_limbus` requires).
     """
     images = []
     for view in views:
@@ -683,7 +684,10 @@ def refined(views: Sequence[LimbusView], limbus: Limbus) -> Limbus:
             images.append(_Image(view, _window(view, limbus.centre, limbus.radius)))
     if len(images) < 2:
         raise LimbusNotFoundError("fewer than two cameras see the limbus")
-    return _refine(images, limbus.centre, limbus.normal, limbus.radius, REACHES_PX[-1:])
+    again = _refine(images, limbus.centre, limbus.normal, limbus.radius, REACHES_PX[-1:])
+    if again.residual_px > MAX_RESIDUAL_PX:
+        raise LimbusNotFoundError("the edges found fit no limbus circle")
+    return again
 
 
 def circle_points(limbus: Limbus, angles: F64) -> F64:
