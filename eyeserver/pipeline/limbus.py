@@ -136,14 +136,6 @@ FOLLOWED_TURN_DEG = 1.0
 it turned the gaze by no more than this (a frame at 25 Hz turns it by hundredths of a degree
 but in a saccade); else the search scores tilted circles first (:func:`find_limbus`)."""
 
-DIVIDED_SHARED_PERIODS = 0.5
-"""Over how many fringe periods the edges of :func:`refined` share their error: half a period,
-the fringe divided out (what is left, noise smoothed over a few pixels and the calibration's
-error, is shared less widely). Chosen on 36 rendered poses (apart from the bench's) by how often
-the stated sds hold the errors: counted once a period, the centre's axes within one and two sds
-on 88 % and 100 %, the gaze 89 % and 100 %; once half a period 75/98 % and 78/94 %; once a
-quarter 68/90 % and 47/89 % (a normal error: 68/95 %, the gaze's two-axis angle 63/98 %)."""
-
 
 class LimbusNotFoundError(ValueError):
     """No limbus in the images (lids closed, eye outside the view, no contrast)."""
@@ -531,9 +523,8 @@ def _edges_per_period(image: _Image, centre: F64, normal: F64, radius: float) ->
 
 
 def _refine(images: Sequence[_Image], centre: F64, normal: F64, radius: float,
-            reaches: Sequence[float] = REACHES_PX, shared_periods: float = 1.0) -> Limbus:
-    """Edges and circle, a round per search reach (module steps 3 and 4), from one start;
-    ``shared_periods``: over how many fringe periods the edges share their error."""
+            reaches: Sequence[float] = REACHES_PX) -> Limbus:
+    """Edges and circle, a round per search reach (module steps 3 and 4), from one start."""
     expected = radius
     for reach in reaches:
         edges = [_edges(image, centre, normal, radius, reach) for image in images]
@@ -549,8 +540,7 @@ def _refine(images: Sequence[_Image], centre: F64, normal: F64, radius: float,
     # fringe-free intensity, the band's blur): each camera's information counts once per
     # period of its circle, not once per sample.
     rows = [(image, len(a)) for image, (a, _) in zip(images, edges, strict=True) if len(a)]
-    per_period = np.repeat([max(1.0, shared_periods
-                                * _edges_per_period(image, centre, normal, radius))
+    per_period = np.repeat([_edges_per_period(image, centre, normal, radius)
                             for image, _ in rows], [n for _, n in rows])
     jac = solution.jac / np.sqrt(per_period)[:, None]
     try:
@@ -694,8 +684,7 @@ def refined(views: Sequence[LimbusView], limbus: Limbus) -> Limbus:
             images.append(_Image(view, _window(view, limbus.centre, limbus.radius)))
     if len(images) < 2:
         raise LimbusNotFoundError("fewer than two cameras see the limbus")
-    again = _refine(images, limbus.centre, limbus.normal, limbus.radius, REACHES_PX[-1:],
-                    DIVIDED_SHARED_PERIODS)
+    again = _refine(images, limbus.centre, limbus.normal, limbus.radius, REACHES_PX[-1:])
     if again.residual_px > MAX_RESIDUAL_PX:
         raise LimbusNotFoundError("the edges found fit no limbus circle")
     return again
