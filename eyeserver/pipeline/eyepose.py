@@ -846,7 +846,7 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     ``fixed_radius`` holds the globe's radius (the patient's model, or the last frame's while
     tracking); ``search`` as :func:`~eyeserver.pipeline.limbus.find_limbus`. ``started`` is
     the fit's start (``time.perf_counter()``) for ``fit_ms``. ``remeasure``: the globe and gaze
-    from the sclera measured again in the images with the limbus
+    from the sclera measured again in the images and the limbus found again there
     (:func:`~eyeserver.pipeline.sclera.refit`; live tracking, whose radius is held, leaves it
     out for time).
     """

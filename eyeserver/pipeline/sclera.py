@@ -260,7 +260,8 @@ def sharpened(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: 
     q·sin ψ)`` with ``ψ`` the phase the globe hypothesis (``centre``, ``radius``) predicts and
     ``a, p, q`` fitted over :data:`WINDOW_PX` squares of the sclera beyond the
     limbus (:data:`LIMBUS_MARGIN_MM`), carried to the limbus and the cornea from the nearest
-    fit. ``limbus`` itself where no camera pair gives a circle."""
+    fit; ``cloud`` as for :func:`remeasured` (what may hide the sclera from a camera).
+    ``limbus`` itself where no camera pair gives a circle."""
     centre = np.asarray(centre, dtype=np.float64)
     occluders = _occluders(cloud, centre, radius)
     divided = [LimbusView(view.camera, view.image, flat) if (
@@ -274,8 +275,8 @@ def sharpened(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: 
 
 def _illumination_divided(view: LimbusView, limbus: Limbus, centre: F64, radius: float,
                           occluders: F64) -> npt.NDArray[np.float32] | None:
-    """:func:`sharpened`'s image for one camera, in the units of the sclera's mean intensity
-    (None where too little sclera is seen near the limbus)."""
+    """:func:`sharpened`'s image for one camera, scaled to the sclera's median background (None
+    where too little sclera is seen near the limbus)."""
     cam = view.camera
     on = circle_points(limbus, np.linspace(0.0, 2 * math.pi, 90, endpoint=False))
     uv = project(on, cam.K, cam.dist, cam.R, cam.T)
@@ -486,8 +487,9 @@ def refit(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: floa
           sclera: F64, cloud: F64, fixed_radius: float | None) -> GlobeFit | None:
     """The globe and gaze from the sclera remeasured about the globe ``centre``, ``radius``
     (:func:`~eyeserver.pipeline.limbus.globe_on_limbus`'s, whose ``sclera`` points say where
-    it is seen; ``cloud`` what may hide it, see :func:`remeasured`) and the limbus, in
-    :data:`PASSES` passes; None where too little sclera is remeasured."""
+    it is seen; ``cloud`` what may hide it, see :func:`remeasured`) and the limbus found again
+    about it (:func:`sharpened`), in :data:`PASSES` passes; None where too little sclera is
+    remeasured."""
     fit = None
     for _ in range(PASSES):
         points = remeasured(views, centre, radius, sclera, cloud)
