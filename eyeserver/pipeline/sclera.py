@@ -391,7 +391,7 @@ def _window_fits(image: F64, psi: F64, mask: npt.NDArray[np.bool_], size: int,
                        np.stack([ss, scs, box(s * s)], axis=-1)], axis=-2)[fitted]
     rhs = np.stack([box(values), box(values * c), box(values * s)], axis=-1)[fitted]
     # Well conditioned (det / trace³ bounds 1 / cond from below; np.linalg.cond's SVDs of the
-    # many 3 × 3 systems cost ten times as much: 0.13 s of a fit).
+    # many 3 × 3 systems cost ten times as much).
     well = np.linalg.det(normal) > 1e-10 * np.trace(normal, axis1=-2, axis2=-1) ** 3
     solution = np.zeros_like(rhs)
     solution[well] = np.linalg.solve(normal[well], rhs[well][..., None])[..., 0]
