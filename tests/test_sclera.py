@@ -195,14 +195,14 @@ def test_the_limbus_found_again_with_the_fringe_divided_out_is_sharper(
     cloud, _ = reconstruct_bundle(caldir, bundle)
     views = limbus_views(caldir, bundle)
     found: list[tuple[Limbus, Limbus]] = []
-    real = sclera.sharpened
+    real = sclera._sharpened
 
     def spy(*args: Any, **kwargs: Any) -> Limbus:
         limbus = real(*args, **kwargs)
         found.append((args[1], limbus))
         return limbus
 
-    monkeypatch.setattr(sclera, "sharpened", spy)
+    monkeypatch.setattr(sclera, "_sharpened", spy)
     pose = fit_eye(cloud, EyeModel.population(), views)
     assert len(found) == sclera.PASSES
     truth = json.loads((bundle / "truth.json").read_text())["eye"]

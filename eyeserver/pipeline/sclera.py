@@ -137,13 +137,12 @@ IN_FRONT_MM = 0.25
 """A pixel whose ray meets a point of the cloud this much before the sphere does not see the
 sphere (a lid in front of it)."""
 
-
 LIMBUS_MARGIN_MM = 0.05
 """Sclera pixels closer than this to the limbus's plane are not fitted for the illumination
 (the edge's blur)."""
 
 MIN_ILLUMINATION = 0.25
-"""The illumination divided out is at least this share of the sclera's mean."""
+"""The illumination divided out is at least this share of the sclera's median background."""
 
 
 def remeasured(views: Sequence[LimbusView], centre: F64, radius: float, sclera: F64,
@@ -156,9 +155,13 @@ def remeasured(views: Sequence[LimbusView], centre: F64, radius: float, sclera: 
     (lids in front of the sphere along its ray, :data:`IN_FRONT_MM`). Returns (N, 3) points in
     the WCS, each camera's pixels one point each (empty where nothing is seen).
     """
-    tree = cKDTree(sclera)
     centre = np.asarray(centre, dtype=np.float64)
-    occluders = _occluders(cloud, centre, radius)
+    return _remeasured(views, centre, radius, cKDTree(sclera), _occluders(cloud, centre, radius))
+
+
+def _remeasured(views: Sequence[LimbusView], centre: F64, radius: float, tree: cKDTree,
+                occluders: F64) -> F64:
+    """:func:`remeasured` with the sclera's k-d tree and the occluders made."""
     parts = [_camera_points(view, centre, radius, tree, occluders) for view in views]
     return np.concatenate(parts) if parts else np.empty((0, 3))
 
@@ -263,7 +266,12 @@ def sharpened(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: 
     fit; ``cloud`` as for :func:`remeasured` (what may hide the sclera from a camera).
     ``limbus`` itself where no camera pair gives a circle."""
     centre = np.asarray(centre, dtype=np.float64)
-    occluders = _occluders(cloud, centre, radius)
+    return _sharpened(views, limbus, centre, radius, _occluders(cloud, centre, radius))
+
+
+def _sharpened(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: float,
+               occluders: F64) -> Limbus:
+    """:func:`sharpened` with the occluders made."""
     divided = [LimbusView(view.camera, view.image, flat) if (
         flat := _illumination_divided(view, limbus, centre, radius, occluders)) is not None
         else view for view in views]
@@ -491,11 +499,14 @@ def refit(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: floa
     about it (:func:`sharpened`), in :data:`PASSES` passes; None where too little sclera is
     remeasured."""
     fit = None
+    tree = cKDTree(sclera)
     for _ in range(PASSES):
-        points = remeasured(views, centre, radius, sclera, cloud)
+        # What hides the sphere depends on the sphere: made once a pass, for both steps.
+        occluders = _occluders(cloud, centre, radius)
+        points = _remeasured(views, centre, radius, tree, occluders)
         if len(points) < MIN_POINTS:
             return fit
-        limbus = sharpened(views, limbus, centre, radius, cloud)
+        limbus = _sharpened(views, limbus, centre, radius, occluders)
         depth = math.sqrt(max(radius**2 - limbus.radius**2, 1.0))
         fit = globe_and_gaze(points, limbus, depth, fixed_radius)
         centre, radius = fit.centre, fit.radius
