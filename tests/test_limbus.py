@@ -2,9 +2,9 @@
 
 The rendered patient eye is reconstructed and fitted as ``eyeserver pose`` does; truth is read
 only afterwards. Measured on the default rig over 200 random poses (eyeserver bench pose: ±5 mm,
-±10°, globes 11/12/13 mm): gaze 0.12° median (p95 0.26°), limbus centre 0.013 mm (p95 0.026
-mm), globe centre 0.053 mm (p95 0.15 mm; the radius comes from a narrow band of sclera,
-measured again from its fringes: tests/test_sclera.py).
+±10°, globes 11/12/13 mm): gaze 0.065° median (p95 0.15°), limbus centre 0.007 mm (p95 0.018
+mm), globe centre 0.033 mm (p95 0.098 mm; the radius comes from a narrow band of sclera, and
+sclera and limbus are measured again from the fringes: tests/test_sclera.py).
 """
 
 from __future__ import annotations

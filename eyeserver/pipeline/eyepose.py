@@ -37,12 +37,13 @@ that is spherical: the lids are shells in front of it. So:
 4. **The limbus in the images** (when the fit is given the fringe images, ``views``): found
    by :mod:`eyeserver.pipeline.limbus` from the rough pose of steps 2–3, it sets the gaze and
    the limbus centre, and the globe is the sphere through it that the sclera lies on
-   (:func:`pose_on_limbus`), the sclera measured again from its own fringes and the globe
-   fitted with the limbus (:mod:`eyeserver.pipeline.sclera`). Measured on 200 rendered poses:
-   gaze 0.12° median (p95 0.26°), limbus centre 0.013 mm, globe centre 0.053 mm median (p95
-   0.15 mm). Without images, or where no limbus is found, the cloud-only pose of steps 2–3
-   stands (``gaze_source`` says which; with images that showed no limbus, at a confidence
-   scaled by :data:`UNSEEN_LIMBUS`).
+   (:func:`pose_on_limbus`), the sclera measured again from its own fringes, the limbus found
+   again with the fringe divided out and the globe fitted with it
+   (:mod:`eyeserver.pipeline.sclera`). Measured on 200 rendered poses: gaze 0.065° median (p95
+   0.15°), limbus centre 0.007 mm, globe centre 0.033 mm median (p95 0.098 mm). Without
+   images, or where no limbus is found, the cloud-only pose of steps 2–3 stands
+   (``gaze_source`` says which; with images that showed no limbus, at a confidence scaled by
+   :data:`UNSEEN_LIMBUS`).
 
 Torsion is invisible to the surface of a sphere with a round limbus (DESIGN §4): reported as None.
 
