@@ -28,7 +28,13 @@ from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.hardware.sim.truth import room_truth
 from eyeserver.io import RigSpec
 from eyeserver.io.rig_file import rig_from_dict
-from eyeserver.pipeline.eyepose import LIMBUS_FROM_IMAGES, EyeModel, PoseError, fit_eye
+from eyeserver.pipeline.eyepose import (
+    LIMBUS_FROM_IMAGES,
+    WELL_SEEN_LIMBUS_POINTS,
+    EyeModel,
+    PoseError,
+    fit_eye,
+)
 from eyeserver.pipeline.eyetrack import track_eye
 from eyeserver.pipeline.reconstruct import strong_modulation
 from eyeserver.service import tracking
@@ -129,6 +135,31 @@ def test_a_warmed_finder_keeps_the_expected_eyes_window_and_finds_the_same_pose(
     with pytest.raises(TrackingWorkerError, match=r"failed to warm up: AttributeError"):
         worker.warm(FrameSet(-1, 0, [object()]), expected)  # type: ignore[list-item]
     assert worker(rest, None).gaze_source == "limbus (images)"  # and goes on
+
+
+def test_a_windows_cloud_counts_its_sclera_as_the_pixels_its_points_stand_for(
+        calibrated_rooms: Any, frames: tuple[RigSpec, list[FrameSet]]) -> None:
+    # Tracking reconstructs every WINDOW_DECIMATION-th pixel of the window: the confidence must
+    # not drop because the cloud is sparser than the whole images' (the pose is the same).
+    _, caldir = calibrated_rooms("default")
+    rig, (rest, turned, _) = frames
+    reconstructor = RigReconstructor(caldir, rig)
+    assert reconstructor(rest).pixels_per_point == 1.0  # the whole images, every pixel
+    first = PoseFinder(reconstructor, fit_eye, MODEL)(rest, None)
+    reconstructor.focus(first)
+    window = reconstructor(turned)
+    assert window.pixels_per_point == tracking.WINDOW_DECIMATION ** 2
+    counted = track_eye(window, MODEL, first, window.views)
+    uncounted = track_eye(replace(window, pixels_per_point=1.0), MODEL, first, window.views)
+    assert counted.gaze_source == LIMBUS_FROM_IMAGES
+    assert counted.centre_mm == uncounted.centre_mm and counted.gaze == uncounted.gaze
+    # The radius held: the support is the sclera's points, WELL_SEEN_LIMBUS_POINTS its scale.
+    points = counted.sclera_points
+    seen = [1.0 - np.exp(-round(points * weight) / WELL_SEEN_LIMBUS_POINTS)
+            for weight in (tracking.WINDOW_DECIMATION ** 2, 1.0)]
+    assert 30 <= points < 1000 and seen[1] < 0.9999
+    assert counted.confidence / uncounted.confidence == pytest.approx(seen[0] / seen[1],
+                                                                      rel=1e-9)
 
 
 @pytest.mark.skipif(not hasattr(fcntl, "F_SETPIPE_SZ"), reason="pipe sizes are Linux's")

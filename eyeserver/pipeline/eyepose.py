@@ -839,7 +839,8 @@ def cloud_gaze(points: F64, sclera: F64, centre: F64, radius: float, centre_sd: 
 
 def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, centre: F64,
                    rough_gaze: F64, radius: float, fixed_radius: float | None, started: float,
-                   *, search: bool = True, remeasure: bool = True) -> EyePose | None:
+                   *, search: bool = True, remeasure: bool = True,
+                   pixels_per_point: float = 1.0) -> EyePose | None:
     """The pose from the limbus found in ``views`` and the sclera of ``points`` that carries
     it (:mod:`eyeserver.pipeline.limbus`), from a rough globe and gaze; None where no limbus
     is found.
@@ -849,7 +850,9 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     the fit's start (``time.perf_counter()``) for ``fit_ms``. ``remeasure``: the globe and gaze
     from the sclera measured again in the images and the limbus found again there
     (:func:`~eyeserver.pipeline.sclera.refit`; live tracking, whose radius is held, leaves it
-    out for time).
+    out for time). ``pixels_per_point``: the image pixels each point stands for (a decimated
+    reconstruction's, as live tracking's): the confidence counts the sclera's support in
+    pixels, so that it does not depend on how densely the cloud was reconstructed.
     """
     try:
         limbus = find_limbus(views, centre, rough_gaze, radius, model.limbus_diameter_mm / 2,
@@ -889,17 +892,20 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     sharpness = replace(gaze, sd_deg=max(gaze.sd_deg, limbus.gaze_sd_deg))
     low, high = radius_bounds(model)
     plausible = 1.0 if low <= radius_out <= high else IMPLAUSIBLE_RADIUS
-    confidence = plausible * _confidence(globe.support, WELL_SEEN_LIMBUS_POINTS, surface_mad,
-                                         sharpness)
+    confidence = plausible * _confidence(round(globe.support * pixels_per_point),
+                                         WELL_SEEN_LIMBUS_POINTS, surface_mad, sharpness)
     return _pose(centre_out, centre_sd, radius_out, gaze, surface_mad, globe.points, confidence,
                  started)
 
 
 def pose_from_cloud(centre: F64, centre_sd: F64, radius: float, gaze: Gaze, surface_mad: float,
-                    sclera_points: int, started: float, plausible: float = 1.0) -> EyePose:
+                    sclera_points: int, started: float, plausible: float = 1.0,
+                    pixels_per_point: float = 1.0) -> EyePose:
     """The pose of a globe fitted to the cloud with its :func:`cloud_gaze`; ``plausible``
-    scales the confidence (0.3 for a radius outside the model's bounds)."""
-    confidence = _confidence(sclera_points, WELL_SEEN_POINTS, surface_mad, gaze) * plausible
+    scales the confidence (0.3 for a radius outside the model's bounds); ``pixels_per_point``
+    as :func:`pose_on_limbus`."""
+    confidence = _confidence(round(sclera_points * pixels_per_point), WELL_SEEN_POINTS,
+                             surface_mad, gaze) * plausible
     return _pose(centre, centre_sd, radius, gaze, surface_mad, sclera_points, confidence,
                  started)
 

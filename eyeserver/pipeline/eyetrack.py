@@ -268,7 +268,10 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
     ----------
     cloud : CloudLike
         Points (N, 3) in WCS mm, with optional per-point quality in [0, 1] used as weights;
-        the whole image's or a window's around the eye.
+        the whole image's or a window's around the eye. A cloud with a ``pixels_per_point``
+        (a decimated reconstruction's, :class:`~eyeserver.service.tracking.TrackedCloud`) has
+        its sclera counted in image pixels for the confidence, as the whole images' fit counts
+        it (``pixels_per_point`` of :func:`~eyeserver.pipeline.eyepose.pose_on_limbus`).
     model : EyeModel
         The patient's model: a fixed ``globe_radius_mm`` is held, and the limbus diameter
         places the limbus centre.
@@ -296,6 +299,7 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
     """
     started = time.perf_counter()
     points, weights = checked_cloud(cloud)
+    pixels_per_point = float(getattr(cloud, "pixels_per_point", 1.0))
     centre = np.asarray(previous.centre_mm, dtype=np.float64)
     radius = float(model.globe_radius_mm if model.globe_radius_mm is not None
                    else previous.globe_radius_mm)
@@ -308,7 +312,8 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
     if views:
         found = pose_on_limbus(points, views, model, centre,
                                np.asarray(previous.gaze, dtype=np.float64), radius, radius,
-                               started, search=False, remeasure=False)
+                               started, search=False, remeasure=False,
+                               pixels_per_point=pixels_per_point)
         if found is not None:
             return found
         last_gaze = np.asarray(previous.gaze, dtype=np.float64)
@@ -350,4 +355,5 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
     # the last gaze (see the module docstring); the last gaze only where nothing lies around.
     gaze = cloud_gaze(points, sclera, centre, radius, centre_sd, model,
                       fallback=np.asarray(previous.gaze, dtype=np.float64))
-    return pose_from_cloud(centre, centre_sd, radius, gaze, surface_mad, len(sclera), started)
+    return pose_from_cloud(centre, centre_sd, radius, gaze, surface_mad, len(sclera), started,
+                           pixels_per_point=pixels_per_point)

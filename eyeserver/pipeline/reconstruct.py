@@ -113,10 +113,11 @@ one noise draw in four lost a unit's sclera, and the eye pose bench's globe cent
 0.65 mm)."""
 MIN_PATCH_POINTS = 50
 """A small patch needs this many points as well, on a decimated camera's grid (live tracking's
-windows, every second pixel: 25 points for :data:`MIN_PATCH_PX`): its order is judged on
-medians over its points, and there the tracking holds the patient's radius, so the sclera's
-smallest patches would only weigh in the fit's surface distance. Measured: 25-point patches
-cost a tracked frame 1.5 ms more (13.5 → 15 ms), all in confirming them."""
+windows, every third pixel: 11 points for :data:`MIN_PATCH_PX`, so 450 pixels there): its
+order is judged on medians over its points, and there the tracking holds the patient's radius,
+so the sclera's smallest patches would only weigh in the fit's surface distance. Measured
+(windows on every second pixel): 25-point patches cost a tracked frame 1.5 ms more (13.5 →
+15 ms), all in confirming them."""
 PATCH_MARGIN_RAD = 0.6
 """Over a small patch, every other fringe order must miss the other camera's phase by this much
 more (median over the patch's pixels) than the patch's own order."""

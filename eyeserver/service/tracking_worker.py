@@ -34,7 +34,6 @@ import contextlib
 import ctypes
 import fcntl
 import logging
-import os
 import signal
 import traceback
 from multiprocessing import get_context
@@ -65,10 +64,14 @@ _CLOSE_S = 5.0
 _log = logging.getLogger(__name__)
 
 
-WORKER_NICENESS = 5
-"""Tracking workers run this much nicer than the daemon, so that acquisition (a driver's frame
-handling) and the API come first on a busy machine. The simulated room's rendering runs nicer
-still (:data:`~eyeserver.hardware.sim.drivers.RENDER_NICENESS`)."""
+# The workers run at the daemon's own priority, not below it. Nicer than the daemon (5, until
+# 2026-12-03) they lost their core to it and to other programs of normal priority whenever the
+# scheduler put them on the same core, though the two cores were three-fifths idle: measured in
+# `eyeserver bench tracking --prerendered` (one slow machine hour, FFT reference 0.8 ms), a
+# tracked frame's processing took 19.9 ms median and 29.0 ms p99 at niceness 5, 17.9 and
+# 22.9 ms at the daemon's (latency p99 39.5 → 33.6 ms); rendered live, every frame was still
+# acquired and processed. Acquisition needs little CPU and is woken ahead of a busy worker; the
+# simulated room's rendering stays below both (RENDER_NICENESS).
 
 
 class TrackingWorkerError(EyeserverError):
@@ -159,10 +162,6 @@ def _serve(connection: _Channel, calibration: str, rig: RigSpec, model: EyeModel
     # (52 ms a frame; with one thread, 41 ms). OpenCV's pool is not reached by threadpoolctl.
     threadpool_limits(limits=1, user_api="blas")
     cv2.setNumThreads(1)
-    # Below the daemon: acquisition must not wait for the workers (it lets the next frame
-    # wait for them instead).
-    with contextlib.suppress(OSError):
-        os.nice(WORKER_NICENESS)
     _keep_memory()
     try:
         finder = PoseFinder(RigReconstructor(calibration, rig), fit_eye, model, track=track_eye)
