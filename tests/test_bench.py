@@ -182,7 +182,8 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
         <= calibration["centre_axes_within_2_sd"] <= 1.0
     assert 0.0 <= calibration["gaze_within_1_sd"] <= calibration["gaze_within_2_sd"] <= 1.0
     section = "\n".join(render_pose(report))
-    assert "## Eye pose" in section and "a fail against the 0.2 mm tolerance" in section
+    assert "## Eye pose, radius fitted" in section and "model: population" in section
+    assert "a fail against the 0.2 mm tolerance" in section
     assert "stated uncertainties: centre errors within 1 and 2 sd on" in section
 
     # One unit with the patient's radius held, as live tracking measures.
@@ -193,6 +194,7 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
     assert one["gaze_error_deg"]["max"] < 1.0
     # Held: the sphere through the limbus of that radius (hypot(√(R² − r²), r): R to rounding).
     assert one["radius_error_mm"]["max"] == pytest.approx(0.0, abs=1e-9)
+    assert "`eyeserver bench pose --held-radius`: 2 of 2" in "\n".join(render_pose(one))
     assert main(["bench", "pose", "--unit", "centre", "--calibration", str(caldir)]) == 2
     assert "no unit centre" in capsys.readouterr().err
 

@@ -23,9 +23,9 @@ def _value(value: Any, digits: int = 3) -> str:
     return str(value)
 
 
-def render(accuracy: dict[str, Any], speed: dict[str, Any],
-           pose: dict[str, Any] | None = None) -> str:
-    """The Markdown page (the eye pose section when ``pose`` is given)."""
+def render(accuracy: dict[str, Any], speed: dict[str, Any], *poses: dict[str, Any]) -> str:
+    """The Markdown page, with an eye pose section for each of ``poses`` (runs of
+    ``eyeserver bench pose``, e.g. with the radius fitted and held)."""
     machine = accuracy["machine"]
     noise = accuracy["noise_model"]
     lines = [
@@ -93,7 +93,7 @@ def render(accuracy: dict[str, Any], speed: dict[str, Any],
                   + ", ".join(f"`{f}`" for f in accuracy["figures"]) + "."]
     lines += ["", f"The accuracy run took {accuracy.get('duration_s')} s.", ""]
     page = "\n".join(lines) + "\n" + render_speed(speed)
-    return page if pose is None else page + "\n".join(render_pose(pose))
+    return page + "\n".join("\n".join(render_pose(pose)) for pose in poses)
 
 
 def render_speed(speed: dict[str, Any]) -> str:
@@ -201,11 +201,14 @@ def render_pose(pose: dict[str, Any]) -> list[str]:
         return (f"| {name} | {_value(stats['median'])} | {_value(stats['p95'])} | "
                 f"{_value(stats['max'])} | {goal} |")
 
-    lines = ["## Eye pose", "",
-             f"`eyeserver bench pose`: {pose['fitted']} of {pose['poses']} random rendered eyes "
-             "fitted (±5 mm, ±10°, globes of 11, 12 and 13 mm; population model, radius "
-             "fitted); gaze from: " + ", ".join(f"{k} {v}" for k, v in
-                                               pose.get("gaze_sources", {}).items()) + ".", "",
+    model = pose.get("model", "population, radius fitted")
+    held = model.startswith("radius held")
+    lines = [f"## Eye pose, {'radius held' if held else 'radius fitted'}", "",
+             f"`eyeserver bench pose{' --held-radius' if held else ''}`: {pose['fitted']} of "
+             f"{pose['poses']} random rendered eyes fitted (±5 mm, ±10°, globes of 11, 12 and "
+             f"13 mm; units: {', '.join(pose.get('units', ['all']))}; model: {model}); gaze "
+             "from: " + ", ".join(f"{k} {v}" for k, v in
+                                  pose.get("gaze_sources", {}).items()) + ".", "",
              "| figure | median | p95 | max | goal |", "|---|---|---|---|---|",
              row("globe centre error (mm)", "centre_error_mm", "≤ 0.1"),
              row("gaze error (°)", "gaze_error_deg", "≤ 0.5"),
@@ -233,12 +236,12 @@ def render_pose(pose: dict[str, Any]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json]``: the page on
-    stdout."""
+    """``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...]``: the page
+    on stdout."""
     args = sys.argv[1:] if argv is None else argv
-    if len(args) not in (2, 3):
-        print("usage: python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json]",
-              file=sys.stderr)
+    if len(args) < 2:
+        print("usage: python -m eyeserver.bench.report ACCURACY.json SPEED.json "
+              "[POSE.json ...]", file=sys.stderr)
         return 2
     documents = []
     for path in args:
@@ -247,7 +250,7 @@ def main(argv: list[str] | None = None) -> int:
         except (OSError, ValueError) as exc:
             print(f"eyeserver.bench.report: error: {path}: {exc}", file=sys.stderr)
             return 2
-    print(render(documents[0], documents[1], documents[2] if len(documents) > 2 else None))
+    print(render(*documents))
     return 0
 
 
