@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Regenerate docs/benchmarks.md: run the benches (the full accuracy protocol, ≈ 10 minutes on
 # 2 cores, the speed bench with live tracking, ≈ 8 minutes, and the eye pose bench on 200 poses
-# with the radius fitted and held, ≈ 12 minutes each) and render their JSON. Figures and PNGs are kept in
-# build/benchmarks/. Usage: bash scripts/benchmarks.sh [--quick]
+# with the radius fitted and held, ≈ 12 minutes each) and render their JSON. Figures and PNGs
+# are kept in build/benchmarks/. Usage: bash scripts/benchmarks.sh [--quick]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
