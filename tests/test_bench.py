@@ -182,6 +182,7 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
         <= calibration["centre_axes_within_2_sd"] <= 1.0
     assert 0.0 <= calibration["gaze_within_1_sd"] <= calibration["gaze_within_2_sd"] <= 1.0
     section = "\n".join(render_pose(report))
+    assert report["held_radius"] is False
     assert "## Eye pose, radius fitted" in section and "model: population" in section
     assert "a fail against the 0.2 mm tolerance" in section
     assert "stated uncertainties: centre errors within 1 and 2 sd on" in section
@@ -189,7 +190,8 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
     # One unit with the patient's radius held, as live tracking measures.
     one = _json(capsys, ["bench", "pose", "--json", "--poses", "2", "--unit", "left",
                          "--held-radius", "--calibration", str(caldir)])
-    assert one["units"] == ["left"] and one["model"].startswith("radius held")
+    assert one["units"] == ["left"] and one["held_radius"] is True
+    assert one["model"].startswith("radius held")
     assert one["fitted"] == 2 and one["gaze_sources"] == {"limbus (images)": 2}
     assert one["gaze_error_deg"]["max"] < 1.0
     # Held: the sphere through the limbus of that radius (hypot(√(R² − r²), r): R to rounding).
@@ -269,7 +271,12 @@ def test_the_speed_report_shows_live_tracking_rendered_live_and_ahead() -> None:
                                "delivery_median": 8.0, "delivery_p99": 9.0,
                                "processing_median": 20.0, "processing_p99": 28.0},
                 "frames": {"processed": 1494, "camera_periods": 1494, "dropped": 0,
-                           "missed": 0, "processed_share": 1.0}}
+                           "missed": 0, "processed_share": 1.0},
+                "beam_hold_reaction": {"saccade_deg": 8.0,
+                                       "first_processed_frame_after_saccade_held": p99 < 50},
+                "blink": {"frames_half_shut": 5, "duration_s": 0.3, "held": 5},
+                "clients": {"readers": 19, "reader_rate_hz_min": 24.9,
+                            "reader_rate_hz_max": 25.0, "reader_messages_lost": 0}}
 
     figures = speed.tracking_figures(run(38.0, 90.0), run(30.0, 39.0))
     assert (figures["frame_to_pose_p99_ms"], figures["prerendered_frame_to_pose_p99_ms"]) \
@@ -279,6 +286,9 @@ def test_the_speed_report_shows_live_tracking_rendered_live_and_ahead() -> None:
     page = render_speed({"pending": {}, **figures})
     assert "38 ms median, 90 ms p99" in page and "30 ms median, 39 ms p99" in page
     assert "110 at 33.09" in page and "0.61 ms at its start" in page
+    assert "8° saccade held the beam" in page and "8° saccade did NOT hold" in page
+    assert "Of the 5 processed frames of the 0.3-s blink" in page
+    assert "19 WebSocket clients reading beside one that never read received 24.9–25.0" in page
     text = "\n".join(speed.tracking_lines(figures))
     assert "the simulated room rendered ahead): frame → pose message 30 ms median" in text
     assert speed.tracking_figures(None, None) == {}

@@ -160,7 +160,7 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
     return {
         "format": "eyeserver.bench.pose/1", "machine": machine(), "seed": seed,
         "poses": poses, "fitted": len(fitted), "goals": GOALS,
-        "units": units or known,
+        "units": units or known, "held_radius": held_radius,
         "model": "radius held (the scene's, as an MRI gives it)" if held_radius
         else "population, radius fitted",
         "centre_error_mm": _stats([r["centre_error_mm"] for r in fitted]),

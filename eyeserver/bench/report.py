@@ -164,6 +164,22 @@ def _tracking_paragraph(speed: dict[str, Any], key: str, prefix: str) -> list[st
                  f"processing took {_value(latency['processing_median'], 0)} ms (p99 "
                  f"{_value(latency.get('processing_p99'), 0)} ms); the rest is the wait for a "
                  "free worker and the sending.")
+    reaction = live.get("beam_hold_reaction")
+    if reaction:
+        held = reaction["first_processed_frame_after_saccade_held"]
+        text += (f" The first processed frame after the scripted {reaction['saccade_deg']:g}° "
+                 f"saccade {'held' if held else 'did NOT hold'} the beam.")
+    blink = live.get("blink")
+    if blink:
+        text += (f" Of the {blink['frames_half_shut']} processed frames of the "
+                 f"{blink['duration_s']:g}-s blink with the lids half shut or more, "
+                 f"{blink['held']} held the beam.")
+    clients = live.get("clients")
+    if clients:
+        text += (f" {clients['readers']} WebSocket clients reading beside one that never read "
+                 f"received {_value(clients['reader_rate_hz_min'], 1)}–"
+                 f"{_value(clients['reader_rate_hz_max'], 1)} messages/s and lost "
+                 f"{clients['reader_messages_lost']}.")
     slowest = live.get("slowest")
     if slowest:
         text += (" Slowest frames (ms at script time, s): " + ", ".join(
@@ -202,7 +218,7 @@ def render_pose(pose: dict[str, Any]) -> list[str]:
                 f"{_value(stats['max'])} | {goal} |")
 
     model = pose.get("model", "population, radius fitted")
-    held = model.startswith("radius held")
+    held = bool(pose.get("held_radius", False))
     lines = [f"## Eye pose, {'radius held' if held else 'radius fitted'}", "",
              f"`eyeserver bench pose{' --held-radius' if held else ''}`: {pose['fitted']} of "
              f"{pose['poses']} random rendered eyes fitted (±5 mm, ±10°, globes of 11, 12 and "
