@@ -44,7 +44,7 @@ def _fringes(offset: float, shading: float = 0.0
 def test_the_local_fit_finds_the_phase_up_to_the_edge_of_the_fringe_field() -> None:
     image, phase, template, disc = _fringes(0.1)
 
-    delta, sd = sclera._local_offsets(image, template, disc)
+    delta, sd, _ = sclera._local_offsets(image, template, disc)
     fitted = np.isfinite(sd)
 
     # Every sclera pixel with enough of its window on the sclera, the edge's included.
@@ -62,7 +62,7 @@ def test_shading_within_a_window_costs_the_local_fit_a_little() -> None:
     # of phase (see _local_offsets), at the edge as inside.
     image, _, template, disc = _fringes(0.1, shading=0.3)
 
-    delta, sd = sclera._local_offsets(image, template, disc)
+    delta, sd, _ = sclera._local_offsets(image, template, disc)
     fitted = np.isfinite(sd)
 
     edge = disc & ~np.roll(disc, 3, axis=1)
@@ -77,7 +77,7 @@ def test_the_local_fit_ignores_what_lies_outside_its_mask() -> None:
     lid = ~disc & (rows < 48)
     image = np.where(lid, 60.0 + 25.0 * np.cos(2 * np.pi * 0.08 * cols + np.pi), image)
 
-    delta, sd = sclera._local_offsets(image, template, disc)
+    delta, sd, _ = sclera._local_offsets(image, template, disc)
     fitted = np.isfinite(sd)
 
     assert np.abs(delta[fitted]).max() < 1e-6
@@ -304,3 +304,25 @@ def test_a_remeasured_globe_of_no_eyes_size_is_not_trusted(
     assert bad.globe_radius_mm > radius_bounds(model)[1]
     assert bad.confidence == pytest.approx(0.9 * eyepose.IMPLAUSIBLE_RADIUS)
     assert bad.confidence < 0.5
+
+
+def test_faint_fringes_are_left_out_of_the_remeasure(turned: tuple[Path, Path],
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """Light at grazing incidence and the edges of the lids' and the cornea's shadows bias a
+    window's phase (:data:`~eyeserver.pipeline.sclera.MIN_AMPLITUDE`); their fringes are the
+    faint ones."""
+    eye = _reconstructed(turned)
+    views, points, centre, radius = eye.views, eye.points, eye.centre, eye.radius
+
+    def spread() -> tuple[int, float]:
+        again = sclera.remeasured(views, centre, radius, points[eye.on_globe], points)
+        off = np.linalg.norm(again - centre, axis=1) - radius
+        return len(again), float(np.percentile(np.abs(off - np.median(off)), 95))
+
+    kept, floored = spread()
+    monkeypatch.setattr(sclera, "MIN_AMPLITUDE", 0.0)
+    every, unfloored = spread()
+    # Measured: 0.88 of the pixels kept, their spread about the globe (p95 of the distance
+    # from the median) 0.102 against 0.121 mm with every pixel (p99 0.21 against 0.25 mm).
+    assert 0.6 * every < kept < every
+    assert floored < 0.9 * unfloored
