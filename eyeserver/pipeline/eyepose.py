@@ -40,7 +40,7 @@ that is spherical: the lids are shells in front of it. So:
    (:func:`pose_on_limbus`), the sclera measured again from its own fringes, the limbus found
    again with the fringe divided out and the globe fitted with it
    (:mod:`eyeserver.pipeline.sclera`). Measured on 200 rendered poses: gaze 0.064° median (p95
-   0.15°), limbus centre 0.007 mm, globe centre 0.033 mm median (p95 0.088 mm). Without
+   0.15°), limbus centre 0.007 mm, globe centre 0.030 mm median (p95 0.089 mm). Without
    images, or where no limbus is found, the cloud-only pose of steps 2–3 stands
    (``gaze_source`` says which; with images that showed no limbus, at a confidence scaled by
    :data:`UNSEEN_LIMBUS`).
