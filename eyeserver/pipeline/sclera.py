@@ -55,8 +55,8 @@ centre 0.077 → 0.053 → 0.033 mm median, 0.23 → 0.15 → 0.098 mm p95, 13-m
 0.035 mm; gaze 0.17° → 0.12° → 0.065°, p95 0.41° → 0.26° → 0.15°; limbus centre 0.013 → 0.007 mm; on
 another draw (``--seed 1``) centre 0.088 → 0.050 → 0.030 mm median, 0.21 → 0.13 → 0.084 mm p95, gaze
 0.17° → 0.11° → 0.054°. With the sclera remeasured within :data:`NEAR_MM` = 0.5 mm of the cloud's
-instead of 0.2 mm: centre 0.033 mm median, 0.088 mm p95 (13-mm globes 0.114 → 0.103 mm p95; ``--seed
-1``: 0.034 and 0.077 mm, 13-mm globes 0.110 → 0.099 mm). With the faint fringes left out
+instead of 0.2 mm: centre 0.033 mm median, 0.088 mm p95 (13-mm globes 0.114 → 0.103 mm p95;
+``--seed 1``: 0.034 and 0.077 mm, 13-mm globes 0.110 → 0.099 mm). With the faint fringes left out
 (:data:`MIN_AMPLITUDE`): 0.030 and 0.089 mm, 13-mm globes 0.102 mm (``--seed 1``: 0.033 and 0.078
 mm, 13-mm globes 0.099 mm), where 120 other 13-mm eyes went 0.086 → 0.080 mm. It costs ≈ 0.3 s a
 fit; live tracking (radius held) leaves it out. On the sclera of a rendered 13-mm eye turned away,
