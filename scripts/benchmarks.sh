@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Regenerate docs/benchmarks.md: run the benches (the full accuracy protocol, ≈ 10 minutes on
-# 2 cores, the speed bench with live tracking, ≈ 8 minutes, and the eye pose bench on 200 poses
-# with the radius fitted and held, ≈ 12 minutes each) and render their JSON. Figures and PNGs
-# are kept in build/benchmarks/. Usage: bash scripts/benchmarks.sh [--quick]
+# 2 cores, the speed bench with live tracking, ≈ 8 minutes, and the eye pose bench with the radius
+# fitted on 600 poses, 200 of each globe size, ≈ 25 minutes, and held on 200, ≈ 8 minutes) and
+# render their JSON. Figures and PNGs are kept in build/benchmarks/.
+# Usage: bash scripts/benchmarks.sh [--quick]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
@@ -12,7 +13,8 @@ quick=()
 if [[ "${1:-}" == "--quick" ]]; then quick=(--quick); fi
 .venv/bin/eyeserver bench accuracy --json "${quick[@]}" --out "$out/accuracy" > "$out/accuracy.json"
 .venv/bin/eyeserver bench speed --json --calibration "$out/accuracy/calibration" > "$out/speed.json"
-.venv/bin/eyeserver bench pose --json --calibration "$out/accuracy/calibration" > "$out/pose.json"
+.venv/bin/eyeserver bench pose --json --poses 600 --calibration "$out/accuracy/calibration" \
+    > "$out/pose.json"
 .venv/bin/eyeserver bench pose --json --held-radius --calibration "$out/accuracy/calibration" \
     > "$out/pose_held.json"
 .venv/bin/python -m eyeserver.bench.report "$out/accuracy.json" "$out/speed.json" \

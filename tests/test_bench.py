@@ -11,7 +11,8 @@ import pytest
 
 from eyeserver.bench import speed, tracking
 from eyeserver.bench.figures import FIGURES
-from eyeserver.bench.report import render, render_pose, render_speed
+from eyeserver.bench.pose import p95_interval
+from eyeserver.bench.report import p95_text, render, render_pose, render_speed
 from eyeserver.cli import main
 from eyeserver.pipeline.demodulate import Carrier, demodulate
 
@@ -181,7 +182,13 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
     assert 0.0 <= calibration["centre_axes_within_1_sd"] \
         <= calibration["centre_axes_within_2_sd"] <= 1.0
     assert 0.0 <= calibration["gaze_within_1_sd"] <= calibration["gaze_within_2_sd"] <= 1.0
+    # The p95s' bootstrap intervals: over the three poses, none for one pose of a globe size.
+    low, high = report["centre_error_mm"]["p95_interval"]
+    assert low <= report["centre_error_mm"]["p95"] <= high
+    assert all(by["centre_error_mm"]["p95_interval"] is None
+               for by in report["by_globe_radius"].values())
     section = "\n".join(render_pose(report))
+    assert "| p95 (95 % bootstrap interval) |" in section
     assert report["held_radius"] is False
     assert "## Eye pose, radius fitted" in section and "model: population" in section
     assert "a fail against the 0.2 mm tolerance" in section
@@ -292,3 +299,20 @@ def test_the_speed_report_shows_live_tracking_rendered_live_and_ahead() -> None:
     text = "\n".join(speed.tracking_lines(figures))
     assert "the simulated room rendered ahead): frame → pose message 30 ms median" in text
     assert speed.tracking_figures(None, None) == {}
+
+
+def test_p95_interval_measures_the_draws_luck() -> None:
+    """The bootstrap interval of a p95 holds the population's p95 and narrows with more poses;
+    it is deterministic, and undefined for fewer than two values."""
+    rng = np.random.default_rng(3)
+    many, few = rng.uniform(0.0, 1.0, 1000), rng.uniform(0.0, 1.0, 60)
+    wide, narrow = p95_interval(few), p95_interval(many)
+    assert wide is not None and narrow is not None
+    assert narrow[0] < 0.95 < narrow[1] and narrow[1] - narrow[0] < 0.03
+    assert wide[0] <= float(np.percentile(few, 95)) <= wide[1]
+    assert wide[1] - wide[0] > 2 * (narrow[1] - narrow[0])
+    assert p95_interval(few) == wide
+    assert p95_interval([0.1]) is None
+    assert (p95_text({"p95": 0.1, "p95_interval": [0.05, 0.12]}, " mm")
+            == "0.100 mm (0.050–0.120 mm)")
+    assert p95_text({"p95": 0.1}) == "0.100"

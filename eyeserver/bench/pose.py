@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from eyeserver.bench.report import uncertainty_coverage
+from eyeserver.bench.report import by_globe_text, p95_text, uncertainty_coverage
 from eyeserver.bench.simcal import calibrate_room
 from eyeserver.bench.speed import machine
 from eyeserver.errors import EyeserverError
@@ -75,12 +75,39 @@ def _measure(session: SimSession, spec: SceneSpec, caldir: Path, bundle: Path,
     return pose, truth, time.perf_counter() - started, None
 
 
-def _stats(values: list[float]) -> dict[str, float | None]:
-    if not values:
-        return {"median": None, "p95": None, "max": None}
-    arr = np.asarray(values)
-    return {"median": float(np.median(arr)), "p95": float(np.percentile(arr, 95)),
-            "max": float(arr.max())}
+BOOTSTRAP_RESAMPLES = 4000
+"""Resamples behind a p95's interval (:func:`p95_interval`)."""
+
+
+def p95_interval(values: Any, level: float = 0.95) -> tuple[float, float] | None:
+    """A percentile-bootstrap ``level`` interval of the 95th percentile of ``values``: how far
+    the p95 of another draw of as many poses may lie (with 66 poses of one globe size it rests
+    on the three or four largest errors). Deterministic (a fixed generator), None for fewer
+    than two values. The percentile bootstrap of a tail quantile is rough (it cannot reach
+    beyond the largest value seen), so it is read as a scale of the draw's luck, not as exact
+    coverage."""
+    arr = np.asarray(values, dtype=np.float64)
+    if len(arr) < 2:
+        return None
+    draws = np.random.default_rng(0).integers(0, len(arr), (BOOTSTRAP_RESAMPLES, len(arr)))
+    p95s = np.percentile(arr[draws], 95, axis=1)
+    tail = 50.0 * (1.0 - level)
+    low, high = np.percentile(p95s, [tail, 100.0 - tail])
+    return float(low), float(high)
+
+
+def _stats(values: list[float], interval: bool = False) -> dict[str, Any]:
+    """Median, p95 and max of ``values`` (None each when empty); with ``interval``, the p95's
+    bootstrap interval too (``p95_interval``: ``[low, high]`` or None)."""
+    arr = np.asarray(values, dtype=np.float64)
+    stats: dict[str, Any] = {"median": None, "p95": None, "max": None}
+    if len(arr):
+        stats = {"median": float(np.median(arr)), "p95": float(np.percentile(arr, 95)),
+                 "max": float(arr.max())}
+    if interval:
+        bounds = p95_interval(arr)
+        stats["p95_interval"] = None if bounds is None else list(bounds)
+    return stats
 
 
 def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Path | None = None,
@@ -155,16 +182,16 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
         these = [r for r in fitted if r["globe_radius_mm"] == radius]
         by_radius[f"{radius:g}"] = {
             "poses": sum(1 for r in rows if r["globe_radius_mm"] == radius),
-            "centre_error_mm": _stats([r["centre_error_mm"] for r in these]),
-            "gaze_error_deg": _stats([r["gaze_error_deg"] for r in these])}
+            "centre_error_mm": _stats([r["centre_error_mm"] for r in these], interval=True),
+            "gaze_error_deg": _stats([r["gaze_error_deg"] for r in these], interval=True)}
     return {
         "format": "eyeserver.bench.pose/1", "machine": machine(), "seed": seed,
         "poses": poses, "fitted": len(fitted), "goals": GOALS,
         "units": units or known, "held_radius": held_radius,
         "model": "radius held (the scene's, as an MRI gives it)" if held_radius
         else "population, radius fitted",
-        "centre_error_mm": _stats([r["centre_error_mm"] for r in fitted]),
-        "gaze_error_deg": _stats([r["gaze_error_deg"] for r in fitted]),
+        "centre_error_mm": _stats([r["centre_error_mm"] for r in fitted], interval=True),
+        "gaze_error_deg": _stats([r["gaze_error_deg"] for r in fitted], interval=True),
         "radius_error_mm": _stats([abs(r["radius_error_mm"]) for r in fitted]),
         "limbus_centre_error_mm": _stats([r["limbus_error_mm"] for r in fitted
                                           if r["limbus_error_mm"] is not None]),
@@ -202,7 +229,7 @@ def format_text(report: dict[str, Any]) -> str:
         s = report[key]
         if s["median"] is None:
             return f"{name}: not measured"
-        return f"{name}: median {s['median']:.3f}, p95 {s['p95']:.3f}  (goal {goal})"
+        return f"{name}: median {s['median']:.3f}, p95 {p95_text(s)}  (goal {goal})"
 
     out = [f"eye pose bench: {report['fitted']}/{report['poses']} poses fitted (units "
            f"{', '.join(report.get('units', ['all']))}; model: "
@@ -215,6 +242,9 @@ def format_text(report: dict[str, Any]) -> str:
                 "≤ 0.10 mm; paper 0.43 mm"),
            line("sclera points", "sclera_points", "-"),
            line("fit time (ms)", "fit_ms", "-")]
+    out += [by_globe_text(radius, by) for radius, by in report["by_globe_radius"].items()]
+    out.append("p95s in brackets: their 95 % bootstrap intervals (how far another draw of as "
+               "many poses may put them)")
     out.append("gaze from: " + ", ".join(f"{k} {v}" for k, v in report["gaze_sources"].items()))
     coverage = uncertainty_coverage(report)
     if coverage is not None:

@@ -194,6 +194,25 @@ def _tracking_paragraph(speed: dict[str, Any], key: str, prefix: str) -> list[st
     return ["", text]
 
 
+def p95_text(stats: dict[str, Any], unit: str = "") -> str:
+    """A p95 with its bootstrap interval where the report has one: ``0.089 (0.078–0.105)``,
+    ``unit`` after each number."""
+    text = f"{_value(stats['p95'])}{unit}"
+    bounds = stats.get("p95_interval")
+    if bounds:
+        text += f" ({_value(bounds[0])}–{_value(bounds[1])}{unit})"
+    return text
+
+
+def by_globe_text(radius: str, by: dict[str, Any]) -> str:
+    """One globe size's line of the pose bench, p95s with their bootstrap intervals."""
+    return (f"globe {radius} mm ({by['poses']} poses): centre "
+            f"{_value(by['centre_error_mm']['median'])} mm median, "
+            f"{p95_text(by['centre_error_mm'], ' mm')} p95; gaze "
+            f"{_value(by['gaze_error_deg']['median'])}° median, "
+            f"{p95_text(by['gaze_error_deg'], '°')} p95")
+
+
 def uncertainty_coverage(pose: dict[str, Any]) -> str | None:
     """How often the pose bench's errors lay within its poses' stated sds, beside a normal
     error's shares, in words (None when nothing was fitted or the report predates it)."""
@@ -214,7 +233,7 @@ def render_pose(pose: dict[str, Any]) -> list[str]:
     """The eye pose section (``eyeserver bench pose``)."""
     def row(name: str, key: str, goal: str) -> str:
         stats = pose[key]
-        return (f"| {name} | {_value(stats['median'])} | {_value(stats['p95'])} | "
+        return (f"| {name} | {_value(stats['median'])} | {p95_text(stats)} | "
                 f"{_value(stats['max'])} | {goal} |")
 
     model = pose.get("model", "population, radius fitted")
@@ -225,7 +244,8 @@ def render_pose(pose: dict[str, Any]) -> list[str]:
              f"13 mm; units: {', '.join(pose.get('units', ['all']))}; model: {model}); gaze "
              "from: " + ", ".join(f"{k} {v}" for k, v in
                                   pose.get("gaze_sources", {}).items()) + ".", "",
-             "| figure | median | p95 | max | goal |", "|---|---|---|---|---|",
+             "| figure | median | p95 (95 % bootstrap interval) | max | goal |",
+             "|---|---|---|---|---|",
              row("globe centre error (mm)", "centre_error_mm", "≤ 0.1"),
              row("gaze error (°)", "gaze_error_deg", "≤ 0.5"),
              row("globe radius |error| (mm)", "radius_error_mm", "–")]
@@ -234,11 +254,7 @@ def render_pose(pose: dict[str, Any]) -> list[str]:
     lines += [row("surface–model median distance (mm)", "surface_mad_mm", "paper 0.43"),
               row("fit time (ms)", "fit_ms", "–"), ""]
     for radius, by in pose["by_globe_radius"].items():
-        lines.append(f"- globe {radius} mm ({by['poses']} poses): centre "
-                     f"{_value(by['centre_error_mm']['median'])} mm median, "
-                     f"{_value(by['centre_error_mm']['p95'])} p95; gaze "
-                     f"{_value(by['gaze_error_deg']['median'])}° median, "
-                     f"{_value(by['gaze_error_deg']['p95'])}° p95")
+        lines.append(f"- {by_globe_text(radius, by)}")
     coverage = uncertainty_coverage(pose)
     if coverage is not None:
         lines.append(f"- the poses' {coverage}")
