@@ -203,7 +203,8 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
     assert one["gaze_error_deg"]["max"] < 1.0
     # Held: the sphere through the limbus of that radius (hypot(√(R² − r²), r): R to rounding).
     assert one["radius_error_mm"]["max"] == pytest.approx(0.0, abs=1e-9)
-    assert "`eyeserver bench pose --held-radius`: 2 of 2" in "\n".join(render_pose(one))
+    assert "`eyeserver bench pose --poses 2 --seed 0 --held-radius`: 2 of 2" \
+        in "\n".join(render_pose(one))
     assert main(["bench", "pose", "--unit", "centre", "--calibration", str(caldir)]) == 2
     assert "no unit centre" in capsys.readouterr().err
 

@@ -239,7 +239,8 @@ def render_pose(pose: dict[str, Any]) -> list[str]:
     model = pose.get("model", "population, radius fitted")
     held = bool(pose.get("held_radius", False))
     lines = [f"## Eye pose, {'radius held' if held else 'radius fitted'}", "",
-             f"`eyeserver bench pose{' --held-radius' if held else ''}`: {pose['fitted']} of "
+             f"`eyeserver bench pose --poses {pose['poses']} --seed {pose['seed']}"
+             f"{' --held-radius' if held else ''}`: {pose['fitted']} of "
              f"{pose['poses']} random rendered eyes fitted (±5 mm, ±10°, globes of 11, 12 and "
              f"13 mm; units: {', '.join(pose.get('units', ['all']))}; model: {model}); gaze "
              "from: " + ", ".join(f"{k} {v}" for k, v in
