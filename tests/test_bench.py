@@ -11,6 +11,7 @@ import pytest
 
 from eyeserver.bench import speed, tracking
 from eyeserver.bench.figures import FIGURES
+from eyeserver.bench.pose import format_text as format_pose_text
 from eyeserver.bench.pose import p95_interval
 from eyeserver.bench.report import p95_text, render, render_pose, render_speed
 from eyeserver.cli import main
@@ -189,6 +190,8 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
                for by in report["by_globe_radius"].values())
     section = "\n".join(render_pose(report))
     assert "| p95 (95 % bootstrap interval) |" in section
+    text = format_pose_text(report)
+    assert "globe 13 mm (1 poses): centre" in text and "95 % bootstrap intervals" in text
     assert report["held_radius"] is False
     assert "## Eye pose, radius fitted" in section and "model: population" in section
     assert "a fail against the 0.2 mm tolerance" in section
