@@ -50,26 +50,24 @@ strays by 5–13°: the cloud's sclera ends a fringe period outside the limbus, 
    (:mod:`eyeserver.pipeline.sclera`); live tracking, whose radius is held, keeps step 5's
    globe.
 
-What limits it. Found again about the true globe from the true circle (30 rendered 13-mm eyes),
-the limbus lies 0.006 ± 0.006 mm in front along the gaze and is 0.004 ± 0.003 mm small;
-without the sensor's noise, 0.002 ± 0.004 mm and 0.006 mm. A sphere through it carries its depth
-2–5 times into the globe's radius (for sclera 50–40° from the gaze of a 13-mm globe;
-:mod:`~eyeserver.pipeline.sclera`). Not the calibration: over the eye's volume its projections
-lie within 0.013 px (mean) and 0.02 px (sd) of the renderer's cameras, and with the renderer's
-own cameras the depth spreads as much (sd 0.0044 against 0.0043 mm). Two thirds of what the noise
-adds come from the 10–16 % of a camera's edges where the cornea shadows the sclera just beyond the
-limbus from the projector: there the edges found lie 0.03–0.05 px outwards with the noise
-(medians per camera) and 0.04–0.13 px inwards without it, where the others lie 0.02–0.04 px
-inwards either way (how strong an edge must be, 20–55 % of the profile's strongest, changed none
-of it).
-Leaving those edges out (known from the renderer) took the noise's part from 0.004 to 0.001 mm
-but widened the spread (sd 0.006 → 0.007 mm). Tried on the same eyes: the edge fitted as a
-blurred step, the strongest point of the first strong run instead of its first peak, 240 or 480
-samples, smoothing of σ 1.5 px, the sharpened image's illumination smoothed (σ 2 px) or fitted 2
-px clear of the edge moved the depth's bias and spread by 0.0006 mm or less, or made them worse;
-smoothing of σ 0.6 px instead of 1 moved the limbus 0.003 mm back, yet on 120 other 13-mm eyes
-the globe centre's p95 went 0.080 → 0.084 mm (0.8 px: 0.082 mm), and with none the noise's own
-peaks are taken.
+What limits it. Found again about the true globe from the true circle (30 rendered 13-mm eyes), the
+limbus lies 0.006 ± 0.006 mm in front along the gaze and is 0.004 ± 0.003 mm small; without the
+sensor's noise, 0.002 ± 0.004 mm and 0.006 mm. A sphere through it carries its depth 2–5 times into
+the globe's radius (for sclera 50–40° from the gaze of a 13-mm globe;
+:mod:`~eyeserver.pipeline.sclera`). Not the calibration: over the eye's volume its projections lie
+within 0.013 px (mean) and 0.02 px (sd) of the renderer's cameras, and with the renderer's own
+cameras the depth spreads as much (sd 0.0044 against 0.0043 mm). Two thirds of what the noise adds
+come from the 10–16 % of a camera's edges where the cornea shadows the sclera just beyond the limbus
+from the projector: there the edges found lie 0.03–0.05 px outwards with the noise (medians per
+camera) and 0.04–0.13 px inwards without it, where the others lie 0.02–0.04 px inwards either way
+(how strong an edge must be, 20–55 % of the profile's strongest, changed none of it). Leaving those
+edges out (known from the renderer) took the noise's part from 0.004 to 0.001 mm but widened the
+spread (sd 0.006 → 0.007 mm). Tried on the same eyes: the edge fitted as a blurred step, the
+strongest point of the first strong run instead of its first peak, 240 or 480 samples, smoothing of
+σ 1.5 px, the sharpened image's illumination smoothed (σ 2 px) or fitted 2 px clear of the edge
+moved the depth's bias and spread by 0.0006 mm or less, or made them worse; smoothing of σ 0.6 px
+instead of 1 moved the limbus 0.003 mm back, yet on 120 other 13-mm eyes the globe centre's p95 went
+0.080 → 0.084 mm (0.8 px: 0.082 mm), and with none the noise's own peaks are taken.
 
 Not modelled: a pupil or iris pattern inside the limbus (rising edges inside the cornea would
 be taken for the limbus; a real eye's pupil edge is weaker than the limbus in near infrared but

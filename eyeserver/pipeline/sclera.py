@@ -66,27 +66,27 @@ band's tilted 0.28° (``tests/test_sclera.py``). What is left: the limbus found 
 true one along the gaze on 34 of 36 poses, by 0.006 mm on average (sd 0.004 mm), which the globe's
 depth amplifies (the five poses furthest off, 0.07–0.12 mm, are off along the gaze). The edges on
 the far side of the limbus, as a camera sees it, lie outwards of those on the near side (noise-free
-renders: by 0.03–0.1 px); part of it is the calibration (one camera's projection of the limbus 0.03
-px off the renderer's on either side), the rest is not found. Against the true globe, the remeasured
-sclera lies 0.01–0.02 mm outside it within ≈ 1 mm of the limbus and 0.01–0.02 mm inside it towards
-the lids (medians over 40 rendered 13-mm eyes, each camera alike); on 120 such eyes, leaving out the
-band 0.4–1.2 mm from the limbus, the 3 pixels next to where a lid hides the sphere, a robust scale
-of 0.02 mm, windows of 11 pixels or fitting a radial offset per camera left the centre's p95 within
-0.003 mm of 0.086 mm (or worse; 7-pixel windows 0.108 mm). That pattern is the shading across a
-window (measured about the true globe: with the light's true incidence in the fit's amplitude, flat
-within 3 µm from 30° to 55° off the gaze), but taking it out did not help the globe: the incidence
-estimated from the windows' amplitudes corrected a part and made the centre's p95 0.110 mm, the
-renderer's true projector 0.093 mm (the radius 0.02 mm small). A background varying linearly in the
-window (0.144 mm), weights from each pixel's phase sd (0.104–0.113 mm) did worse. Noise is not what
-limits it: noise-free renders of 30 eyes gave the same radius spread (sd 0.039 mm). The limbus is:
-fitted to the sclera remeasured about the true globe (30 noise-free 13-mm eyes), the radius through
-the true limbus circle has an sd of 12 µm with the faint fringes left out, through the limbus found
-32 µm; its depth along the gaze (in front by 0.008 ± 0.005 mm) and its radius (0.004 ± 0.003 mm
-small) each account for part of that. With the true limbus circle put in place of the one found
-(120 rendered 13-mm eyes, the rest of the fit as it is) the centre's p95 is 0.046 mm against 0.080
-mm; with only the circle's depth, tilt or radius made true, 0.085, 0.089 and 0.104 mm (their
-errors offset each other). The limbus's whole covariance as :func:`globe_and_gaze`'s prior, its
-radius free too, gave 0.081 mm. What moves the limbus: :mod:`~eyeserver.pipeline.limbus`.
+renders: by 0.03–0.1 px); not from the calibration (see :mod:`~eyeserver.pipeline.limbus`). Against
+the true globe, the remeasured sclera lies 0.01–0.02 mm outside it within ≈ 1 mm of the limbus and
+0.01–0.02 mm inside it towards the lids (medians over 40 rendered 13-mm eyes, each camera alike); on
+120 such eyes, leaving out the band 0.4–1.2 mm from the limbus, the 3 pixels next to where a lid
+hides the sphere, a robust scale of 0.02 mm, windows of 11 pixels or fitting a radial offset per
+camera left the centre's p95 within 0.003 mm of 0.086 mm (or worse; 7-pixel windows 0.108 mm). That
+pattern is the shading across a window (measured about the true globe: with the light's true
+incidence in the fit's amplitude, flat within 3 µm from 30° to 55° off the gaze), but taking it out
+did not help the globe: the incidence estimated from the windows' amplitudes corrected a part and
+made the centre's p95 0.110 mm, the renderer's true projector 0.093 mm (the radius 0.02 mm small). A
+background varying linearly in the window (0.144 mm), weights from each pixel's phase sd
+(0.104–0.113 mm) did worse. Noise is not what limits it: noise-free renders of 30 eyes gave the same
+radius spread (sd 0.039 mm). The limbus is: fitted to the sclera remeasured about the true globe (30
+noise-free 13-mm eyes), the radius through the true limbus circle has an sd of 12 µm with the faint
+fringes left out, through the limbus found 32 µm; its depth along the gaze (in front by 0.008 ±
+0.005 mm) and its radius (0.004 ± 0.003 mm small) each account for part of that. With the true
+limbus circle put in place of the one found (120 rendered 13-mm eyes, the rest of the fit as it is)
+the centre's p95 is 0.046 mm against 0.080 mm; with only the circle's depth, tilt or radius made
+true, 0.085, 0.089 and 0.104 mm (their errors offset each other). The limbus's whole covariance as
+:func:`globe_and_gaze`'s prior, its radius free too, gave 0.081 mm. What moves the limbus:
+:mod:`~eyeserver.pipeline.limbus`.
 """
 
 from __future__ import annotations
