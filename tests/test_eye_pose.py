@@ -99,7 +99,7 @@ def test_pose_command_prints_json(calibrated_rooms, tmp_path: Path,  # type: ign
     pose = json.loads(capsys.readouterr().out)
     truth = json.loads((bundle / "truth.json").read_text())["eye"]
     assert np.linalg.norm(pose["gaze"]) == pytest.approx(1.0)
-    # Measured: 0.06 mm and 0.01° on this default pose (the pose bench's p95: 0.089 mm, 0.15°).
+    # Measured: 0.06 mm and 0.01° on this default pose (the pose bench's p95: 0.083 mm, 0.15°).
     assert np.linalg.norm(np.subtract(pose["centre_mm"], truth["centre_mm"])) < 0.3
     assert math.degrees(math.acos(min(1.0, float(np.dot(pose["gaze"], truth["gaze"]))))) < 0.5
 
