@@ -51,23 +51,46 @@ strays by 5–13°: the cloud's sclera ends a fringe period outside the limbus, 
    globe.
 
 What limits it. Found again about the true globe from the true circle (30 rendered 13-mm eyes), the
-limbus lies 0.006 ± 0.006 mm in front along the gaze and is 0.004 ± 0.003 mm small; without the
-sensor's noise, 0.002 ± 0.004 mm and 0.006 mm. A sphere through it carries its depth 2–5 times into
-the globe's radius (for sclera 50–40° from the gaze of a 13-mm globe;
-:mod:`~eyeserver.pipeline.sclera`). Not the calibration: over the eye's volume its projections lie
-within 0.013 px (mean) and 0.02 px (sd) of the renderer's cameras, and with the renderer's own
-cameras the depth spreads as much (sd 0.0044 against 0.0043 mm). Two thirds of what the noise adds
-come from the 10–16 % of a camera's edges where the cornea shadows the sclera just beyond the limbus
-from the projector: there the edges found lie 0.03–0.05 px outwards with the noise (medians per
-camera) and 0.04–0.13 px inwards without it, where the others lie 0.02–0.04 px inwards either way
-(how strong an edge must be, 20–55 % of the profile's strongest, changed none of it). Leaving those
-edges out (known from the renderer) took the noise's part from 0.004 to 0.001 mm but widened the
-spread (sd 0.006 → 0.007 mm). Tried on the same eyes: the edge fitted as a blurred step, the
-strongest point of the first strong run instead of its first peak, 240 or 480 samples, smoothing of
-σ 1.5 px, the sharpened image's illumination smoothed (σ 2 px) or fitted 2 px clear of the edge
-moved the depth's bias and spread by 0.0006 mm or less, or made them worse; smoothing of σ 0.6 px
-instead of 1 moved the limbus 0.003 mm back, yet on 120 other 13-mm eyes the globe centre's p95 went
-0.080 → 0.084 mm (0.8 px: 0.082 mm), and with none the noise's own peaks are taken.
+limbus lies 0.006 ± 0.006 mm in front along the gaze and is 0.004 ± 0.003 mm small. A sphere through
+it carries its depth 2–5 times into the globe's radius (for sclera 50–40° from the gaze of a 13-mm
+globe; :mod:`~eyeserver.pipeline.sclera`). Not the calibration: over the eye's volume its
+projections lie within 0.013 px (mean) and 0.02 px (sd) of the renderer's cameras, and with the
+renderer's own cameras the depth spreads as much (sd 0.0044 against 0.0043 mm). Not the sensor's
+noise: found in the mean of 16 exposures (20 eyes) the limbus lies 0.009 ± 0.005 mm in front, and
+the mean of 4 left the globe centre as it was (40 eyes: p95 0.083 against 0.078 mm). Renders without
+noise mislead here: rounded to whole DN without the noise's dither (the sclera beyond the limbus
+gives 13–60 DN), their limbus lies 0.004 mm further back than the 16 exposures' on the same eyes,
+the far side's edges (as a camera sees the limbus) 0.03–0.05 px further in. In the mean image the
+edges found on the near side and across lie 0.02–0.05 px inwards, those on the far side within 0.02
+px (mean profiles over 10 eyes): the depth follows that difference. Where the cornea shadows the
+sclera just beyond the limbus from the projector (10–16 % of a camera's edges) the edge found is the
+shadow's; leaving those edges out (known from the renderer) widened the depth's spread (sd 0.006 →
+0.007 mm; 0.012 mm with the first-order shift below taken off the edges). Tried: the edge fitted as
+a blurred step to the sharpened image, the strongest point of the first strong run instead of its
+first peak, 240 or 480 samples, profiles averaged along the edge over 2–8 px, edges in the fringe's
+troughs left out, smoothing of σ 1.5 px, the sharpened image's illumination smoothed (σ 2 px) or
+fitted 2 px clear of the edge moved the depth's bias and spread by 0.0006 mm or less, or made them
+worse; smoothing of σ 0.6 px instead of 1 moved the limbus 0.003 mm back, yet on 120 other 13-mm
+eyes the globe centre's p95 went 0.080 → 0.084 mm (0.8 px: 0.082 mm), and with none the noise's own
+peaks are taken.
+
+The blur's part, not yet taken out. Dividing the image by the light after the optics' blur, as the
+sharpened image does (:func:`~eyeserver.pipeline.sclera.sharpened`), leaves each edge ≈ σ²·∂ln F/∂n
+off (first order; σ² the blur's variance, F the light, n the edge's normal). Taking that shift off
+the edges found, with σ² = 0.57 px², gained nothing with the sensor's noise (120 13-mm eyes: centre
+p95 0.080 → 0.088 mm). Placing each edge instead by a model of the raw image across it (a blurred
+step from a constant to the fitted light times a linear shading, by least squares) took ``eyeserver
+bench pose`` on 200 poses from 0.089 to 0.072 mm centre p95 (``--seed 1``: 0.078 → 0.072 mm; 13-mm
+globes 0.102 → 0.084 and 0.099 → 0.093 mm), its fits taking 0.76 s (median, two benches sharing two
+cores), given the simulated cameras' own blur (σ² = 0.57 px²: 0.7 px and the pixel's width). That is
+the renderer's setting, which the pipeline cannot know. The variance that each camera's edges fit
+best is 0.6–0.8 px² on profiles interpolated at 0.25 px, and with the interpolation's own blur
+modelled for each sample 0.49–0.67 px², the optics' own. Yet with the blur they fit best, the limbus
+came out 0.007 mm large (found about the truth in the mean of 16 exposures, 20 eyes; 0.001 mm small
+with 0.57 px² and the interpolation left out) and the globe's radius 0.028 mm small (40 eyes; 0.002
+mm): the model misses something of the image across the edge that the smaller blur happens to
+offset, and each px² of blur moves the radius by ≈ 0.06 mm. Until the model places the edges with
+the blur they fit best, it is not used.
 
 Not modelled: a pupil or iris pattern inside the limbus (rising edges inside the cornea would
 be taken for the limbus; a real eye's pupil edge is weaker than the limbus in near infrared but
