@@ -83,14 +83,17 @@ step from a constant to the fitted light times a linear shading, by least square
 bench pose`` on 200 poses from 0.089 to 0.072 mm centre p95 (``--seed 1``: 0.078 → 0.072 mm; 13-mm
 globes 0.102 → 0.084 and 0.099 → 0.093 mm), its fits taking 0.76 s (median, two benches sharing two
 cores), given the simulated cameras' own blur (σ² = 0.57 px²: 0.7 px and the pixel's width). That is
-the renderer's setting, which the pipeline cannot know. The variance that each camera's edges fit
-best is 0.6–0.8 px² on profiles interpolated at 0.25 px, and with the interpolation's own blur
-modelled for each sample 0.49–0.67 px², the optics' own. Yet with the blur they fit best, the limbus
-came out 0.007 mm large (found about the truth in the mean of 16 exposures, 20 eyes; 0.001 mm small
-with 0.57 px² and the interpolation left out) and the globe's radius 0.028 mm small (40 eyes; 0.002
-mm): the model misses something of the image across the edge that the smaller blur happens to
-offset, and each px² of blur moves the radius by ≈ 0.06 mm. Until the model places the edges with
-the blur they fit best, it is not used.
+the renderer's setting, which the pipeline cannot know, and that model's step, summed on a 0.05-px
+grid from its first point in full, lay 0.025 px outwards of where it meant to; the two offset each
+other. Summed by the trapezoid rule, with the blur that each camera's edges fit best (0.49–0.67 px²
+once the bilinear interpolation's own blur along each profile sample is modelled, the optics' own;
+0.6–0.8 px² without it), the model finds the limbus where it is in the mean of 16 exposures (20
+eyes: 0.005 mm in front against 0.009 mm, its radius 0.001 mm off; the globe's radius 0.002 ± 0.028
+mm off, centre p95 0.067 mm), but in single exposures the same eyes' radius came out 0.014 mm small
+(p95 0.072 mm; 40 others 0.018 mm small, p95 0.076 against 0.078 mm; 30 others 0.021 mm small, 0.096
+against 0.093 mm), where the edge locator in use is not moved by the noise. Weighting each sample by
+the sensor's noise (shot and read, the renderer's) left it 0.016 mm small; what draws it is not
+known yet, and the model is not used until it is.
 
 Not modelled: a pupil or iris pattern inside the limbus (rising edges inside the cornea would
 be taken for the limbus; a real eye's pupil edge is weaker than the limbus in near infrared but
