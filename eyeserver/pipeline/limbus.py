@@ -91,9 +91,12 @@ once the bilinear interpolation's own blur along each profile sample is modelled
 eyes: 0.005 mm in front against 0.009 mm, its radius 0.001 mm off; the globe's radius 0.002 ± 0.028
 mm off, centre p95 0.067 mm), but in single exposures the same eyes' radius came out 0.014 mm small
 (p95 0.072 mm; 40 others 0.018 mm small, p95 0.076 against 0.078 mm; 30 others 0.021 mm small, 0.096
-against 0.093 mm), where the edge locator in use is not moved by the noise. Weighting each sample by
-the sensor's noise (shot and read, the renderer's) left it 0.016 mm small; what draws it is not
-known yet, and the model is not used until it is.
+against 0.093 mm), where the edge locator in use is not moved by the noise. It is the fit's own
+response to the noise in the profiles: with only those profiles taken from the 16 exposures' mean
+(all else from the single one) the radius came out right (0.001 mm), whereas weighting each sample
+by the sensor's noise (shot and read, the renderer's) or fitting four neighbouring edges' profiles
+together left it 0.012–0.016 mm small. The model is not used until an estimator without that bias is
+found.
 
 Not modelled: a pupil or iris pattern inside the limbus (rising edges inside the cornea would
 be taken for the limbus; a real eye's pupil edge is weaker than the limbus in near infrared but
