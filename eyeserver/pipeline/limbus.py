@@ -94,9 +94,12 @@ mm off, centre p95 0.067 mm), but in single exposures the same eyes' radius came
 against 0.093 mm), where the edge locator in use is not moved by the noise. It is the fit's own
 response to the noise in the profiles: with only those profiles taken from the 16 exposures' mean
 (all else from the single one) the radius came out right (0.001 mm), whereas weighting each sample
-by the sensor's noise (shot and read, the renderer's) or fitting four neighbouring edges' profiles
-together left it 0.012–0.016 mm small. The model is not used until an estimator without that bias is
-found.
+by the sensor's noise (shot and read, the renderer's) or summing four neighbouring edges' fits left
+it 0.012–0.016 mm small. One fit over five profiles 1 px apart along the edge, sharing the step and
+the levels, took the radius's bias away on those 20 eyes (0.002 mm; centre p95 0.066 against 0.083
+mm with the edges in use) and gained on 70 others (p95 0.069 against 0.078, 0.085 against 0.093 mm),
+but not on 120 others (two sets of 60: 0.088 and 0.095 against 0.080 and 0.081 mm, the radius's sd
+0.037 and 0.035 against 0.034 and 0.032 mm): not used until that is understood.
 
 Not modelled: a pupil or iris pattern inside the limbus (rising edges inside the cornea would
 be taken for the limbus; a real eye's pupil edge is weaker than the limbus in near infrared but
