@@ -63,16 +63,17 @@ gives 13–60 DN), their limbus lies 0.004 mm further back than the 16 exposures
 the far side's edges (as a camera sees the limbus) 0.03–0.05 px further in. In the mean image the
 edges found on the near side and across lie 0.02–0.05 px inwards, those on the far side within 0.02
 px (mean profiles over 10 eyes): the depth follows that difference. Where the cornea shadows the
-sclera just beyond the limbus from the projector (10–16 % of a camera's edges) the edge found is the
-shadow's; leaving those edges out (known from the renderer) widened the depth's spread (sd 0.006 →
-0.007 mm; 0.012 mm with the first-order shift below taken off the edges). Tried: the edge fitted as
-a blurred step to the sharpened image, the strongest point of the first strong run instead of its
-first peak, 240 or 480 samples, profiles averaged along the edge over 2–8 px, edges in the fringe's
-troughs left out, smoothing of σ 1.5 px, the sharpened image's illumination smoothed (σ 2 px) or
-fitted 2 px clear of the edge moved the depth's bias and spread by 0.0006 mm or less, or made them
-worse; smoothing of σ 0.6 px instead of 1 moved the limbus 0.003 mm back, yet on 120 other 13-mm
-eyes the globe centre's p95 went 0.080 → 0.084 mm (0.8 px: 0.082 mm), and with none the noise's own
-peaks are taken.
+sclera just beyond the limbus from the projector (10–16 % of a camera's edges) little of the
+albedo's step is lit; leaving those edges out (known from the renderer) widened the spread of the
+depth found about the truth (sd 0.006 → 0.007 mm), and with the first-order shift below taken off
+the edges the pipeline's limbus depth spread to 0.012 mm. Tried: the edge fitted as a blurred step
+to the sharpened image, the strongest point of the first strong run instead of its first peak, 240
+or 480 samples, profiles averaged along the edge over 2–8 px, edges in the fringe's troughs left
+out, smoothing of σ 1.5 px, the sharpened image's illumination smoothed (σ 2 px) or fitted 2 px
+clear of the edge moved the depth's bias and spread by 0.0006 mm or less, or made them worse;
+smoothing of σ 0.6 px instead of 1 moved the limbus 0.003 mm back, yet on 120 other 13-mm eyes the
+globe centre's p95 went 0.080 → 0.084 mm (0.8 px: 0.082 mm), and with none the noise's own peaks are
+taken.
 
 The blur's part, not yet taken out. Dividing the image by the light after the optics' blur, as the
 sharpened image does (:func:`~eyeserver.pipeline.sclera.sharpened`), leaves each edge ≈ σ²·∂ln F/∂n
