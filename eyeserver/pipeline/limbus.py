@@ -100,7 +100,9 @@ it 0.012–0.016 mm small. One fit over five profiles 1 px apart along the edge,
 the levels, took the radius's bias away on those 20 eyes (0.002 mm; centre p95 0.066 against 0.083
 mm with the edges in use) and gained on 70 others (p95 0.069 against 0.078, 0.085 against 0.093 mm),
 but not on 120 others (two sets of 60: 0.088 and 0.095 against 0.080 and 0.081 mm, the radius's sd
-0.037 and 0.035 against 0.034 and 0.032 mm): not used until that is understood.
+0.037 and 0.035 against 0.034 and 0.032 mm), and on the bench's second draw (600 poses, ``--seed
+1``) it did worse: centre p95 0.087 against 0.080 mm, 13-mm globes 0.108 against 0.100 mm, 2.3 s a
+fit. Not used.
 
 Not modelled: a pupil or iris pattern inside the limbus (rising edges inside the cornea would
 be taken for the limbus; a real eye's pupil edge is weaker than the limbus in near infrared but
