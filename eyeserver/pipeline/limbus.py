@@ -104,6 +104,36 @@ but not on 120 others (two sets of 60: 0.088 and 0.095 against 0.080 and 0.081 m
 1``) it did worse: centre p95 0.087 against 0.080 mm, 13-mm globes 0.108 against 0.100 mm, 2.3 s a
 fit. Not used.
 
+The cornea's shadow, the larger part. On the default rig each projector lights the eye from 45° off
+the beam axis. Where a projector lies more than 41° off the gaze (90° less the 48.6° at which a
+7.8-mm cornea meets a 5.85-mm limbus), the corneal cap keeps its light off a band of sclera just
+beyond the limbus on the side away from it, which is the far side for that unit's cameras: up to 4
+px wide, in 1–8 of a camera's 36 sectors on 9 of 12 rendered 13-mm eyes. A real cornea does the same
+(light entering it goes into the eye, not onto the sclera behind the limbus). There the edge found
+is where the band ends, outwards. The same 24 13-mm eyes rendered with and without the cornea's
+shadow (a diagnostic change to the renderer, the same noise): the limbus found lies 0.0075 ± 0.0051
+mm in front against 0.0022 ± 0.0040 mm, it is 0.004 ± 0.003 against 0.005 ± 0.003 mm small, the
+globe's radius is 0.022 ± 0.028 against 0.010 ± 0.027 mm small, and the centre's p95 is 0.095
+against 0.072 mm. Leaving the shadowed edges out does not recover that (above): the band's width
+would have to be known. It follows from where the projector is, and the calibration does not give
+that: straight fringes fix only a line through the projector, parallel to them.
+
+A model of the raw pixels, fitted with the circle. The circle fitted to every pixel within 3 px of
+its projection in all cameras at once, the image modelled as the blur (one per camera) of a step
+from the cornea's light to the sclera's fitted light, with the light's gradient across the edge to
+first order and the sectors that fit worst left out, has thousands of pixels for ten parameters, so
+no noise bias: on 120 rendered 13-mm eyes its radius is 0.001 ± 0.002 mm small (the edges in use:
+0.004 ± 0.003 mm), its depth spreads less (sd 0.004 against 0.005 mm) and so does the globe's radius
+(sd 0.025 against 0.033 mm); the blur it fits is the optics' (0.48–0.62 px²; the renderer's 0.57).
+But its limbus lies further in front (0.010 against 0.007 mm), no longer offset by a small radius:
+the globe's radius comes out 0.034 mm small and the centre's p95 is 0.100 against 0.080 mm. Without
+the cornea's shadow (the 24 eyes above) its limbus lies 0.004 ± 0.002 mm in front and the globe's
+radius 0.029 ± 0.019 mm small (p95 0.075 against 0.072 mm). Per sector about the true circle, its
+edges on the near side still lie 0.025 px inwards, and the edges' offsets follow the light's
+gradient across them (−0.18 px per unit of ∂ln F/∂n), which the gradient term should have taken out:
+not yet understood. The cornea's own light inside (its phase on the model's cornea) moved the depth
+by 0.0006 mm. Not used; the experiment is kept outside the repository.
+
 Not modelled: a pupil or iris pattern inside the limbus (rising edges inside the cornea would
 be taken for the limbus; a real eye's pupil edge is weaker than the limbus in near infrared but
 should be checked on real images) and corneal refraction of the limbus (small at the limbus
