@@ -861,7 +861,7 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     except LimbusNotFoundError:
         return None
     refitted = (refit(views, limbus, globe.centre, globe.radius, globe.sclera, points,
-                      fixed_radius)
+                      fixed_radius, model.cornea_radius_mm)
                 if remeasure and len(globe.sclera) >= MIN_SCLERA_POINTS else None)
     if refitted is not None:
         limbus = refitted.limbus  # found again in the images with the fringe divided out

@@ -48,32 +48,37 @@ strays by 5–13°: the cloud's sclera ends a fringe period outside the limbus, 
    illumination divided out instead of the band's fringe subtracted, and fits the globe with
    the limbus's tilt and centre free within their uncertainties
    (:mod:`eyeserver.pipeline.sclera`); live tracking, whose radius is held, keeps step 5's
-   globe.
+   globe. Found again, the limbus leaves out the edges where the cornea keeps the camera's
+   projector's light off the sclera just beyond it (:func:`in_cornea_shadow`; the light's
+   direction from the calibration,
+   :meth:`~eyeserver.pipeline.reconstruct.CalibratedCamera.light_direction`; the cornea the eye
+   model's; "The cornea's shadow" below).
 
-What limits it. Found again about the true globe from the true circle (30 rendered 13-mm eyes), the
-limbus lies 0.006 ± 0.006 mm in front along the gaze and is 0.004 ± 0.003 mm small. A sphere through
-it carries its depth 2–5 times into the globe's radius (for sclera 50–40° from the gaze of a 13-mm
-globe; :mod:`~eyeserver.pipeline.sclera`). Not the calibration: over the eye's volume its
-projections lie within 0.013 px (mean) and 0.02 px (sd) of the renderer's cameras, and with the
-renderer's own cameras the depth spreads as much (sd 0.0044 against 0.0043 mm). Not the sensor's
-noise: found in the mean of 16 exposures (20 eyes) the limbus lies 0.009 ± 0.005 mm in front, and
-the mean of 4 left the globe centre as it was (40 eyes: p95 0.083 against 0.078 mm). Renders without
-noise mislead here: rounded to whole DN without the noise's dither (the sclera beyond the limbus
-gives 13–60 DN), their limbus lies 0.004 mm further back than the 16 exposures' on the same eyes,
-the far side's edges (as a camera sees the limbus) 0.03–0.05 px further in. In the mean image the
-edges found on the near side and across lie 0.02–0.05 px inwards, those on the far side within 0.02
-px (mean profiles over 10 eyes): the depth follows that difference. Where the cornea shadows the
-sclera just beyond the limbus from the projector (10–16 % of a camera's edges) little of the
-albedo's step is lit; leaving those edges out (known from the renderer) widened the spread of the
-depth found about the truth (sd 0.006 → 0.007 mm), and with the first-order shift below taken off
-the edges the pipeline's limbus depth spread to 0.012 mm. Tried: the edge fitted as a blurred step
-to the sharpened image, the strongest point of the first strong run instead of its first peak, 240
-or 480 samples, profiles averaged along the edge over 2–8 px, edges in the fringe's troughs left
-out, smoothing of σ 1.5 px, the sharpened image's illumination smoothed (σ 2 px) or fitted 2 px
-clear of the edge moved the depth's bias and spread by 0.0006 mm or less, or made them worse;
-smoothing of σ 0.6 px instead of 1 moved the limbus 0.003 mm back, yet on 120 other 13-mm eyes the
-globe centre's p95 went 0.080 → 0.084 mm (0.8 px: 0.082 mm), and with none the noise's own peaks are
-taken.
+What limits it. Found again about the true globe from the true circle (30 rendered 13-mm eyes, the
+cornea's shadow not yet left out), the limbus lies 0.006 ± 0.006 mm in front along the gaze and is
+0.004 ± 0.003 mm small. A sphere through it carries its depth 2–5 times into the globe's radius (for
+sclera 50–40° from the gaze of a 13-mm globe; :mod:`~eyeserver.pipeline.sclera`). Not the
+calibration: over the eye's volume its projections lie within 0.013 px (mean) and 0.02 px (sd) of
+the renderer's cameras, and with the renderer's own cameras the depth spreads as much (sd 0.0044
+against 0.0043 mm). Not the sensor's noise: found in the mean of 16 exposures (20 eyes) the limbus
+lies 0.009 ± 0.005 mm in front, and the mean of 4 left the globe centre as it was (40 eyes: p95
+0.083 against 0.078 mm). Renders without noise mislead here: rounded to whole DN without the noise's
+dither (the sclera beyond the limbus gives 13–60 DN), their limbus lies 0.004 mm further back than
+the 16 exposures' on the same eyes, the far side's edges (as a camera sees the limbus) 0.03–0.05 px
+further in. In the mean image the edges found on the near side and across lie 0.02–0.05 px inwards,
+those on the far side within 0.02 px (mean profiles over 10 eyes): the depth follows that
+difference. Where the cornea shadows the sclera just beyond the limbus from the projector (10–16 %
+of a camera's edges) little of the albedo's step is lit; leaving those edges out (known from the
+renderer) widened the spread of the depth found about the truth (sd 0.006 → 0.007 mm), and with the
+first-order shift below taken off the edges the pipeline's limbus depth spread to 0.012 mm (in the
+whole fit, though, leaving them out is what helps: "The cornea's shadow" below). Tried: the edge
+fitted as a blurred step to the sharpened image, the strongest point of the first strong run instead
+of its first peak, 240 or 480 samples, profiles averaged along the edge over 2–8 px, edges in the
+fringe's troughs left out, smoothing of σ 1.5 px, the sharpened image's illumination smoothed (σ 2
+px) or fitted 2 px clear of the edge moved the depth's bias and spread by 0.0006 mm or less, or made
+them worse; smoothing of σ 0.6 px instead of 1 moved the limbus 0.003 mm back, yet on 120 other
+13-mm eyes the globe centre's p95 went 0.080 → 0.084 mm (0.8 px: 0.082 mm), and with none the
+noise's own peaks are taken.
 
 The blur's part, not yet taken out. Dividing the image by the light after the optics' blur, as the
 sharpened image does (:func:`~eyeserver.pipeline.sclera.sharpened`), leaves each edge ≈ σ²·∂ln F/∂n
@@ -104,19 +109,25 @@ but not on 120 others (two sets of 60: 0.088 and 0.095 against 0.080 and 0.081 m
 1``) it did worse: centre p95 0.087 against 0.080 mm, 13-mm globes 0.108 against 0.100 mm, 2.3 s a
 fit. Not used.
 
-The cornea's shadow, the larger part. On the default rig each projector lights the eye from 45° off
-the beam axis. Where a projector lies more than 41° off the gaze (90° less the 48.6° at which a
-7.8-mm cornea meets a 5.85-mm limbus), the corneal cap keeps its light off a band of sclera just
-beyond the limbus on the side away from it, which is the far side for that unit's cameras: up to 4
-px wide, in 1–8 of a camera's 36 sectors on 9 of 12 rendered 13-mm eyes. A real cornea does the same
-(light entering it goes into the eye, not onto the sclera behind the limbus). There the edge found
-is where the band ends, outwards. The same 24 13-mm eyes rendered with and without the cornea's
-shadow (a diagnostic change to the renderer, the same noise): the limbus found lies 0.0075 ± 0.0051
-mm in front against 0.0022 ± 0.0040 mm, it is 0.004 ± 0.003 against 0.005 ± 0.003 mm small, the
-globe's radius is 0.022 ± 0.028 against 0.010 ± 0.027 mm small, and the centre's p95 is 0.095
-against 0.072 mm. Leaving the shadowed edges out does not recover that (above): the band's width
-would have to be known. It follows from where the projector is, and the calibration does not give
-that: straight fringes fix only a line through the projector, parallel to them.
+The cornea's shadow, left out. On the default rig each projector lights the eye from 45° off the
+beam axis. Where a projector lies more than 41° off the gaze (90° less the 48.6° at which a 7.8-mm
+cornea meets a 5.85-mm limbus), the corneal cap keeps its light off a band of sclera just beyond the
+limbus on the side away from it, the far side for that unit's cameras: up to 4 px wide, in some
+sectors of most eyes. A real cornea does the same (light entering it goes into the eye, not onto the
+sclera behind the limbus). The sclera there is lit at grazing incidence anyway (renders with and
+without the shadow differ by 6 DN at most), but right at the edge, and the edge found moves outwards
+with it. The same 24 13-mm eyes rendered with and without the cornea's shadow (a diagnostic change
+to the renderer, the same noise): the limbus found lies 0.0075 ± 0.0051 mm in front against 0.0022 ±
+0.0040 mm, the globe's radius is 0.022 ± 0.028 against 0.010 ± 0.027 mm small, the centre's p95 is
+0.095 against 0.072 mm. Moving those edges inwards by the band's width (the renderer's geometry)
+overshoots (the limbus then lies 0.020 mm behind): the edge found is not where the band ends.
+Leaving them out works: with the renderer's geometry, the limbus lies 0.0049 mm in front and the p95
+is 0.076 mm; with the pipeline's own (:func:`in_cornea_shadow`: the light's direction from the
+calibration, the globe fitted, the eye model's cornea), 0.0057 mm and 0.076 mm. On 120 other 13-mm
+eyes the centre's p95 went 0.080 → 0.073 mm (median 0.034 → 0.033 mm), on 120 11- and 12-mm eyes
+0.074 → 0.067 mm (median 0.032 → 0.033 mm). The sclera is tested :data:`SHADOW_PROBE_MM` beyond the
+limbus, so bands narrower than that (light up to ≈ 44° off the gaze) keep their edges. The cornea is
+the eye model's: a patient's cornea flatter or steeper than the model's casts its shadow elsewhere.
 
 A model of the raw pixels, fitted with the circle. The circle fitted to every pixel within 3 px of
 its projection in all cameras at once, the image modelled as the blur (one per camera) of a step
@@ -158,8 +169,8 @@ from eyeserver.pipeline.demodulate import demodulate
 from eyeserver.pipeline.geometry import project
 from eyeserver.pipeline.reconstruct import CalibratedCamera, Phase
 
-__all__ = ["Globe", "Limbus", "LimbusNotFoundError", "LimbusView", "circle_points", "find_limbus",
-           "fringe_free", "globe_on_limbus", "refined"]
+__all__ = ["Globe", "Limbus", "LimbusNotFoundError", "LimbusView", "Shade", "circle_points",
+           "find_limbus", "fringe_free", "globe_on_limbus", "in_cornea_shadow", "refined"]
 
 F64 = npt.NDArray[np.float64]
 F32 = npt.NDArray[np.float32]
@@ -214,6 +225,10 @@ cornea returns ≈ 0.06 of the white plate's light, sclera and skin 0.4–0.5)."
 
 _WINDOW_MARGIN_PX = 40
 _TILTS_DEG = (0.0, 6.0, 12.0, 18.0, 24.0, 30.0)
+
+SHADOW_PROBE_MM = 0.01
+"""How far beyond the limbus, along the globe, the sclera is tested for the cornea's shadow
+(:func:`refined` with a :class:`Shade`): ≈ 0.1 px on the default rig."""
 
 FOLLOWED_TURN_DEG = 1.0
 """Live tracking takes the limbus that the last round alone finds from the last gaze only when
@@ -339,8 +354,24 @@ def _window(view: LimbusView, centre: F64, radius: float) -> tuple[int, int, int
     return int(x0), int(y0), int(x1), int(y1)
 
 
+@dataclass(frozen=True)
+class Shade:
+    """What decides where the cornea shadows the sclera just beyond the limbus from a camera's
+    projector, besides the limbus: the globe the sclera lies on and the cornea's radius (the
+    eye model's; the cornea is the sphere of that radius through the limbus circle, in front of
+    its plane)."""
+
+    globe_centre: F64
+    globe_radius: float
+    cornea_radius: float
+
+
 class _Image:
     """One camera's fringe-free intensity in a window, and projections into it."""
+
+    light: F64 | None = None
+    """Unit direction towards the camera's projector, where edges in the cornea's shadow are
+    left out (:func:`refined`)."""
 
     def __init__(self, view: LimbusView, window: tuple[int, int, int, int] | None) -> None:
         self.camera = view.camera
@@ -461,9 +492,11 @@ def _dark_blob_centre(images: Sequence[_Image], limbus_radius: float) -> F64 | N
     return np.asarray(point, dtype=np.float64) if max(misses) < limbus_radius else None
 
 
-def _edges(image: _Image, centre: F64, normal: F64, radius: float, reach: float
-           ) -> tuple[F64, F64]:
-    """``(angles, edge pixels)`` of the innermost strong rising edge near the projection."""
+def _edges(image: _Image, centre: F64, normal: F64, radius: float, reach: float,
+           shade: Shade | None = None) -> tuple[F64, F64]:
+    """``(angles, edge pixels)`` of the innermost strong rising edge near the projection; with
+    ``shade`` (and the image's :attr:`~_Image.light`), none where the cornea shadows the sclera
+    beyond the limbus (:func:`in_cornea_shadow`)."""
     angles = np.linspace(0.0, 2 * math.pi, SAMPLES, endpoint=False)
     uv, outward = image.outline(centre, normal, radius, angles)
     offsets = np.arange(-reach, reach + 0.25, 0.5)
@@ -473,6 +506,8 @@ def _edges(image: _Image, centre: F64, normal: F64, radius: float, reach: float
     strong = peak & (inner >= np.maximum(EDGE_SHARE * inner.max(axis=1, keepdims=True),
                                          MIN_EDGE_DN_PER_PX))
     found = strong.any(axis=1)
+    if shade is not None and image.light is not None:
+        found &= ~in_cornea_shadow(centre, normal, radius, angles, shade, image.light)
     k = np.argmax(strong, axis=1) + 1
     rows = np.arange(len(k))
     before, at, after = rise[rows, k - 1], rise[rows, k], rise[rows, k + 1]
@@ -607,11 +642,11 @@ def _edges_per_period(image: _Image, centre: F64, normal: F64, radius: float) ->
 
 
 def _refine(images: Sequence[_Image], centre: F64, normal: F64, radius: float,
-            reaches: Sequence[float] = REACHES_PX) -> Limbus:
+            reaches: Sequence[float] = REACHES_PX, shade: Shade | None = None) -> Limbus:
     """Edges and circle, a round per search reach (module steps 3 and 4), from one start."""
     expected = radius
     for reach in reaches:
-        edges = [_edges(image, centre, normal, radius, reach) for image in images]
+        edges = [_edges(image, centre, normal, radius, reach, shade) for image in images]
         if sum(len(a) >= MIN_COVERAGE * SAMPLES for a, _ in edges) < 2:
             raise LimbusNotFoundError("no limbus edge in at least two cameras (lids closed?)")
         solution = _fit_circle(images, edges, centre, normal, radius)
@@ -751,10 +786,12 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
     return min(found, key=lambda limbus: limbus.residual_px)
 
 
-def refined(views: Sequence[LimbusView], limbus: Limbus) -> Limbus:
+def refined(views: Sequence[LimbusView], limbus: Limbus, shade: Shade | None = None) -> Limbus:
     """The last round of edges and circle (module steps 3 and 4) again, from ``limbus``: for
     views whose :attr:`~LimbusView.flat` was made with a better fringe removal
-    (:func:`~eyeserver.pipeline.sclera.sharpened`).
+    (:func:`~eyeserver.pipeline.sclera.sharpened`). With ``shade``, the edges where the cornea
+    shadows the sclera beyond the limbus from the camera's projector are left out (module step
+    6; cameras whose calibration gives no light direction keep theirs).
 
     Raises
     ------
@@ -774,7 +811,10 @@ def refined(views: Sequence[LimbusView], limbus: Limbus) -> Limbus:
     # 78/97 %, the gaze 65/98 %, against 87/100 % and 88/100 %), but gave the limbus more
     # weight against the sclera and the poses were worse (gaze 0.065° → 0.074° median, centre
     # 0.098 → 0.105 mm p95): the wider sds stay.
-    again = _refine(images, limbus.centre, limbus.normal, limbus.radius, REACHES_PX[-1:])
+    if shade is not None:
+        for image in images:
+            image.light = image.camera.light_direction(limbus.centre)
+    again = _refine(images, limbus.centre, limbus.normal, limbus.radius, REACHES_PX[-1:], shade)
     if again.residual_px > MAX_RESIDUAL_PX:
         raise LimbusNotFoundError("the edges found fit no limbus circle")
     return again
@@ -784,6 +824,39 @@ def circle_points(limbus: Limbus, angles: F64) -> F64:
     """Points ``(M, 3)`` of the limbus circle at ``angles`` about its normal."""
     on, _ = _circles(limbus.centre[None], limbus.normal[None], limbus.radius, angles)
     return on
+
+
+def in_cornea_shadow(centre: F64, normal: F64, radius: float, angles: F64, shade: Shade,
+                     light: F64) -> npt.NDArray[np.bool_]:
+    """Per angle about the limbus circle (``centre``, unit ``normal``, ``radius``), whether the
+    cornea keeps the light coming from direction ``light`` off the sclera just beyond it
+    (:data:`SHADOW_PROBE_MM` along ``shade``'s globe): the ray from there towards the light
+    meets the cornea in front of the limbus's plane.
+
+    Light entering a real cornea goes into the eye, not onto the sclera behind the limbus, so
+    wherever the light comes from further off the gaze than the cornea's rim faces (90° less
+    ``asin(radius / cornea radius)``: 41° for 5.85 and 7.8 mm) a band of sclera on the far side
+    from it is dark, and the edge found there is where that band ends."""
+    if shade.cornea_radius <= radius:
+        return np.zeros(len(angles), dtype=bool)
+    rim, _ = _circles(centre[None], normal[None], radius, angles)
+    outward = rim - centre
+    outward /= np.linalg.norm(outward, axis=1, keepdims=True)
+    up = (rim - shade.globe_centre) / shade.globe_radius
+    along = outward - (outward * up).sum(axis=1, keepdims=True) * up
+    along /= np.linalg.norm(along, axis=1, keepdims=True)
+    tilt = SHADOW_PROBE_MM / shade.globe_radius
+    probe = shade.globe_centre + shade.globe_radius * (math.cos(tilt) * up + math.sin(tilt) * along)
+    cornea = centre - math.sqrt(shade.cornea_radius**2 - radius**2) * normal
+    rel = probe - cornea
+    b = rel @ light
+    disc = b * b - (np.einsum("ij,ij->i", rel, rel) - shade.cornea_radius**2)
+    root = np.sqrt(np.where(disc > 0, disc, 0.0))
+    shadowed = np.zeros(len(angles), dtype=bool)
+    for t in (-b - root, -b + root):
+        meets = probe + t[:, None] * light
+        shadowed |= (disc > 0) & (t > 0) & ((meets - centre) @ normal > 0)
+    return shadowed
 
 
 def _votes(cloud: F64, limbus: Limbus, chosen: npt.NDArray[np.bool_]) -> tuple[F64, F64]:

@@ -58,7 +58,9 @@ from eyeserver.pipeline.demodulate import Carrier, border_mask, demodulate, phas
 from eyeserver.pipeline.geometry import (
     intersect_plane_z,
     pixel_grid_normalised,
+    project,
     rays_from_normalised,
+    undistorted_normalised,
 )
 from eyeserver.pipeline.phase_height import PhaseHeightModel
 
@@ -154,6 +156,23 @@ MIN_REGION_VOTES = 3
 METHODS = ("multi-view", "spatial")
 """The fringe-order paths :func:`unit_clouds` offers."""
 
+LIGHT_STEPS_MM = (0.5, 3.0)
+"""Steps of the central differences of the phase whose gradients give the iso-phase plane
+through a point and the fringes' direction (:meth:`CalibratedCamera.light_direction`). Over the
+short one the phase changes by less than π (a fringe period is ≈ 2.8 mm at the default rig's
+eye); it unwraps the long one, whose gradients the reference phase's noise tilts less."""
+LIGHT_CUBES_MM = (4.0, 20.0)
+"""Half-sides of the cubes of points (7 and 11 a side) about the point asked whose gradients give
+the plane through it (the short step's) and the fringes' direction (the long step's: the
+direction the planes' normals vary least along, which a wider fan of planes fixes better).
+Against the renderer's projectors (32 camera views of eight rendered eyes): 0.9° median, 2.0°
+at most off, where the fringes' true direction gives 1.0° and 1.7° (the projector's offset
+along its fringes, see the method); over a cube of 12 mm 1.2° and 3.3°, with the short step
+alone 1.0° and 2.4°."""
+LIGHT_OFF_PLANE_DEG = 8.0
+"""Gradients further than this from their cube's median direction are left out (where the
+reference phase wraps or is undefined between the two points of a difference)."""
+
 
 @dataclass
 class CalibratedCamera:
@@ -183,6 +202,7 @@ class CalibratedCamera:
     _grid: tuple[F64, F64] | None = field(default=None, init=False, repr=False, compare=False)
     _pinhole_maps: tuple[F32, F32] | None = field(default=None, init=False, repr=False)
     _towards: dict[str, tuple[F64, F64]] = field(default_factory=dict, init=False, repr=False)
+    _fringes: F64 | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self, grid: tuple[F64, F64] | None) -> None:
         self._grid = grid
@@ -235,6 +255,74 @@ class CalibratedCamera:
             self._pinhole_maps = (np.asarray(map_x), np.asarray(map_y))
         return self._pinhole_maps
 
+    def absolute_phase(self, points: F64) -> F64:
+        """The phase this camera's projector throws onto WCS ``points`` ``(N, 3)``: the phase
+        model's at each point's height plus the reference phase at its pixel (bilinear; NaN
+        outside the image)."""
+        pts = np.asarray(points, dtype=np.float64)
+        uv = project(pts, self.K, self.dist, self.R, self.T)
+        x, y = undistorted_normalised(uv[:, 0], uv[:, 1], self.K, self.dist)
+        reference = cv2.remap(np.asarray(self.reference_phase, dtype=np.float32),
+                              uv[:, :1].astype(np.float32), uv[:, 1:].astype(np.float32),
+                              cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                              borderValue=float("nan"))[:, 0]
+        return np.asarray(self.model.phase(x, y, pts[:, 2]) + reference, dtype=np.float64)
+
+    def light_direction(self, at: npt.ArrayLike) -> F64 | None:
+        """Unit direction from the WCS point ``at`` towards the projector whose fringes this
+        camera measures, or None where the calibration does not say (too little of the cubes
+        about ``at`` seen).
+
+        Straight fringes make every surface of one phase a plane through a line through the
+        projector, parallel to the fringes. The direction lies in the plane through ``at``
+        (normal: the phase's gradient) and across the fringes (their direction: the one the
+        planes' normals vary least along; :data:`LIGHT_CUBES_MM`): the projector is taken to
+        lie level with ``at`` along its fringes, which it does where it is aimed at the eye (on
+        the default rig the eye's offset from its axis puts it up to 1.7° off). Its side is the
+        camera's: a unit's projector and cameras look at the eye from one side.
+        """
+        at = np.asarray(at, dtype=np.float64)
+        plane = self._phase_normals(at, LIGHT_CUBES_MM[0], 7, LIGHT_STEPS_MM[0])
+        if self._fringes is None:
+            # The projector's own: found once, about the first point asked.
+            across = self._phase_normals(at, LIGHT_CUBES_MM[1], 11, LIGHT_STEPS_MM[1])
+            if across is not None:
+                self._fringes = np.linalg.svd(across)[2][-1]
+        if plane is None or self._fringes is None:
+            return None
+        direction = np.cross(plane.mean(axis=0), self._fringes)
+        direction /= np.linalg.norm(direction)
+        if direction @ (self.centre - at) < 0:
+            direction = -direction
+        return np.asarray(direction, dtype=np.float64)
+
+    def _phase_normals(self, at: F64, half: float, side: int, step: float) -> F64 | None:
+        """Unit gradients of :meth:`absolute_phase` over a cube of ``side``³ points and
+        half-side ``half`` about ``at``, by central differences of ``step`` (unwrapped by the
+        short step's where longer), all on one side, those off their median direction by more
+        than :data:`LIGHT_OFF_PLANE_DEG` left out; None for fewer than 20."""
+        steps = np.linspace(-half, half, side)
+        cube = at + np.stack(np.meshgrid(steps, steps, steps), axis=-1).reshape(-1, 3)
+        short = LIGHT_STEPS_MM[0]
+        gradient = np.empty((len(cube), 3))
+        for axis, e in enumerate(np.eye(3)):
+            near = _wrapped(self.absolute_phase(cube + short * e)
+                            - self.absolute_phase(cube - short * e)) * (step / short)
+            if step > short:
+                far = self.absolute_phase(cube + step * e) - self.absolute_phase(cube - step * e)
+                near = near + _wrapped(far - near)
+            gradient[:, axis] = near
+        size = np.linalg.norm(gradient, axis=1)
+        usable = np.isfinite(size) & (size > 0)
+        if usable.sum() < 20:
+            return None
+        unit = gradient[usable] / size[usable, None]
+        unit *= np.where(unit @ unit[0] < 0, -1.0, 1.0)[:, None]
+        middle = np.median(unit, axis=0)
+        middle /= np.linalg.norm(middle)
+        kept = unit[unit @ middle > math.cos(math.radians(LIGHT_OFF_PLANE_DEG))]
+        return kept if len(kept) >= 20 else None
+
     def towards(self, other: CalibratedCamera) -> tuple[F64, F64]:
         """Each pixel's ray in ``other``'s camera frame as ``p0 + Z·p1`` (Z the WCS height).
 
@@ -249,6 +337,11 @@ class CalibratedCamera:
             p0 = (other.R @ centre + other.T)[None, :] - centre[2] * p1
             self._towards[other.camera_id] = (p0, p1)
         return self._towards[other.camera_id]
+
+
+def _wrapped(angle: F64) -> F64:
+    """``angle`` wrapped into (−π, π]."""
+    return np.asarray(np.angle(np.exp(1j * angle)), dtype=np.float64)
 
 
 def cropped(camera: CalibratedCamera, x0: int, y0: int, x1: int, y1: int, *,

@@ -107,6 +107,7 @@ from eyeserver.pipeline.limbus import (
     Limbus,
     LimbusNotFoundError,
     LimbusView,
+    Shade,
     circle_points,
     refined,
 )
@@ -295,26 +296,30 @@ class _SpherePixels:
 
 
 def sharpened(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: float,
-              cloud: F64 | None = None) -> Limbus:
+              cloud: F64 | None = None, cornea_radius: float | None = None) -> Limbus:
     """The limbus found again (its last round of edges, :func:`~eyeserver.pipeline.limbus.
     refined`) in images whose fringe is divided out: in each camera, ``I / (a + p·cos ψ +
     q·sin ψ)`` with ``ψ`` the phase the globe hypothesis (``centre``, ``radius``) predicts and
     ``a, p, q`` fitted over :data:`WINDOW_PX` squares of the sclera beyond the
     limbus (:data:`LIMBUS_MARGIN_MM`), carried to the limbus and the cornea from the nearest
-    fit; ``cloud`` as for :func:`remeasured` (what may hide the sclera from a camera).
-    ``limbus`` itself where no camera pair gives a circle."""
+    fit; ``cloud`` as for :func:`remeasured` (what may hide the sclera from a camera);
+    ``cornea_radius`` (mm, the eye model's): the edges where the cornea shadows the sclera
+    beyond the limbus from the camera's projector are left out (None: kept). ``limbus`` itself
+    where no camera pair gives a circle."""
     centre = np.asarray(centre, dtype=np.float64)
-    return _sharpened(views, limbus, centre, radius, _occluders(cloud, centre, radius))
+    return _sharpened(views, limbus, centre, radius, _occluders(cloud, centre, radius),
+                      cornea_radius)
 
 
 def _sharpened(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: float,
-               occluders: F64) -> Limbus:
+               occluders: F64, cornea_radius: float | None = None) -> Limbus:
     """:func:`sharpened` with the occluders made."""
     divided = [LimbusView(view.camera, view.image, flat) if (
         flat := _illumination_divided(view, limbus, centre, radius, occluders)) is not None
         else view for view in views]
     try:
-        return refined(divided, limbus)
+        return refined(divided, limbus, None if cornea_radius is None
+                       else Shade(centre, radius, cornea_radius))
     except LimbusNotFoundError:
         return limbus
 
@@ -553,12 +558,13 @@ def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: floa
 
 
 def refit(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: float,
-          sclera: F64, cloud: F64, fixed_radius: float | None) -> GlobeFit | None:
+          sclera: F64, cloud: F64, fixed_radius: float | None,
+          cornea_radius: float | None = None) -> GlobeFit | None:
     """The globe and gaze from the sclera remeasured about the globe ``centre``, ``radius``
     (:func:`~eyeserver.pipeline.limbus.globe_on_limbus`'s, whose ``sclera`` points say where
     it is seen; ``cloud`` what may hide it, see :func:`remeasured`) and the limbus found again
-    about it (:func:`sharpened`), in :data:`PASSES` passes; None where too little sclera is
-    remeasured."""
+    about it (:func:`sharpened`, with the cornea's shadow where ``cornea_radius`` is given), in
+    :data:`PASSES` passes; None where too little sclera is remeasured."""
     fit = None
     tree = cKDTree(sclera)
     for _ in range(PASSES):
@@ -567,7 +573,7 @@ def refit(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: floa
         points = _remeasured(views, centre, radius, tree, occluders)
         if len(points) < MIN_POINTS:
             return fit
-        limbus = _sharpened(views, limbus, centre, radius, occluders)
+        limbus = _sharpened(views, limbus, centre, radius, occluders, cornea_radius)
         depth = math.sqrt(max(radius**2 - limbus.radius**2, 1.0))
         fit = globe_and_gaze(points, limbus, depth, fixed_radius)
         centre, radius = fit.centre, fit.radius
