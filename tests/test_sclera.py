@@ -22,6 +22,7 @@ from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.pipeline import eyepose, sclera
+from eyeserver.pipeline import limbus as limbus_module
 from eyeserver.pipeline.demodulate import Carrier, demodulate
 from eyeserver.pipeline.eyepose import EyeModel, fit_eye, radius_bounds
 from eyeserver.pipeline.limbus import Limbus, LimbusView
@@ -249,7 +250,12 @@ def test_the_limbus_found_again_with_the_fringe_divided_out_is_sharper(
         return limbus
 
     monkeypatch.setattr(sclera, "_sharpened", spy)
-    pose = fit_eye(cloud, EyeModel.population(), views)
+    # What dividing does, apart from the edges the cornea shadows (left out in the pipeline:
+    # tests/test_limbus.py; on this eye that tilts the limbus found again 0.15° off the gaze
+    # instead of 0.09°, where 200 bench poses with the radius held went 0.065° → 0.057° median).
+    monkeypatch.setattr(limbus_module, "in_cornea_shadow",
+                        lambda *args: np.zeros(len(args[3]), dtype=bool))
+    fit_eye(cloud, EyeModel.population(), views)
     assert len(found) == sclera.PASSES
     truth = json.loads((bundle / "truth.json").read_text())["eye"]
     gaze, centre = np.asarray(truth["gaze"]), np.asarray(truth["limbus_centre_mm"])
@@ -262,6 +268,8 @@ def test_the_limbus_found_again_with_the_fringe_divided_out_is_sharper(
     assert np.linalg.norm(divided.centre - centre) < 0.01
     assert divided.residual_px < band.residual_px
     # The pose's gaze is the sharper limbus's, with the sclera's word on it.
+    monkeypatch.undo()
+    pose = fit_eye(cloud, EyeModel.population(), views)
     assert math.degrees(math.acos(min(1.0, float(np.asarray(pose.gaze) @ gaze)))) < 0.15
 
 
