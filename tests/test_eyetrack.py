@@ -276,15 +276,23 @@ def test_the_warm_fit_in_the_windows_finds_the_global_fits_pose(
     # The global fit also measures the sclera again from its fringes, finds the limbus again
     # with the fringe divided out and lets the sclera tilt the gaze (eyeserver.pipeline.
     # sclera), which live tracking leaves out for time: measured here, the global fit 0.014 mm
-    # and 0.05° from the true pose, the tracked one 0.080 mm and 0.45° (0.40° between them).
+    # and 0.05° from the true pose, the tracked one 0.080 mm and 0.45° (0.40° between them;
+    # with the cornea's shadow left out of the global fit's limbus, 0.06° and 0.44°, 0.50°
+    # between them, the two errors in different directions).
     assert np.linalg.norm(np.subtract(followed.centre_mm, reference.centre_mm)) < 0.1
     angle = math.degrees(math.acos(min(1.0, float(np.dot(followed.gaze, reference.gaze)))))
-    assert angle < 0.5, angle
+    assert angle < FOLLOWED_OFF_DEG, angle
     assert followed.confidence > 0.3
     # Without the images the cloud's own globe, from the same start.
     alone = track_eye(cloud, model, start)
     assert alone.gaze_source != "limbus (images)"
     assert np.linalg.norm(np.subtract(alone.centre_mm, reference.centre_mm)) < 0.5
+
+
+FOLLOWED_OFF_DEG = 0.6
+"""How far a followed gaze may lie from the global fit's on the one unit's eye at rest: the
+tracked gaze is 0.44–0.46° from the true one there, the global fit's 0.04–0.06° (without and with
+the cornea's shadow left out of its limbus), 0.43–0.52° between them."""
 
 
 def _one_unit_eye(simulated_eye: tuple[dict[str, Any], dict[str, Any], tuple[float, float],
@@ -329,7 +337,7 @@ def test_the_limbus_is_found_from_a_last_gaze_a_few_degrees_off(
         followed = track_eye(cloud, model, start, views)
         assert followed.gaze_source == "limbus (images)", math.degrees(azimuth)
         angle = math.degrees(math.acos(min(1.0, float(np.dot(followed.gaze, g)))))
-        assert angle < 0.5, (math.degrees(azimuth), angle)  # one unit: ≈ 0.4° (README)
+        assert angle < FOLLOWED_OFF_DEG, (math.degrees(azimuth), angle)  # one unit (README)
 
 
 def test_a_followed_limbus_is_scored_against_tilted_circles_only_after_a_turn(
@@ -353,7 +361,7 @@ def test_a_followed_limbus_is_scored_against_tilted_circles_only_after_a_turn(
         followed = track_eye(cloud, model, _turned(reference, off_deg, 0.0), views)
         assert followed.gaze_source == "limbus (images)"
         angle = math.degrees(math.acos(min(1.0, float(np.dot(followed.gaze, g)))))
-        assert angle < 0.5, (off_deg, angle)
+        assert angle < FOLLOWED_OFF_DEG, (off_deg, angle)
         assert bool(started) is searched, off_deg
 
 
