@@ -39,9 +39,10 @@ that is spherical: the lids are shells in front of it. So:
    the limbus centre, and the globe is the sphere through it that the sclera lies on
    (:func:`pose_on_limbus`), the sclera measured again from its own fringes, the limbus found
    again with the fringe divided out and the globe fitted with it
-   (:mod:`eyeserver.pipeline.sclera`). Measured on 600 rendered poses: gaze 0.063° median (p95
-   0.15°), limbus centre 0.008 mm, globe centre 0.032 mm median (p95 0.083 mm). Without
-   images, or where no limbus is found, the cloud-only pose of steps 2–3 stands
+   (:mod:`eyeserver.pipeline.sclera`), the edges in the cornea's shadow left out. Measured on
+   600 rendered poses: gaze 0.061° median (p95 0.15°), limbus centre 0.007 mm, globe centre
+   0.033 mm median (p95 0.074 mm; each globe size within 0.078 mm, 0.088 mm on another draw).
+   Without images, or where no limbus is found, the cloud-only pose of steps 2–3 stands
    (``gaze_source`` says which; with images that showed no limbus, at a confidence scaled by
    :data:`UNSEEN_LIMBUS`).
 
