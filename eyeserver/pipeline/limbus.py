@@ -125,9 +125,12 @@ Leaving them out works: with the renderer's geometry, the limbus lies 0.0049 mm 
 is 0.076 mm; with the pipeline's own (:func:`in_cornea_shadow`: the light's direction from the
 calibration, the globe fitted, the eye model's cornea), 0.0057 mm and 0.076 mm. On 120 other 13-mm
 eyes the centre's p95 went 0.080 → 0.073 mm (median 0.034 → 0.033 mm), on 120 11- and 12-mm eyes
-0.074 → 0.067 mm (median 0.032 → 0.033 mm). The sclera is tested :data:`SHADOW_PROBE_MM` beyond the
-limbus, so bands narrower than that (light up to ≈ 44° off the gaze) keep their edges. The cornea is
-the eye model's: a patient's cornea flatter or steeper than the model's casts its shadow elsewhere.
+0.074 → 0.067 mm (median 0.032 → 0.033 mm). On ``eyeserver bench pose`` (600 poses, two draws) the
+centre's p95 went 0.083 → 0.074 and 0.080 → 0.073 mm, the 13-mm globes' 0.087 → 0.077 and 0.100 →
+0.088 mm, the gaze's 0.151° → 0.147° and 0.151° → 0.139°. The sclera is tested
+:data:`SHADOW_PROBE_MM` beyond the limbus, so bands narrower than that (light up to ≈ 44° off the
+gaze) keep their edges. The cornea is the eye model's: a patient's cornea flatter or steeper than
+the model's casts its shadow elsewhere.
 
 A model of the raw pixels, fitted with the circle. The circle fitted to every pixel within 3 px of
 its projection in all cameras at once, the image modelled as the blur (one per camera) of a step
