@@ -372,10 +372,6 @@ class Shade:
 class _Image:
     """One camera's fringe-free intensity in a window, and projections into it."""
 
-    light: F64 | None = None
-    """Unit direction towards the camera's projector, where edges in the cornea's shadow are
-    left out (:func:`refined`)."""
-
     def __init__(self, view: LimbusView, window: tuple[int, int, int, int] | None) -> None:
         self.camera = view.camera
         if view.flat is None:
@@ -498,8 +494,9 @@ def _dark_blob_centre(images: Sequence[_Image], limbus_radius: float) -> F64 | N
 def _edges(image: _Image, centre: F64, normal: F64, radius: float, reach: float,
            shade: Shade | None = None) -> tuple[F64, F64]:
     """``(angles, edge pixels)`` of the innermost strong rising edge near the projection; with
-    ``shade`` (and the image's :attr:`~_Image.light`), none where the cornea shadows the sclera
-    beyond the limbus (:func:`in_cornea_shadow`)."""
+    ``shade``, none where the cornea shadows the sclera beyond the limbus from the camera's
+    projector (:func:`in_cornea_shadow`; none left out where the calibration gives no
+    direction to the projector)."""
     angles = np.linspace(0.0, 2 * math.pi, SAMPLES, endpoint=False)
     uv, outward = image.outline(centre, normal, radius, angles)
     offsets = np.arange(-reach, reach + 0.25, 0.5)
@@ -509,8 +506,9 @@ def _edges(image: _Image, centre: F64, normal: F64, radius: float, reach: float,
     strong = peak & (inner >= np.maximum(EDGE_SHARE * inner.max(axis=1, keepdims=True),
                                          MIN_EDGE_DN_PER_PX))
     found = strong.any(axis=1)
-    if shade is not None and image.light is not None:
-        found &= ~in_cornea_shadow(centre, normal, radius, angles, shade, image.light)
+    light = None if shade is None else image.camera.light_direction(centre)
+    if shade is not None and light is not None:
+        found &= ~in_cornea_shadow(centre, normal, radius, angles, shade, light)
     k = np.argmax(strong, axis=1) + 1
     rows = np.arange(len(k))
     before, at, after = rise[rows, k - 1], rise[rows, k], rise[rows, k + 1]
@@ -814,9 +812,6 @@ def refined(views: Sequence[LimbusView], limbus: Limbus, shade: Shade | None = N
     # 78/97 %, the gaze 65/98 %, against 87/100 % and 88/100 %), but gave the limbus more
     # weight against the sclera and the poses were worse (gaze 0.065° → 0.074° median, centre
     # 0.098 → 0.105 mm p95): the wider sds stay.
-    if shade is not None:
-        for image in images:
-            image.light = image.camera.light_direction(limbus.centre)
     again = _refine(images, limbus.centre, limbus.normal, limbus.radius, REACHES_PX[-1:], shade)
     if again.residual_px > MAX_RESIDUAL_PX:
         raise LimbusNotFoundError("the edges found fit no limbus circle")

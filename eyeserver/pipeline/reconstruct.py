@@ -306,11 +306,11 @@ class CalibratedCamera:
         short = LIGHT_STEPS_MM[0]
         gradient = np.empty((len(cube), 3))
         for axis, e in enumerate(np.eye(3)):
-            near = _wrapped(self.absolute_phase(cube + short * e)
-                            - self.absolute_phase(cube - short * e)) * (step / short)
+            near = phase_difference(self.absolute_phase(cube + short * e),
+                                    self.absolute_phase(cube - short * e)) * (step / short)
             if step > short:
                 far = self.absolute_phase(cube + step * e) - self.absolute_phase(cube - step * e)
-                near = near + _wrapped(far - near)
+                near = near + phase_difference(far, near)
             gradient[:, axis] = near
         size = np.linalg.norm(gradient, axis=1)
         usable = np.isfinite(size) & (size > 0)
@@ -337,11 +337,6 @@ class CalibratedCamera:
             p0 = (other.R @ centre + other.T)[None, :] - centre[2] * p1
             self._towards[other.camera_id] = (p0, p1)
         return self._towards[other.camera_id]
-
-
-def _wrapped(angle: F64) -> F64:
-    """``angle`` wrapped into (−π, π]."""
-    return np.asarray(np.angle(np.exp(1j * angle)), dtype=np.float64)
 
 
 def cropped(camera: CalibratedCamera, x0: int, y0: int, x1: int, y1: int, *,
