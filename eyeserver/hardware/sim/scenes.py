@@ -64,26 +64,83 @@ _DEFAULT_POSITION: dict[str, Vec3] = {
 
 
 class EyeSpec(BaseModel):
-    """The patient eye's anatomy and where it looks."""
+    """The patient eye's anatomy, optics and lids, and where it looks.
+
+    The defaults are the old painted eye (``eyeserver.hardware.sim.population.SHARP``): a
+    spherical globe, a spherical cornea, a sharp limbus between constant reflectances, no
+    glints, no lashes. A patient's eye varies every one of these
+    (:func:`eyeserver.hardware.sim.population.draw_eye`; ranges and sources in
+    docs/eye-model.md). Lengths in mm; the eye's own frame has x along the room's +X when
+    the eye looks straight, y up and z along the gaze.
+    """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     globe_radius_mm: Annotated[float, Field(gt=5, lt=20)] = 12.0
+    globe_semi_axes_mm: tuple[Annotated[float, Field(gt=5, lt=20)],
+                              Annotated[float, Field(gt=5, lt=20)],
+                              Annotated[float, Field(gt=5, lt=20)]] | None = Field(
+        None, description="(horizontal, vertical, axial) semi-axes of an ellipsoidal globe in "
+        "the eye's frame; None: a sphere of globe_radius_mm")
     cornea_radius_mm: Annotated[float, Field(gt=4, lt=15)] = 7.8
-    limbus_diameter_mm: Annotated[float, Field(gt=6, lt=16)] = 11.7
+    cornea_asphericity: Annotated[float, Field(gt=-0.9, lt=0.9)] = Field(
+        0.0, description="the anterior cornea's conic constant Q (0 a sphere, < 0 flattening "
+        "towards the limbus as corneas do)")
+    limbus_diameter_mm: Annotated[float, Field(gt=6, lt=16)] = Field(
+        11.7, description="horizontal diameter of the corneoscleral junction, where the cornea "
+        "meets the globe (the visible iris diameter across)")
+    limbus_vertical_ratio: Annotated[float, Field(gt=0.7, le=1.0)] = Field(
+        1.0, description="vertical over horizontal diameter of the visible limbus: the opaque "
+        "sclera overlaps the cornea's periphery above and below")
+    limbus_width_mm: Annotated[float, Field(ge=0, le=3)] = Field(
+        0.0, description="10–90 % width of the visible limbus's transition from the iris's "
+        "reflectance to the sclera's; 0 a sharp step")
+    limbus_scatter: Annotated[float, Field(ge=0, le=1)] = Field(
+        0.0, description="share of the fringe's modulation lost to light scattered within the "
+        "translucent limbal band, at its middle")
+    sclera_albedo: Annotated[float, Field(gt=0, le=1)] = Field(
+        0.42, description="near-infrared reflectance of the sclera (white plate 1)")
+    iris_albedo: Annotated[float, Field(gt=0, le=1)] = Field(
+        0.06, description="what comes back through the cornea: the iris's near-infrared "
+        "reflectance (a light iris reflects more, a dark one less)")
+    tear_reflectance: Annotated[float, Field(ge=0, lt=0.1)] = Field(
+        0.0, description="specular reflectance of the tear film at normal incidence (≈ 0.02 "
+        "for water): each projector's glint on cornea and sclera; 0 none")
+    tear_glints: Annotated[int, Field(ge=0, le=20)] = Field(
+        0, description="small bumps in the tear film (mucus, debris) that each glint")
     gaze_deg: tuple[float, float] = Field(
         (0.0, 0.0), description="(yaw towards +X, pitch towards +Y) of the gaze, degrees")
     aperture_mm: tuple[float, float] = Field(
         (11.0, 7.5), description="half-width and half-height of the lid opening (retractors)")
+    aperture_offset_mm: tuple[float, float] = Field(
+        (0.0, 0.0), description="the lid opening's centre from the globe's axis at rest (x, y): "
+        "a low upper lid covers the top of the limbus")
     lid_gap_mm: Annotated[float, Field(gt=0)] = 1.2
+    lashes: Annotated[int, Field(ge=0, le=200)] = Field(
+        0, description="lashes on the upper lid's margin, thin dark occluders")
+    features_seed: Annotated[int, Field(ge=0)] = Field(
+        0, description="places the tear-film bumps and the lashes")
     motion: MotionSpec | None = None
 
     @model_validator(mode="after")
     def _limbus_fits(self) -> EyeSpec:
         half = self.limbus_diameter_mm / 2
-        if half >= min(self.globe_radius_mm, self.cornea_radius_mm):
+        smallest = (self.globe_radius_mm if self.globe_semi_axes_mm is None
+                    else min(self.globe_semi_axes_mm[:2]))
+        cornea_reach = self.cornea_radius_mm / math.sqrt(1.0 + self.cornea_asphericity)
+        if half >= min(smallest, cornea_reach):
             raise ValueError("the limbus must be narrower than both the globe and the cornea")
         return self
+
+    @property
+    def sharp(self) -> bool:
+        """Whether this is the old painted eye: a sphere with a sharp limbus and constant
+        reflectances, nothing glossy, nothing in front (rendered as it always was)."""
+        return (self.globe_semi_axes_mm is None and self.cornea_asphericity == 0.0
+                and self.limbus_vertical_ratio == 1.0 and self.limbus_width_mm == 0.0
+                and self.limbus_scatter == 0.0 and self.tear_reflectance == 0.0
+                and self.tear_glints == 0 and self.lashes == 0
+                and self.aperture_offset_mm == (0.0, 0.0))
 
 
 class SceneSpec(BaseModel):
