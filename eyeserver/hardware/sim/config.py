@@ -88,6 +88,8 @@ class ProjectorConfig(PlacementConfig):
     fringe_pp_dn: Annotated[float, Field(ge=0, description=(
         "fringe peak-to-peak on a white plate through look_at_mm normal to Z, 8-bit DN, centre"
         " of the image, nominal exposure, 0 dB"))] = 60.0
+    aperture_mm: Annotated[float, Field(gt=0, description=(
+        "diameter of the projector lens's exit pupil: what a wet eye mirrors as a glint"))] = 10.0
 
 
 class UnitConfig(_Strict):

@@ -13,6 +13,7 @@ room file sets; sclera-like surfaces are 0.42 of it (≈ 25 DN of fringe, DESIGN
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
 
@@ -24,8 +25,11 @@ from scipy.spatial import cKDTree
 from eyeserver.hardware.sim.geometry import (
     AlbedoFn,
     Body,
+    Bumps,
     Cone,
     ConvexPolyhedron,
+    Ellipsoid,
+    Hairs,
     Plane,
     Scene,
     Sphere,
@@ -33,6 +37,7 @@ from eyeserver.hardware.sim.geometry import (
     pose_matrix,
 )
 from eyeserver.hardware.sim.motion import EyeMotion, MotionSpec
+from eyeserver.hardware.sim.optics import rotation_x, rotation_y
 
 F64 = npt.NDArray[np.float64]
 Vec3 = tuple[float, float, float]
@@ -368,6 +373,8 @@ def _build_local(spec: SceneSpec, t_s: float) -> _Local:
     # The patient eye: globe and corneal cap rotating about the globe centre, lids and face fixed
     # to the head. The local origin is the globe centre at rest.
     eye = spec.eye
+    if not eye.sharp:
+        return _patient_eye(eye, t_s)
     motion = EyeMotion(eye.motion).state(t_s) if eye.motion is not None else None
     yaw, pitch = eye.gaze_deg
     head = np.zeros(3)
@@ -425,6 +432,215 @@ def _build_local(spec: SceneSpec, t_s: float) -> _Local:
                   (head.copy(), lid_radius + 0.1), closed)
 
 
+LASH_RADIUS_MM = 0.05
+"""Half a lash's thickness (lashes are 0.08–0.12 mm thick)."""
+LASH_ALBEDO = 0.08
+"""Near-infrared reflectance of a lash (dark hair)."""
+
+
+def _limbus_distance(eye: EyeSpec) -> Callable[[F64], F64]:
+    """Signed distance (mm, + outside) of eye-frame points from the visible limbus: an ellipse
+    about the gaze axis, the junction's horizontal radius across and the vertical ratio of it
+    up and down, measured radially in the plane normal to the gaze."""
+    across = eye.limbus_diameter_mm / 2
+    up = across * eye.limbus_vertical_ratio
+
+    def distance(points: F64) -> F64:
+        rho = np.hypot(points[:, 0], points[:, 1])
+        e = np.hypot(points[:, 0] / across, points[:, 1] / up)
+        return np.asarray((e - 1.0) * rho / np.maximum(e, 1e-9))
+    return distance
+
+
+def _limbus_albedo(eye: EyeSpec) -> AlbedoFn:
+    """The iris's reflectance inside the visible limbus, the sclera's outside, a logistic ramp
+    of ``limbus_width_mm`` (10–90 %) between them; the back of the globe is sclera."""
+    distance = _limbus_distance(eye)
+    iris, sclera = eye.iris_albedo, eye.sclera_albedo
+    width = eye.limbus_width_mm
+    slope = 2.0 * math.log(9.0) / width if width > 0 else math.inf
+
+    def albedo(points: F64) -> F64:
+        d = distance(points)
+        if math.isinf(slope):
+            share = (d >= 0).astype(np.float64)
+        else:
+            share = 0.5 * (1.0 + np.tanh(0.5 * slope * d))
+        out = iris + (sclera - iris) * share
+        return np.asarray(np.where(points[:, 2] > 0, out, sclera))
+    return albedo
+
+
+def _limbus_scatter(eye: EyeSpec) -> AlbedoFn:
+    """The translucent limbal band's loss of fringe modulation: ``limbus_scatter`` at the
+    band's middle, a Gaussian across it (sd a quarter of its width, at least 0.05 mm)."""
+    distance = _limbus_distance(eye)
+    sd = max(eye.limbus_width_mm / 4, 0.05)
+
+    def scatter(points: F64) -> F64:
+        d = distance(points)
+        return np.asarray(np.where(points[:, 2] > 0,
+                                   eye.limbus_scatter * np.exp(-0.5 * (d / sd) ** 2), 0.0))
+    return scatter
+
+
+@dataclass(frozen=True)
+class _Anatomy:
+    """An eye's surfaces in its own frame (origin the globe's centre, z the gaze)."""
+
+    globe: Sphere | Ellipsoid
+    cornea: Ellipsoid
+    junction_depth: float
+    """Along the gaze, the depth of the horizontal corneoscleral junction."""
+    apex: float
+    """Along the gaze, the depth of the cornea's apex."""
+    reach: float
+    """The farthest any point of globe or cornea lies from the centre."""
+
+
+def _anatomy(eye: EyeSpec) -> _Anatomy:
+    """Globe (sphere or ellipsoid) and cornea (a conic: a spheroid of apical radius R and
+    asphericity Q has semi-axes R/√(1+Q) across and R/(1+Q) along), the cornea placed so that
+    it meets the globe at the junction's horizontal radius."""
+    half = eye.limbus_diameter_mm / 2
+    albedo = _limbus_albedo(eye)
+    if eye.globe_semi_axes_mm is None:
+        axes = (eye.globe_radius_mm,) * 3
+        globe: Sphere | Ellipsoid = Sphere(np.zeros(3), eye.globe_radius_mm, albedo, "sclera")
+    else:
+        axes = eye.globe_semi_axes_mm
+        globe = Ellipsoid(np.zeros(3), axes, albedo, "sclera")
+    junction = axes[2] * math.sqrt(1.0 - (half / axes[0]) ** 2)
+    r, q = eye.cornea_radius_mm, eye.cornea_asphericity
+    sagitta = (r - math.sqrt(r * r - (1.0 + q) * half * half)) / (1.0 + q)
+    apex = junction + sagitta
+    along, across = r / (1.0 + q), r / math.sqrt(1.0 + q)
+    cornea = Ellipsoid(np.array([0.0, 0.0, apex - along]), (across, across, along), albedo,
+                       "cornea")
+    for surface in (globe, cornea):
+        surface.specular = eye.tear_reflectance
+        if eye.limbus_scatter > 0:
+            surface.scatter = _limbus_scatter(eye)
+    return _Anatomy(globe, cornea, junction, apex, max(max(axes), apex))
+
+
+def _tear_bumps(eye: EyeSpec, anatomy: _Anatomy, rng: np.random.Generator) -> Bumps | None:
+    """``eye.tear_glints`` facets on the tear film over the cornea and the limbus."""
+    n = eye.tear_glints
+    if n == 0:
+        return None
+    half = eye.limbus_diameter_mm / 2
+    rho = half * np.sqrt(rng.uniform(0.0, 1.3, n))
+    azimuth = rng.uniform(0.0, 2 * math.pi, n)
+    directions = np.stack([rho * np.cos(azimuth), rho * np.sin(azimuth), np.zeros(n)], axis=1)
+    centres = np.zeros((n, 3))
+    # Each facet sits on the first surface a ray along −z meets from in front of the eye.
+    front = np.array([0.0, 0.0, anatomy.reach + 5.0])
+    for k in range(n):
+        o = front + directions[k]
+        t = min(float(s.intersect(o, np.array([[0.0, 0.0, -1.0]]))[0][0])
+                for s in (anatomy.globe, anatomy.cornea))
+        centres[k] = o + t * np.array([0.0, 0.0, -1.0])
+    tilt_angle = np.radians(rng.uniform(0.0, 25.0, n))
+    tilt_azimuth = rng.uniform(0.0, 2 * math.pi, n)
+    tilt = np.stack([np.tan(tilt_angle) * np.cos(tilt_azimuth),
+                     np.tan(tilt_angle) * np.sin(tilt_azimuth), np.zeros(n)], axis=1)
+    return Bumps(centre=centres, radius=rng.uniform(0.1, 0.3, n), tilt=tilt,
+                 curvature_mm=rng.uniform(1.0, 4.0, n))
+
+
+def _lashes(eye: EyeSpec, head: F64, lid_radius: float, rng: np.random.Generator
+            ) -> Hairs | None:
+    """``eye.lashes`` lashes rooted along the upper lid's margin, pointing out of the lid,
+    mostly up, some drooping over the opening."""
+    n = eye.lashes
+    if n == 0:
+        return None
+    half_w, half_h = eye.aperture_mm
+    dx, dy = eye.aperture_offset_mm
+    phi = rng.uniform(math.radians(20.0), math.radians(160.0), n)
+    x = dx + half_w * np.cos(phi)
+    y = dy + half_h * np.sin(phi)
+    z = np.sqrt(np.clip(lid_radius**2 - x * x - y * y, 0.0, None))
+    roots = np.stack([x, y, z], axis=1)
+    radial = roots / lid_radius
+    lift = rng.uniform(-0.4, 1.2, n)
+    spread = rng.normal(0.0, 0.15, (n, 3))
+    direction = radial + lift[:, None] * np.array([0.0, 1.0, 0.0]) + spread
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    length = rng.uniform(6.0, 10.0, n)
+    keep = z > 0
+    return Hairs(head + roots[keep], head + roots[keep] + length[keep, None] * direction[keep],
+                 LASH_RADIUS_MM, constant_albedo(LASH_ALBEDO), "lashes")
+
+
+def _eye_rotation(yaw_deg: float, pitch_deg: float) -> F64:
+    """The rotation taking the eye's frame (z the gaze) to the head's: pitch, then yaw."""
+    return rotation_y(math.radians(yaw_deg)) @ rotation_x(-math.radians(pitch_deg))
+
+
+def _patient_eye(eye: EyeSpec, t_s: float) -> _Local:
+    """A patient's eye (:class:`EyeSpec` beyond the sharp painted one): ellipsoidal globe,
+    aspheric cornea, soft oval limbus, wet surfaces, lashes, an offset opening. The globe
+    turns with the gaze as one body with the cornea (its reflectance does too)."""
+    motion = EyeMotion(eye.motion).state(t_s) if eye.motion is not None else None
+    yaw, pitch = eye.gaze_deg
+    head = np.zeros(3)
+    openness = 1.0
+    if motion is not None:
+        yaw += motion.gaze_offset_deg[0]
+        pitch += motion.gaze_offset_deg[1]
+        head = np.asarray(motion.head_offset_mm, dtype=np.float64)
+        openness = motion.openness
+    features = np.random.default_rng(eye.features_seed)
+    anatomy = _anatomy(eye)
+    bumps = _tear_bumps(eye, anatomy, features)
+    anatomy.globe.bumps = anatomy.cornea.bumps = bumps
+    rotation = _eye_rotation(yaw, pitch)
+    gaze = rotation[:, 2].copy()
+    eyeball = Body([anatomy.globe, anatomy.cornea], R=rotation, t=head.copy())
+    axes = (eye.globe_semi_axes_mm if eye.globe_semi_axes_mm is not None
+            else (eye.globe_radius_mm,) * 3)
+    lid_radius = max(axes) + eye.lid_gap_mm
+    half_w, half_h = eye.aperture_mm
+    offset = eye.aperture_offset_mm
+    half_h_now = half_h * openness
+    face_z = 0.5 * eye.globe_radius_mm
+    lids = _LidShell(head, lid_radius, half_w, half_h, constant_albedo(SKIN), "lids",
+                     offset=offset)
+    # Shut, the lids close over the cornea wherever it stands out of their shell.
+    closing_radius = max(lid_radius, anatomy.apex + 0.3)
+
+    def closing_lids(opening_h: float) -> Body:
+        return Body([_LidShell(head, closing_radius, half_w, opening_h, constant_albedo(SKIN),
+                               "lids", within=(half_w, half_h), offset=offset)])
+    face_hole = math.sqrt(max(lid_radius**2 - face_z**2, 1.0)) - 0.2
+    face_plane = Plane(constant_albedo(SKIN), "skin", half_size=(60.0, 60.0),
+                       hole=(0.0, 0.0, face_hole))
+    face = Body([face_plane], t=head + np.array([0.0, 0.0, face_z]))
+    lid_surfaces: list[Any] = [lids]
+    lashes = _lashes(eye, head, lid_radius, features)
+    if lashes is not None:
+        lid_surfaces.append(lashes)
+    lid_body = Body(lid_surfaces)
+    semi = None if eye.globe_semi_axes_mm is None else list(eye.globe_semi_axes_mm)
+    eye_truth = {"centre_local": head.copy(), "gaze_local": gaze,
+                 "limbus_centre_local": head + anatomy.junction_depth * gaze,
+                 "globe_radius_mm": float(np.mean(axes)), "globe_semi_axes_mm": semi,
+                 "cornea_radius_mm": eye.cornea_radius_mm, "openness": openness,
+                 "gaze_deg_local": (yaw, pitch)}
+    bodies = [eyeball, lid_body, face]
+    moving = [(0, head.copy(), anatomy.reach + 0.05)]
+    closing = openness < 1.0
+    if closing:
+        bodies.append(closing_lids(half_h_now))
+        moving.append((3, *_cap_bound(head, closing_radius, max(half_w, half_h) + float(
+            np.hypot(*offset)))))
+    closed = (3 if closing else None, closing_lids(0.0))
+    return _Local(bodies, np.zeros((0, 3)), eye_truth, moving,
+                  (head.copy(), max(lid_radius, closing_radius) + 0.1), closed)
+
+
 def _cap_bound(centre: F64, radius: float, reach: float) -> tuple[F64, float]:
     """The smallest sphere around the front cap of a sphere (``centre``, ``radius``) that lies
     within ``reach`` of its axis (local +Z): the closing lids' bound. Its points at height
@@ -444,18 +660,20 @@ class _LidShell(Sphere):
     blinking lids that closes over the wide opening."""
 
     def __init__(self, centre: F64, radius: float, half_w: float, half_h: float,
-                 albedo: AlbedoFn, label: str, within: tuple[float, float] | None = None
-                 ) -> None:
+                 albedo: AlbedoFn, label: str, within: tuple[float, float] | None = None,
+                 offset: tuple[float, float] = (0.0, 0.0)) -> None:
         super().__init__(centre, radius, albedo, label)
         self.half_w = half_w
         self.half_h = half_h
         self.within = within
+        self.offset = np.array([offset[0], offset[1], 0.0])
 
     def intersect(self, o: F64, d: F64) -> tuple[F64, F64]:
         t, normals = super().intersect(o, d)
         points = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
         rel = points - self.centre
         behind = rel[:, 2] < 0  # only the front half forms lids; the back is inside the head
+        rel = rel - self.offset
         miss = _inside(rel, self.half_w, self.half_h) | behind
         if self.within is not None:
             miss |= ~_inside(rel, *self.within)
@@ -494,6 +712,8 @@ def build_scene(spec: SceneSpec, t_s: float = 0.0) -> BuiltScene:
             eye["openness"] = eye_local["openness"]
         if "cornea_radius_mm" in eye_local:
             eye["cornea_radius_mm"] = eye_local["cornea_radius_mm"]
+        if eye_local.get("globe_semi_axes_mm") is not None:
+            eye["globe_semi_axes_mm"] = eye_local["globe_semi_axes_mm"]
     moving_index = {index for index, _, _ in local.moving}
     static = Scene([b for i, b in enumerate(bodies) if i not in moving_index])
     bounds = [(R @ centre + t, radius) for _, centre, radius in local.moving]
