@@ -93,6 +93,14 @@ class Bumps:
         return out
 
 
+def _basis_of(axis: F64) -> tuple[F64, F64]:
+    """Two unit vectors completing the unit ``axis`` to an orthonormal frame."""
+    helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(axis, helper)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(axis, e1)
+
+
 def _no_hit(n: int) -> tuple[F64, F64]:
     return np.full(n, np.inf), np.zeros((n, 3))
 
@@ -137,20 +145,31 @@ class Ellipsoid(Surface):
         self.semi_axes = np.asarray(semi_axes, dtype=np.float64)
 
     def intersect(self, o: F64, d: F64) -> tuple[F64, F64]:
+        n = d.shape[0]
+        t = np.full(n, np.inf)
+        normals = np.zeros((n, 3))
+        # Only rays that meet the bounding sphere (an eye fills a tenth of an image).
+        rel = self.centre - o
+        along = d @ rel
+        bound = float(self.semi_axes.max())
+        near = np.flatnonzero(float(rel @ rel) - along**2 < bound**2)
+        if not near.size:
+            return t, normals
         # In coordinates scaled by the semi-axes the ellipsoid is the unit sphere.
-        oc = (o - self.centre) / self.semi_axes
-        ds = d / self.semi_axes
+        oc = -rel / self.semi_axes
+        ds = d[near] / self.semi_axes
         a = np.einsum("ij,ij->i", ds, ds)
         b = ds @ oc
         c = float(oc @ oc) - 1.0
         disc = b * b - a * c
         hit = disc >= 0
-        t = (-b - np.sqrt(np.where(hit, disc, 0.0))) / a
-        t = np.where(hit & (t > _EPS), t, np.inf)
-        points = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
-        normals = (points - self.centre) / self.semi_axes**2
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-        normals[~np.isfinite(t)] = 0.0
+        t_near = (-b - np.sqrt(np.where(hit, disc, 0.0))) / a
+        hit &= t_near > _EPS
+        near, t_near = near[hit], t_near[hit]
+        t[near] = t_near
+        points = o + t_near[:, None] * d[near]
+        bent = (points - self.centre) / self.semi_axes**2
+        normals[near] = bent / np.maximum(np.linalg.norm(bent, axis=1, keepdims=True), 1e-12)
         return t, normals
 
     def distance(self, points: F64) -> F64:
@@ -175,11 +194,8 @@ class Hairs(Surface):
         self.starts = np.asarray(starts, dtype=np.float64)
         self.ends = np.asarray(ends, dtype=np.float64)
         self.radius = float(radius)
-        self._mids = (self.starts + self.ends) / 2
-        self._reach = np.linalg.norm(self.ends - self.starts, axis=1) / 2 + self.radius
-        self._centre = self._mids.mean(axis=0) if len(self._mids) else np.zeros(3)
-        self._bound = float(np.max(np.linalg.norm(self._mids - self._centre, axis=1)
-                                   + self._reach)) if len(self._mids) else 0.0
+        self._centre = ((self.starts + self.ends) / 2).mean(axis=0) if len(self.starts) \
+            else np.zeros(3)
 
     def intersect(self, o: F64, d: F64) -> tuple[F64, F64]:
         n = d.shape[0]
@@ -187,19 +203,9 @@ class Hairs(Surface):
         normals = np.zeros((n, 3))
         if not len(self.starts):
             return best, normals
-        # Rays that meet the bounding sphere of all hairs, then ray–hair pairs whose ray meets
-        # the hair's own (a few per cent of all rays, a few hairs each).
-        rel_all = self._centre - o
-        along_all = d @ rel_all
-        near = np.flatnonzero((along_all > 0) & (float(rel_all @ rel_all) - along_all**2
-                                                  < self._bound**2))
-        rel = self._mids - o
-        along = d[near] @ rel.T
-        perp2 = np.einsum("ij,ij->i", rel, rel)[None, :] - along**2
-        ray, hair = np.nonzero((along > 0) & (perp2 < self._reach[None, :] ** 2))
+        ray, hair = self._candidates(o, d)
         if not ray.size:
             return best, normals
-        ray = near[ray]
         a = self.starts[hair]
         e = self.ends[hair] - a
         dn = d[ray]
@@ -224,6 +230,44 @@ class Hairs(Surface):
         normals[ray[first]] = radial / np.maximum(np.linalg.norm(radial, axis=1, keepdims=True),
                                                   1e-12)
         return best, normals
+
+    def _candidates(self, o: F64, d: F64) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+        """Ray–hair pairs ``(ray indices, hair indices)`` whose ray may meet the hair.
+
+        All rays leave ``o``: in the gnomonic projection about the hairs' centre a hair is a
+        segment, and a ray a point, so the rays sorted by one coordinate give each hair's
+        candidates by bisection within its bounding box (a ray–sphere test of every ray against
+        every hair cost more than the exact test of the pairs).
+        """
+        axis = self._centre - o
+        axis /= np.linalg.norm(axis)
+        e1, e2 = _basis_of(axis)
+        ends = np.stack([self.starts, self.ends]) - o  # (2, K, 3)
+        depth = ends @ axis
+        if np.any(depth <= self.radius):  # a hair beside or behind o: test every ray
+            k = len(self.starts)
+            return (np.repeat(np.arange(d.shape[0]), k), np.tile(np.arange(k), d.shape[0]))
+        du = ends @ e1 / depth
+        dv = ends @ e2 / depth
+        margin = 1.5 * self.radius / depth.min(axis=0)
+        along = d @ axis
+        ahead = np.flatnonzero(along > 1e-6)
+        u = (d[ahead] @ e1) / along[ahead]
+        v = (d[ahead] @ e2) / along[ahead]
+        order = np.argsort(u)
+        u_sorted = u[order]
+        lo = np.searchsorted(u_sorted, du.min(axis=0) - margin)
+        hi = np.searchsorted(u_sorted, du.max(axis=0) + margin, side="right")
+        rays: list[npt.NDArray[np.intp]] = []
+        hairs: list[npt.NDArray[np.intp]] = []
+        for k in range(len(self.starts)):
+            picked = order[lo[k]:hi[k]]
+            inside = np.abs(v[picked] - 0.5 * (dv[0, k] + dv[1, k])) <= (
+                0.5 * abs(dv[0, k] - dv[1, k]) + margin[k])
+            picked = ahead[picked[inside]]
+            rays.append(picked)
+            hairs.append(np.full(picked.size, k, dtype=np.intp))
+        return np.concatenate(rays), np.concatenate(hairs)
 
     def distance(self, points: F64) -> F64:
         best = np.full(points.shape[0], np.inf)

@@ -84,6 +84,13 @@ class _StaticPart:
     """Per source, the raw values of those pixels with that body at its fullest."""
 
 
+ALBEDO_STEP = 1e-3
+"""Neighbouring pixels whose albedo differs by more than this are integrated over their area:
+every painted edge (steps of 0.02 and more), not the smooth reflectance of a soft limbus far
+from its band, whose pixel centres stand for their pixels (a 1e-6 threshold integrated every
+pixel of a patient's eye, 16 rays each, for nothing)."""
+
+
 def _edge_pixels(shading: _Shading, height: int, width: int) -> npt.NDArray[np.bool_]:
     """Pixels whose centre differs from a 4-neighbour's in albedo, object, light or normal."""
     albedo = shading.albedo.reshape(height, width)
@@ -96,7 +103,7 @@ def _edge_pixels(shading: _Shading, height: int, width: int) -> npt.NDArray[np.b
         # Normals only compare where both rays hit something (a miss has a zero normal).
         bent = ((np.einsum("ijk,ijk->ij", normals[ta], normals[tb]) < 0.9995)
                 & (label[ta] >= 0) & (label[tb] >= 0))
-        diff = ((np.abs(albedo[ta] - albedo[tb]) > 1e-6) | (label[ta] != label[tb])
+        diff = ((np.abs(albedo[ta] - albedo[tb]) > ALBEDO_STEP) | (label[ta] != label[tb])
                 | (lit[ta] != lit[tb]) | bent)
         edge[ta] |= diff
         edge[tb] |= diff
