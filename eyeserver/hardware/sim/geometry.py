@@ -45,12 +45,18 @@ class Surface(abc.ABC):
     surface's mirror reflectance at normal incidence (the tear film's), which shows each
     projector's aperture as a glint; ``bumps`` tilt the mirror's normals locally (tear-film
     irregularities, each a small facet of its own curvature that glints where its normal
-    bisects the camera and the projector).
+    bisects the camera and the projector); ``clear_at`` marks per local point where the surface is
+    clear (``clear_at``, a transparent cornea): rays from the cameras pass there, and light passes there to
+    surfaces that are ``reached_through_holes`` (an iris behind the cornea), while every other
+    point's shadow test takes the surface as solid (light that enters the cornea goes into the
+    eye). A clear surface still glints.
     """
 
     scatter: AlbedoFn | None = None
     specular: float = 0.0
     bumps: Bumps | None = None
+    clear_at: Callable[[F64], npt.NDArray[np.bool_]] | None = None
+    reached_through_holes: bool = False
 
     def __init__(self, albedo: AlbedoFn, label: str) -> None:
         self.albedo = albedo
@@ -63,6 +69,19 @@ class Surface(abc.ABC):
     @abc.abstractmethod
     def distance(self, points: F64) -> F64:
         """Unsigned distance of local points ``(N, 3)`` to the surface (for scoring)."""
+
+    def hit(self, o: F64, d: F64, clear: bool = True) -> tuple[F64, F64]:
+        """:meth:`intersect`, with ``clear`` no hit where the surface is clear (a
+        closed solid's far side is not a surface that matters here: what lies behind a hole
+        is reached through it)."""
+        t, normals = self.intersect(o, d)
+        if clear and self.clear_at is not None:
+            hit = np.flatnonzero(np.isfinite(t))
+            if hit.size:
+                open_ = hit[self.clear_at(o + t[hit, None] * d[hit])]
+                t[open_] = np.inf
+                normals[open_] = 0.0
+        return t, normals
 
 
 @dataclass(frozen=True)
@@ -432,9 +451,15 @@ class RayHits:
     """Per ray, the share of a fringe's modulation lost in the surface (None: none hit
     scatters)."""
     specular: F64 | None = None
-    """Per ray, the mirror reflectance of the surface hit (None: nothing hit is glossy)."""
+    """Per ray, the mirror reflectance of the first glossy surface met, clear or not, where it
+    lies in front of the hit (None: nothing met is glossy)."""
     mirror_normals: F64 | None = None
     """Where ``specular`` is given: the normals the mirror reflects about (world frame)."""
+    mirror_points: F64 | None = None
+    """Where ``specular`` is given: the points the mirror reflects at (world frame)."""
+    inner: npt.NDArray[np.bool_] | None = None
+    """Per ray, whether the surface hit is reached through holes (its shadow test respects
+    them); None: none is."""
 
 
 class Scene:
@@ -449,14 +474,15 @@ class Scene:
                 if surface.label not in self.labels:
                     self.labels.append(surface.label)
 
-    def first_hit_distance(self, o: F64, d: F64) -> F64:
-        """Distance to the nearest surface along each ray (for shadow tests)."""
+    def first_hit_distance(self, o: F64, d: F64, clear: bool = False) -> F64:
+        """Distance to the nearest surface along each ray (for shadow tests); ``clear``: light
+        passes the surfaces' holes (towards what is reached through them)."""
         best = np.full(d.shape[0], np.inf)
         for body in self.bodies:
             o_local = body.to_local(o[None, :])[0]
             d_local = d @ body.R
             for surface in body.surfaces:
-                t, _ = surface.intersect(o_local, d_local)
+                t, _ = surface.hit(o_local, d_local, clear)
                 np.minimum(best, t, out=best)
         return best
 
@@ -471,7 +497,7 @@ class Scene:
             o_local = body.to_local(o[None, :])[0]
             d_local = d @ body.R
             for surface in body.surfaces:
-                t, nrm = surface.intersect(o_local, d_local)
+                t, nrm = surface.hit(o_local, d_local)
                 closer = t < best
                 best = np.where(closer, t, best)
                 normals[closer] = nrm[closer] @ body.R.T
@@ -482,8 +508,7 @@ class Scene:
         albedo = np.full(n, self.background_albedo)
         label = np.full(n, -1, dtype=np.int16)
         scatter: F64 | None = None
-        specular: F64 | None = None
-        mirror: F64 | None = None
+        inner: npt.NDArray[np.bool_] | None = None
         for index, (body, surface) in enumerate(flat):
             sel = owner == index
             if not np.any(sel):
@@ -494,15 +519,42 @@ class Scene:
             if surface.scatter is not None:
                 scatter = np.zeros(n) if scatter is None else scatter
                 scatter[sel] = surface.scatter(local)
-            if surface.specular > 0:
-                specular = np.zeros(n) if specular is None else specular
-                mirror = normals.copy() if mirror is None else mirror
-                specular[sel] = surface.specular
-                if surface.bumps is not None:
-                    bent = surface.bumps.mirror_normals(local, normals[sel] @ body.R)
-                    mirror[sel] = bent @ body.R.T
+            if surface.reached_through_holes:
+                inner = np.zeros(n, dtype=bool) if inner is None else inner
+                inner[sel] = True
+        specular, mirror, mirror_points = self._glossy(o, d, best)
         return RayHits(t=best, points=points, normals=normals, albedo=albedo, label=label,
-                       scatter=scatter, specular=specular, mirror_normals=mirror)
+                       scatter=scatter, specular=specular, mirror_normals=mirror,
+                       mirror_points=mirror_points, inner=inner)
+
+    def _glossy(self, o: F64, d: F64, best: F64) -> tuple[F64 | None, F64 | None, F64 | None]:
+        """The first glossy surface along each ray, clear or not, where it lies in front of (or
+        is) the hit at ``best``: reflectance, mirror normals and points (world), or Nones."""
+        glossy = [(body, surface) for body in self.bodies for surface in body.surfaces
+                  if surface.specular > 0]
+        if not glossy:
+            return None, None, None
+        n = d.shape[0]
+        nearest = np.full(n, np.inf)
+        specular = np.zeros(n)
+        mirror = np.zeros((n, 3))
+        for body, surface in glossy:
+            o_local = body.to_local(o[None, :])[0]
+            d_local = d @ body.R
+            t, nrm = surface.intersect(o_local, d_local)
+            front = np.flatnonzero((t < nearest) & (t <= best + 1e-6))
+            if not front.size:
+                continue
+            nearest[front] = t[front]
+            specular[front] = surface.specular
+            local_normals = nrm[front]
+            if surface.bumps is not None:
+                local_normals = surface.bumps.mirror_normals(
+                    o_local + t[front, None] * d_local[front], local_normals)
+            mirror[front] = local_normals @ body.R.T
+        met = np.isfinite(nearest)
+        points = o + np.where(met, nearest, 0.0)[:, None] * d
+        return specular, mirror, points
 
     def distance(self, points: F64) -> F64:
         """Distance of world points to the nearest surface of the scene (for scoring)."""

@@ -100,6 +100,8 @@ _LIMBUS_WIDTH = (0.2, 2.0)  # visible 10–90 % width of the transition
 _LIMBUS_SCATTER = (0.0, 0.6)
 _SCLERA_ALBEDO = (0.30, 0.50)
 _IRIS_ALBEDO = (0.03, 0.30)
+_IRIS_DEPTH = (2.6, 3.4)  # apparent: anterior chamber depth ≈ 3.1 ± 0.4 mm, less ≈ 0.5 mm
+_PUPIL_DIAMETER = (2.5, 6.0)  # NIR light does not narrow the pupil
 _TEAR_REFLECTANCE = (0.020, 0.025)  # Fresnel at n = 1.337 (tears) … 1.376 (cornea)
 _TEAR_GLINTS = (0, 6)
 _APERTURE_HALF_WIDTH = (9.5, 13.0)
@@ -171,6 +173,8 @@ def draw_eye(rng: np.random.Generator) -> EyeSpec:
         limbus_scatter=_uniform(rng, _LIMBUS_SCATTER),
         sclera_albedo=_uniform(rng, _SCLERA_ALBEDO),
         iris_albedo=_uniform(rng, _IRIS_ALBEDO),
+        iris_depth_mm=_uniform(rng, _IRIS_DEPTH),
+        pupil_diameter_mm=_uniform(rng, _PUPIL_DIAMETER),
         tear_reflectance=_uniform(rng, _TEAR_REFLECTANCE),
         tear_glints=_integer(rng, _TEAR_GLINTS),
         gaze_deg=(0.0, 0.0),

@@ -255,8 +255,14 @@ class Renderer:
                 phase, distance, inside = proj.phase_at(points)
                 to_proj = (proj.centre - points) / distance[:, None]
                 cos_inc = np.einsum("ij,ij->i", normals[idx], to_proj)
-                # Shadows: the projector's ray to the point must not meet the scene first.
+                # Shadows: the projector's ray to the point must not meet the scene first
+                # (through the holes of clear surfaces where the point lies behind them).
                 blocker = scene.first_hit_distance(proj.centre, -to_proj)
+                if hits.inner is not None:
+                    behind = np.flatnonzero(hits.inner[idx])
+                    if behind.size:
+                        blocker[behind] = scene.first_hit_distance(
+                            proj.centre, -to_proj[behind], clear=True)
                 visible = blocker >= distance - (1e-3 + 1e-6 * distance)
                 lit_here = inside & visible & (cos_inc > 0)
                 transmission = blurred_square_wave(phase, proj.config.blur_periods)
@@ -269,14 +275,17 @@ class Renderer:
                     lit_here, albedo[idx] * proj.power_dn * cos_inc
                     * (proj.working_distance / distance) ** 2 * transmission, 0.0)
                 lit[idx] = lit_here
-                if hits.specular is not None and hits.mirror_normals is not None:
-                    wet = idx[hits.specular[idx] > 0]
+                if (hits.specular is not None and hits.mirror_normals is not None
+                        and hits.mirror_points is not None):
+                    # A glint is the pupil's image on the eye's convex front, which the
+                    # projector sees: no shadow test.
+                    wet = np.flatnonzero(hits.specular > 0)
                     if wet.size:
                         glint, near = _glints(hits.specular[wet], hits.mirror_normals[wet],
-                                              rays[wet], hits.points[wet], proj)
-                        values[wet] += np.where(lit[wet], glint, 0.0)
+                                              rays[wet], hits.mirror_points[wet], proj)
+                        values[wet] += glint
                         glossy = np.zeros(rays.shape[0], dtype=bool)
-                        glossy[wet] = near & lit[wet]
+                        glossy[wet] = near
             out[source] = _Shading(values=values, albedo=albedo, label=hits.label, lit=lit,
                                    normals=normals, glossy=glossy)
         return out

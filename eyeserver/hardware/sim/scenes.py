@@ -108,6 +108,11 @@ class EyeSpec(BaseModel):
     iris_albedo: Annotated[float, Field(gt=0, le=1)] = Field(
         0.06, description="what comes back through the cornea: the iris's near-infrared "
         "reflectance (a light iris reflects more, a dark one less)")
+    iris_depth_mm: Annotated[float, Field(gt=1.5, lt=5)] = Field(
+        3.0, description="apparent depth of the iris behind the corneal apex, as seen through "
+        "the cornea (a patient's eye: the cornea is clear and the iris lies behind it; the "
+        "sharp eye paints the iris on the cornea)")
+    pupil_diameter_mm: Annotated[float, Field(gt=1, lt=9)] = 4.0
     tear_reflectance: Annotated[float, Field(ge=0, lt=0.1)] = Field(
         0.0, description="specular reflectance of the tear film at normal incidence (≈ 0.02 "
         "for water): each projector's glint on cornea and sclera; 0 none")
@@ -452,20 +457,31 @@ def _limbus_distance(eye: EyeSpec) -> Callable[[F64], F64]:
     return distance
 
 
+def _ramp_width(eye: EyeSpec) -> float:
+    """The raised-cosine ramp's full width whose 10–90 % width is ``limbus_width_mm``."""
+    return eye.limbus_width_mm / _RAMP_10_90
+
+
+_RAMP_10_90 = (math.acos(-0.8) - math.acos(0.8)) / math.pi
+"""10–90 % width of a raised-cosine ramp as a share of its full width (0.59)."""
+
+
 def _limbus_albedo(eye: EyeSpec) -> AlbedoFn:
-    """The iris's reflectance inside the visible limbus, the sclera's outside, a logistic ramp
-    of ``limbus_width_mm`` (10–90 %) between them; the back of the globe is sclera."""
+    """The opaque tissue about the limbus: from the iris's reflectance where the clear cornea
+    ends (half the ramp inside the visible limbus) to the sclera's, a raised cosine whose 10–90
+    % width is ``limbus_width_mm``, so that the image's transition from the iris seen through
+    the cornea to the sclera is continuous; the back of the globe is sclera."""
     distance = _limbus_distance(eye)
     iris, sclera = eye.iris_albedo, eye.sclera_albedo
-    width = eye.limbus_width_mm
-    slope = 2.0 * math.log(9.0) / width if width > 0 else math.inf
+    full = _ramp_width(eye)
 
     def albedo(points: F64) -> F64:
         d = distance(points)
-        if math.isinf(slope):
+        if full <= 0:
             share = (d >= 0).astype(np.float64)
         else:
-            share = 0.5 * (1.0 + np.tanh(0.5 * slope * d))
+            x = np.clip(d / full + 0.5, 0.0, 1.0)
+            share = 0.5 * (1.0 - np.cos(math.pi * x))
         out = iris + (sclera - iris) * share
         return np.asarray(np.where(points[:, 2] > 0, out, sclera))
     return albedo
@@ -484,12 +500,26 @@ def _limbus_scatter(eye: EyeSpec) -> AlbedoFn:
     return scatter
 
 
+def _within(solid: Sphere | Ellipsoid) -> Callable[[F64], npt.NDArray[np.bool_]]:
+    """Whether local points lie inside a sphere or ellipsoid (a hair's breadth counts as on)."""
+    axes = (np.full(3, solid.radius) if isinstance(solid, Sphere)
+            else np.asarray(solid.semi_axes, dtype=np.float64))
+
+    def inside(points: F64) -> npt.NDArray[np.bool_]:
+        scaled = (points - solid.centre) / axes
+        return np.asarray(np.einsum("ij,ij->i", scaled, scaled) < 1.0 - 1e-9)
+    return inside
+
+
 @dataclass(frozen=True)
 class _Anatomy:
     """An eye's surfaces in its own frame (origin the globe's centre, z the gaze)."""
 
     globe: Sphere | Ellipsoid
     cornea: Ellipsoid
+    iris: Plane
+    iris_depth: float
+    """Along the gaze, the depth of the iris's (apparent) plane."""
     junction_depth: float
     """Along the gaze, the depth of the horizontal corneoscleral junction."""
     apex: float
@@ -499,9 +529,16 @@ class _Anatomy:
 
 
 def _anatomy(eye: EyeSpec) -> _Anatomy:
-    """Globe (sphere or ellipsoid) and cornea (a conic: a spheroid of apical radius R and
-    asphericity Q has semi-axes R/√(1+Q) across and R/(1+Q) along), the cornea placed so that
-    it meets the globe at the junction's horizontal radius."""
+    """Globe (sphere or ellipsoid), cornea (a conic: a spheroid of apical radius R and
+    asphericity Q has semi-axes R/√(1+Q) across and R/(1+Q) along, placed to meet the globe at
+    the junction's horizontal radius) and iris.
+
+    The cornea is clear inside the visible limbus less half its ramp, and so is the globe's
+    cap wherever it lies inside the cornea (no surface there): rays pass to the iris, a disc
+    at its apparent depth (the cornea's virtual image of it, drawn straight rather than
+    refracted) with a dark pupil. The opaque rest carries the limbus's ramp
+    (:func:`_limbus_albedo`); both surfaces are wet (``tear_reflectance``).
+    """
     half = eye.limbus_diameter_mm / 2
     albedo = _limbus_albedo(eye)
     if eye.globe_semi_axes_mm is None:
@@ -517,11 +554,38 @@ def _anatomy(eye: EyeSpec) -> _Anatomy:
     along, across = r / (1.0 + q), r / math.sqrt(1.0 + q)
     cornea = Ellipsoid(np.array([0.0, 0.0, apex - along]), (across, across, along), albedo,
                        "cornea")
+    distance = _limbus_distance(eye)
+    clear_from = -_ramp_width(eye) / 2
+    in_cornea, in_globe = _within(cornea), _within(globe)
+
+    def cornea_clear(points: F64) -> npt.NDArray[np.bool_]:
+        return np.asarray((distance(points) < clear_from) | in_globe(points))
+
+    def globe_clear(points: F64) -> npt.NDArray[np.bool_]:
+        return np.asarray(((distance(points) < clear_from) & (points[:, 2] > 0))
+                          | in_cornea(points))
+    cornea.clear_at, globe.clear_at = cornea_clear, globe_clear
     for surface in (globe, cornea):
         surface.specular = eye.tear_reflectance
         if eye.limbus_scatter > 0:
             surface.scatter = _limbus_scatter(eye)
-    return _Anatomy(globe, cornea, junction, apex, max(max(axes), apex))
+    # The iris's disc reaches as far as the globe allows at its depth (rays through the
+    # cornea's edge land beyond the limbus's radius there).
+    iris_depth = apex - eye.iris_depth_mm
+    smallest = min(axes)
+    iris_radius = math.sqrt(max(smallest**2 - iris_depth**2, half**2)) - 0.05
+    pupil = eye.pupil_diameter_mm / 2
+
+    def iris_albedo(points: F64) -> F64:
+        rho = np.hypot(points[:, 0], points[:, 1])
+        return np.asarray(np.where(rho < pupil, PUPIL, eye.iris_albedo))
+    iris = Plane(iris_albedo, "iris", radius=iris_radius)
+    iris.reached_through_holes = True
+    return _Anatomy(globe, cornea, iris, iris_depth, junction, apex, max(max(axes), apex))
+
+
+PUPIL = 0.01
+"""Near-infrared reflectance of the pupil lit off the cameras' axes (dark)."""
 
 
 def _tear_bumps(eye: EyeSpec, anatomy: _Anatomy, rng: np.random.Generator) -> Bumps | None:
@@ -599,6 +663,7 @@ def _patient_eye(eye: EyeSpec, t_s: float) -> _Local:
     rotation = _eye_rotation(yaw, pitch)
     gaze = rotation[:, 2].copy()
     eyeball = Body([anatomy.globe, anatomy.cornea], R=rotation, t=head.copy())
+    iris = Body([anatomy.iris], R=rotation, t=head + anatomy.iris_depth * gaze)
     axes = (eye.globe_semi_axes_mm if eye.globe_semi_axes_mm is not None
             else (eye.globe_radius_mm,) * 3)
     lid_radius = max(axes) + eye.lid_gap_mm
@@ -629,14 +694,14 @@ def _patient_eye(eye: EyeSpec, t_s: float) -> _Local:
                  "globe_radius_mm": float(np.mean(axes)), "globe_semi_axes_mm": semi,
                  "cornea_radius_mm": eye.cornea_radius_mm, "openness": openness,
                  "gaze_deg_local": (yaw, pitch)}
-    bodies = [eyeball, lid_body, face]
-    moving = [(0, head.copy(), anatomy.reach + 0.05)]
+    bodies = [eyeball, iris, lid_body, face]
+    moving = [(0, head.copy(), anatomy.reach + 0.05), (1, head.copy(), anatomy.reach + 0.05)]
     closing = openness < 1.0
     if closing:
         bodies.append(closing_lids(half_h_now))
-        moving.append((3, *_cap_bound(head, closing_radius, max(half_w, half_h) + float(
+        moving.append((4, *_cap_bound(head, closing_radius, max(half_w, half_h) + float(
             np.hypot(*offset)))))
-    closed = (3 if closing else None, closing_lids(0.0))
+    closed = (4 if closing else None, closing_lids(0.0))
     return _Local(bodies, np.zeros((0, 3)), eye_truth, moving,
                   (head.copy(), max(lid_radius, closing_radius) + 0.1), closed)
 
