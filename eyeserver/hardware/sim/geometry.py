@@ -45,8 +45,8 @@ class Surface(abc.ABC):
     surface's mirror reflectance at normal incidence (the tear film's), which shows each
     projector's aperture as a glint; ``bumps`` tilt the mirror's normals locally (tear-film
     irregularities, each a small facet of its own curvature that glints where its normal
-    bisects the camera and the projector); ``clear_at`` marks per local point where the surface is
-    clear (``clear_at``, a transparent cornea): rays from the cameras pass there, and light passes there to
+    bisects the camera and the projector); ``clear_at`` marks per local point where the surface
+    is clear (a transparent cornea): rays from the cameras pass there, and light passes there to
     surfaces that are ``reached_through_holes`` (an iris behind the cornea), while every other
     point's shadow test takes the surface as solid (light that enters the cornea goes into the
     eye). A clear surface still glints.
