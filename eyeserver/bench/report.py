@@ -24,8 +24,9 @@ def _value(value: Any, digits: int = 3) -> str:
 
 
 def render(accuracy: dict[str, Any], speed: dict[str, Any], *poses: dict[str, Any]) -> str:
-    """The Markdown page, with an eye pose section for each of ``poses`` (runs of
-    ``eyeserver bench pose``, e.g. with the radius fitted and held)."""
+    """The Markdown page, with the eye pose runs side by side and a section for each of
+    ``poses`` (runs of ``eyeserver bench pose``: patient eyes with the radius fitted and with
+    their biometry, the old sharp eye)."""
     machine = accuracy["machine"]
     noise = accuracy["noise_model"]
     lines = [
@@ -93,6 +94,8 @@ def render(accuracy: dict[str, Any], speed: dict[str, Any], *poses: dict[str, An
                   + ", ".join(f"`{f}`" for f in accuracy["figures"]) + "."]
     lines += ["", f"The accuracy run took {accuracy.get('duration_s')} s.", ""]
     page = "\n".join(lines) + "\n" + render_speed(speed)
+    if poses:
+        page += "\n".join(render_pose_overview(poses)) + "\n"
     return page + "\n".join("\n".join(render_pose(pose)) for pose in poses)
 
 
@@ -229,42 +232,171 @@ def uncertainty_coverage(pose: dict[str, Any]) -> str | None:
             f"({normal['gaze_within_1_sd']:.0%}, {normal['gaze_within_2_sd']:.0%})")
 
 
+DESCRIPTORS = {"limbus_width_mm": "limbus width (mm)", "limbus_contrast": "limbus contrast",
+               "lid_cover": "lid cover (share of the limbus)",
+               "anatomy_mismatch_mm": "anatomy mismatch (mm)"}
+"""How the pose bench's bins (``by_bin``) are named for people."""
+
+
+def number_text(value: Any, digits: int = 3) -> str:
+    """A figure as the page prints it (``pending`` for None)."""
+    return _value(value, digits)
+
+
+def _share_text(value: float | None) -> str:
+    return "–" if value is None else f"{value:.1%}"
+
+
+def _figure_text(value: float | None, digits: int = 2) -> str:
+    return "–" if value is None else f"{value:.{digits}f}"
+
+
+def _eyes(pose: dict[str, Any]) -> str:
+    """The run's eyes (a report before ``eyes`` had the sharp one)."""
+    return str(pose.get("eyes", "sharp"))
+
+
+def _model_name(pose: dict[str, Any]) -> str:
+    if pose.get("biometry"):
+        return "biometry given"
+    return "radius held" if pose.get("held_radius") else "radius fitted"
+
+
+def _flags(pose: dict[str, Any]) -> str:
+    """The run's command-line options beyond ``--poses`` and ``--seed``."""
+    if "eyes" not in pose:
+        return " --held-radius" if pose.get("held_radius") else ""
+    return f" --eyes {pose['eyes']}" + (" --biometry" if pose.get("biometry") else "")
+
+
+def eyes_text(pose: dict[str, Any]) -> str:
+    """What eyes the pose bench drew, in words."""
+    if _eyes(pose) == "patient":
+        return ("patient eyes: every property drawn per eye from its population range "
+                "(docs/eye-model.md), within ±5 mm and ±10°")
+    return ("the old sharp-limbus eye: the fit's own anatomy, globes of 12, 11 and 13 mm in "
+            "turn, within ±5 mm and ±10°")
+
+
+def confident_wrong_text(pose: dict[str, Any]) -> str:
+    """The pose bench's confident wrong poses in words."""
+    wrong = pose["confident_wrong"]
+    return (f"confident wrong poses (off by > {wrong['wrong_above_mm']:g} mm, confidence ≥ "
+            f"min_confidence {wrong['min_confidence']:g}): {wrong['count']} of "
+            f"{pose['poses']} poses ({_share_text(wrong['share_of_poses'])}), of the "
+            f"{wrong['wrong']} off by > {wrong['wrong_above_mm']:g} mm "
+            f"{_share_text(wrong['share_of_wrong'])} (goal 0)")
+
+
+def separation_text(pose: dict[str, Any]) -> str:
+    """How well the pose bench's confidences separate wrong poses from good ones, in words."""
+    sep = pose["confidence_separation"]
+    return (f"confidence separation: off by > {sep['wrong_above_mm']:g} mm "
+            f"({sep.get('wrong', '?')} poses), confidence "
+            f"{_figure_text(sep['median_confidence_when_wrong'])} median, "
+            f"{_figure_text(sep['max_confidence_when_wrong'])} at most; within "
+            f"{sep['good_within_mm']:g} mm ({sep['good']} poses), "
+            f"{_figure_text(sep['median_confidence_when_good'])} median, "
+            f"{sep['good_refused']} ({_share_text(sep['good_refused_share'])}) below "
+            f"min_confidence {sep['min_confidence']:g} (beam holds for nothing)")
+
+
+def refusals_text(pose: dict[str, Any]) -> str:
+    """The pose bench's refusals (the pipeline raised) and their reasons, in words."""
+    refused = pose["refusals"]
+    if not refused["count"]:
+        return "refusals (no pose given): none"
+    return (f"refusals (no pose given): {refused['count']} "
+            f"({_share_text(refused['share'])}): "
+            + "; ".join(f"{n} × {why}" for why, n in refused["reasons"].items()))
+
+
+def render_pose_overview(poses: tuple[dict[str, Any], ...]) -> list[str]:
+    """The eye pose runs side by side (patient eyes beside the old sharp eye)."""
+    lines = ["## Eye pose: the runs side by side", "",
+             "`eyeserver bench pose` on patient eyes (`--eyes patient`: every property drawn "
+             "per eye, docs/eye-model.md) with the radius fitted and with the patient's "
+             "biometry off by its typical errors (`--biometry`), beside the old sharp-limbus "
+             "eye (`--eyes sharp`). p95s with their 95 % bootstrap intervals; within 2 sd: the "
+             "centre's axes and the gaze; confident wrong: off by > 0.2 mm with a confidence "
+             "passing the daemon's min_confidence.", "",
+             "| run | poses (fitted) | centre median (mm) | centre p95 (mm) | gaze median (°) | "
+             "gaze p95 (°) | within 2 sd | confident wrong |",
+             "|---|---|---|---|---|---|---|---|"]
+    for pose in poses:
+        centre, gaze = pose["centre_error_mm"], pose["gaze_error_deg"]
+        calibration = pose.get("uncertainty") or {}
+        within = (f"{calibration['centre_axes_within_2_sd']:.0%}, "
+                  f"{calibration['gaze_within_2_sd']:.0%}"
+                  if calibration.get("centre_axes_within_2_sd") is not None else "–")
+        wrong = pose.get("confident_wrong")
+        confident = ("–" if wrong is None
+                     else f"{wrong['count']} ({_share_text(wrong['share_of_poses'])})")
+        lines.append(f"| `{_flags(pose).strip() or '--eyes sharp'}` | {pose['poses']} "
+                     f"({pose['fitted']}) | {_value(centre['median'])} | {p95_text(centre)} | "
+                     f"{_value(gaze['median'])} | {p95_text(gaze)} | {within} | {confident} |")
+    lines += ["", "Goals (issue 34): centre p95 ≤ 0.1 mm and gaze p95 ≤ 0.5° on the patient "
+              "eyes, with and without biometry; ≥ 95 % of errors within 2 stated sd; no "
+              "confident wrong pose.", ""]
+    return lines
+
+
 def render_pose(pose: dict[str, Any]) -> list[str]:
-    """The eye pose section (``eyeserver bench pose``)."""
+    """The eye pose section of one run (``eyeserver bench pose``)."""
     def row(name: str, key: str, goal: str) -> str:
         stats = pose[key]
         return (f"| {name} | {_value(stats['median'])} | {p95_text(stats)} | "
                 f"{_value(stats['max'])} | {goal} |")
 
     model = pose.get("model", "population, radius fitted")
-    held = bool(pose.get("held_radius", False))
-    lines = [f"## Eye pose, {'radius held' if held else 'radius fitted'}", "",
+    eyes = "patient eyes" if _eyes(pose) == "patient" else "sharp eyes"
+    lines = [f"## Eye pose, {eyes}, {_model_name(pose)}", "",
              f"`eyeserver bench pose --poses {pose['poses']} --seed {pose['seed']}"
-             f"{' --held-radius' if held else ''}`: {pose['fitted']} of "
-             f"{pose['poses']} random rendered eyes fitted (±5 mm, ±10°, globes of 11, 12 and "
-             f"13 mm; units: {', '.join(pose.get('units', ['all']))}; model: {model}); gaze "
-             "from: " + ", ".join(f"{k} {v}" for k, v in
-                                  pose.get("gaze_sources", {}).items()) + ".", "",
-             "| figure | median | p95 (95 % bootstrap interval) | max | goal |",
+             f"{_flags(pose)}`: {pose['fitted']} of {pose['poses']} rendered eyes fitted "
+             f"({eyes_text(pose)}; units: {', '.join(pose.get('units', ['all']))}; model: "
+             f"{model}); gaze from: " + ", ".join(f"{k} {v}" for k, v in
+                                                  pose.get("gaze_sources", {}).items()) + ".",
+             "", "| figure | median | p95 (95 % bootstrap interval) | max | goal |",
              "|---|---|---|---|---|",
              row("globe centre error (mm)", "centre_error_mm", "≤ 0.1"),
              row("gaze error (°)", "gaze_error_deg", "≤ 0.5"),
              row("globe radius |error| (mm)", "radius_error_mm", "–")]
     if "limbus_centre_error_mm" in pose:
         lines.append(row("limbus centre error (mm)", "limbus_centre_error_mm", "–"))
-    lines += [row("surface–model median distance (mm)", "surface_mad_mm", "paper 0.43"),
-              row("fit time (ms)", "fit_ms", "–"), ""]
-    for radius, by in pose["by_globe_radius"].items():
+    lines.append(row("surface–model median distance (mm)", "surface_mad_mm", "paper 0.43"))
+    if "confidence" in pose:
+        lines.append(row("confidence", "confidence", "–"))
+    lines += [row("fit time (ms)", "fit_ms", "–"), ""]
+    for radius, by in pose.get("by_globe_radius", {}).items():
         lines.append(f"- {by_globe_text(radius, by)}")
     coverage = uncertainty_coverage(pose)
     if coverage is not None:
-        lines.append(f"- the poses' {coverage}")
+        lines.append(f"- the poses' {coverage}"
+                     + (" (goal: ≥ 95 % within 2 sd)" if "eyes" in pose else ""))
+    if "confident_wrong" in pose:
+        lines += [f"- {confident_wrong_text(pose)}", f"- {separation_text(pose)}",
+                  f"- {refusals_text(pose)}"]
     shift = pose["shift"]
     if "measured_shift_mm" in shift:
         lines.append(f"- a {shift['true_shift_mm']} mm shift between two captures measured "
                      f"{shift['measured_shift_mm']:.3f} mm: "
                      + ("a fail against" if shift["fails_tolerance"] else "MISSED by")
                      + f" the {shift['tolerance_mm']} mm tolerance")
+    if "by_bin" in pose:
+        lines += ["", "Per bin (`describe` in `eyeserver.hardware.sim.population`; bins in "
+                  "`eyeserver.bench.pose.BINS`), over each bin's fitted poses, p95s with their "
+                  "95 % bootstrap intervals:", "",
+                  "| descriptor | bin | poses (fitted) | centre median (mm) | centre p95 (mm) | "
+                  "gaze median (°) | gaze p95 (°) | confident wrong |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for name, entries in pose["by_bin"].items():
+            for entry in entries:
+                centre, gaze = entry["centre_error_mm"], entry["gaze_error_deg"]
+                lines.append(f"| {DESCRIPTORS.get(name, name)} | {entry['bin']} | "
+                             f"{entry['poses']} ({entry['fitted']}) | "
+                             f"{_value(centre['median'])} | {p95_text(centre)} | "
+                             f"{_value(gaze['median'])} | {p95_text(gaze)} | "
+                             f"{entry['confident_wrong']} |")
     return [*lines, ""]
 
 
