@@ -1,0 +1,85 @@
+"""Render a fixed set of simulated eyes once, then fit them with any checkout: an A/B of the pose
+fit on the same images (the bench renders anew on every run).
+
+    .venv/bin/python scripts/pose_set.py render --eyes patient --count 16 --seed 11 SETDIR
+    .venv/bin/python scripts/pose_set.py fit --calibration CALDIR SETDIR
+    PYTHONPATH=/path/to/other/checkout .venv/bin/python scripts/pose_set.py fit ... SETDIR
+
+Eyes are drawn as ``eyeserver.hardware.sim.population.draw`` draws them and placed within ±5 mm
+and ±10° as the pose bench places them; each bundle keeps its ``truth.json``, which only the fit
+step's scoring reads, after the fit. A calibration comes from ``eyeserver bench accuracy --out``
+or the benches' ``calibrate_room``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+
+def render(args: argparse.Namespace) -> None:
+    from eyeserver.hardware.sim import population
+    from eyeserver.hardware.sim.config import load_room
+    from eyeserver.hardware.sim.scenes import SceneSpec
+    from eyeserver.hardware.sim.sessions import SimSession
+
+    rng = np.random.default_rng(args.seed)
+    with SimSession.open(load_room(args.room), seed=args.seed + 1) as session:
+        for k in range(args.count):
+            eye = population.draw(rng, args.eyes)
+            position = np.array([0.0, 0.0, -10.0]) + rng.uniform(-5.0, 5.0, 3)
+            gaze = rng.uniform(-10.0, 10.0, 2)
+            eye = eye.model_copy(update={"gaze_deg": (float(gaze[0]), float(gaze[1]))})
+            spec = SceneSpec(kind="eye", position_mm=tuple(float(v) for v in position), eye=eye)
+            session.record(spec, args.setdir / f"eye_{k:03d}", overwrite=True)
+            print(f"rendered eye_{k:03d}", flush=True)
+
+
+def fit(args: argparse.Namespace) -> None:
+    from eyeserver.errors import EyeserverError
+    from eyeserver.pipeline.eyepose import EyeModel, fit_eye
+    from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
+
+    for bundle in sorted(args.setdir.glob("eye_*")):
+        try:
+            cloud, _ = reconstruct_bundle(args.calibration, bundle)
+            pose = fit_eye(cloud, EyeModel.population(), limbus_views(args.calibration, bundle))
+        except EyeserverError as exc:
+            print(f"{bundle.name} refused: {exc}", flush=True)
+            continue
+        truth = json.loads((bundle / "truth.json").read_text())
+        eye, spec = truth["eye"], truth["scene"]["eye"]
+        centre = float(np.linalg.norm(np.asarray(pose.centre_mm) - eye["centre_mm"]))
+        cos = float(np.asarray(pose.gaze) @ np.asarray(eye["gaze"]))
+        gaze = math.degrees(math.acos(min(1.0, cos)))
+        print(f"{bundle.name} centre {centre:.3f} mm gaze {gaze:.2f}° confidence "
+              f"{pose.confidence:.2f} ({pose.gaze_source}); limbus width "
+              f"{spec['limbus_width_mm']:.2f} mm, ratio {spec['limbus_vertical_ratio']:.2f}, "
+              f"iris {spec['iris_albedo']:.2f}, sclera {spec['sclera_albedo']:.2f}, "
+              f"ellipsoid {spec['globe_semi_axes_mm'] is not None}", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    steps = parser.add_subparsers(required=True)
+    make = steps.add_parser("render", help="render a set of eyes into SETDIR")
+    make.add_argument("--eyes", default="patient", choices=("patient", "sharp"))
+    make.add_argument("--count", type=int, default=16)
+    make.add_argument("--seed", type=int, default=0)
+    make.add_argument("--room", type=Path, default=None, help="room file (default room)")
+    make.add_argument("setdir", type=Path)
+    make.set_defaults(step=render)
+    score = steps.add_parser("fit", help="fit every eye of SETDIR and score it")
+    score.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
+    score.add_argument("setdir", type=Path)
+    score.set_defaults(step=fit)
+    args = parser.parse_args()
+    args.step(args)
+
+
+if __name__ == "__main__":
+    main()
