@@ -16,7 +16,7 @@ from eyeserver.hardware.sim.scenes import SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.hardware.sim.truth import room_truth
 from eyeserver.io.rig_file import rig_from_dict
-from eyeserver.pipeline.eyepose import EyeModel, PoseError, fit_eye, fit_sphere
+from eyeserver.pipeline.eyepose import EyeModel, PoseError, fit_eye, fit_sphere, radius_bounds
 from eyeserver.service.tracking import FrameSet, PoseFinder, RigReconstructor
 
 
@@ -129,3 +129,18 @@ def test_pose_command_on_flat_plate_fails_clearly(calibrated_rooms, tmp_path: Pa
     capsys.readouterr()
     assert main(["pose", "--calibration", str(caldir), str(bundle)]) == 2
     assert "no eye found" in capsys.readouterr().err
+
+
+def test_a_globe_far_outside_the_models_radii_is_refused() -> None:
+    """A fit that ran away (a patient eye of the pose bench gave a 68-km globe at confidence
+    0.02) is refused with its reason, not reported; twice the bounds still passes, to be
+    reported at a low confidence."""
+    from eyeserver.pipeline.eyepose import NO_GLOBE_FACTOR, _refuse_no_globe
+
+    bounds = radius_bounds(EyeModel.population())
+    with pytest.raises(PoseError, match=r"radius of 6.81e\+07 mm"):
+        _refuse_no_globe(68106073.2, bounds)
+    with pytest.raises(PoseError, match="far outside"):
+        _refuse_no_globe(bounds[0] / NO_GLOBE_FACTOR - 0.01, bounds)
+    _refuse_no_globe(bounds[1] * NO_GLOBE_FACTOR, bounds)
+    _refuse_no_globe(bounds[0] / NO_GLOBE_FACTOR, bounds)

@@ -209,6 +209,12 @@ IMPLAUSIBLE_RADIUS = 0.3
 """Scales the confidence of a pose whose globe radius lies outside the model's bounds
 (:func:`radius_bounds`): below the 0.5 that fails a verification."""
 
+NO_GLOBE_FACTOR = 2.0
+"""A globe whose fitted radius lies more than this factor outside the model's bounds
+(:func:`radius_bounds`) is no fit at all: refused (:class:`PoseError`) rather than reported at a
+low confidence. Measured: one patient eye of 60 (`eyeserver bench pose --poses 60`, a soft
+limbus) gave a globe of 68 km at confidence 0.02."""
+
 UNSEEN_LIMBUS = 0.3
 """Scales the confidence of a pose from the cloud alone when the images were there and showed
 no limbus (lids shut, the eye turned away or hidden): below the 0.5 that fails a verification
@@ -694,6 +700,13 @@ def radius_bounds(model: EyeModel) -> tuple[float, float]:
     return 0.7 * model.prior_radius_mm, 1.45 * model.prior_radius_mm
 
 
+def _refuse_no_globe(radius: float, bounds: tuple[float, float]) -> None:
+    """:class:`PoseError` for a globe radius (mm) :data:`NO_GLOBE_FACTOR` beyond ``bounds``."""
+    if not (bounds[0] / NO_GLOBE_FACTOR <= radius <= bounds[1] * NO_GLOBE_FACTOR):
+        raise PoseError(f"no eye found: the globe fitted has a radius of {radius:.3g} mm, far "
+                        f"outside the model's {bounds[0]:.1f}–{bounds[1]:.1f} mm")
+
+
 def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ()) -> EyePose:
     """Fit the eye model to a fused cloud: globe centre and radius, limbus, gaze, confidence.
 
@@ -717,7 +730,8 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
     Raises
     ------
     PoseError
-        No convex sphere of a globe's size is found, or too few points lie on it.
+        No convex sphere of a globe's size is found, or too few points lie on it, or the globe
+        fitted lies far outside the model's radii (:data:`NO_GLOBE_FACTOR`).
     ValueError
         ``cloud.points`` is not (N, 3) or holds non-finite values.
     """
@@ -758,6 +772,7 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
     surface_mad = float(np.median(np.abs(resid)))
     centre_sd = np.sqrt(np.clip(np.diag(cov)[:3], 0.0, None))
 
+    _refuse_no_globe(radius, r_bounds)
     gaze = cloud_gaze(points, sclera, centre, radius, centre_sd, model)
     plausible = 1.0 if r_bounds[0] <= radius <= r_bounds[1] else IMPLAUSIBLE_RADIUS
     if views:
@@ -892,6 +907,8 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     # with radii of 17.8 and 18.3 mm and confidences 0.58 and 0.35; `bench pose --unit left`).
     sharpness = replace(gaze, sd_deg=max(gaze.sd_deg, limbus.gaze_sd_deg))
     low, high = radius_bounds(model)
+    if not low / NO_GLOBE_FACTOR <= radius_out <= high * NO_GLOBE_FACTOR:
+        return None  # no globe carries this limbus: as if none were found
     plausible = 1.0 if low <= radius_out <= high else IMPLAUSIBLE_RADIUS
     confidence = plausible * _confidence(round(globe.support * pixels_per_point),
                                          WELL_SEEN_LIMBUS_POINTS, surface_mad, sharpness)
