@@ -680,6 +680,24 @@ def test_a_moving_eye_renders_as_the_whole_scene_cast_afresh(room: SimRoom, odd_
     _renders_as_cast_afresh(spec, t_s, (room, odd_room))
 
 
+@pytest.mark.parametrize("t_s", [0.33, 0.52, 0.9])
+def test_a_moving_patient_eye_renders_as_the_whole_scene_cast_afresh(room: SimRoom,
+                                                                     t_s: float) -> None:
+    # A patient's eye (docs/eye-model.md) turns its globe, soft limbus and iris behind a clear
+    # cornea as moving parts; its lashes stay with the lids. Mid-saccade, mid-blink and after
+    # a shift the moving render must be a full cast's.
+    script = [ScriptEvent(t_s=0.3, kind="saccade", gaze_deg=(12.0, -6.0), duration_s=0.05),
+              ScriptEvent(t_s=0.45, kind="blink", duration_s=0.2),
+              ScriptEvent(t_s=0.8, kind="shift", shift_mm=(1.5, -1.0, 0.5), duration_s=0.2)]
+    motion = MotionSpec(seed=4, drift_deg=0.05, saccade_rate_hz=0.0, script=script)
+    eye = EyeSpec(gaze_deg=(5.0, 3.0), motion=motion, globe_semi_axes_mm=(12.3, 12.0, 11.7),
+                  cornea_asphericity=-0.25, limbus_vertical_ratio=0.9, limbus_width_mm=0.8,
+                  limbus_scatter=0.3, iris_albedo=0.15, tear_reflectance=0.02, tear_glints=3,
+                  lashes=8, aperture_offset_mm=(0.3, -1.5), lid_gap_mm=0.6, features_seed=5)
+    assert not eye.sharp
+    _renders_as_cast_afresh(SceneSpec(kind="eye", eye=eye), t_s, (room,))
+
+
 @pytest.mark.parametrize("t_s", [0.47, 0.52])
 @pytest.mark.parametrize("eye", [
     {"aperture_mm": (12.8, 8.0)},  # the lids' outer edge behind the face: the face in front
@@ -804,3 +822,21 @@ def test_frames_rendered_ahead_are_what_the_room_renders_at_their_time() -> None
         sim.set_scene(spec)
         assert sim.prerendered() == {}
         assert not sim.restart_scene(spec.model_copy(), epoch_ns)
+
+
+def test_a_wet_patient_eye_mirrors_each_projector_as_a_saturated_glint(room: SimRoom) -> None:
+    # The tear film mirrors the projector's pupil (R·(d₀/r)² ≈ 32 times the white plate's light
+    # for R = 0.02 and a 10-mm pupil at 200 mm): a few pixels far beyond the 8-bit range, where
+    # the dry eye's brightest light is the sclera's fringe.
+    renderer = room.renderer
+    projectors = list(renderer.projectors)
+    dry = EyeSpec(gaze_deg=(3.0, -2.0), limbus_width_mm=0.5, iris_albedo=0.2)
+    wet = dry.model_copy(update={"tear_reflectance": 0.02})
+    pid = projectors[0]
+    for camera_id in ("S1", "S2"):
+        lights = [renderer.components(camera_id, build_scene(SceneSpec(kind="eye", eye=e)).scene,
+                                      2, [pid]).fringe[pid] for e in (dry, wet)]
+        glint = lights[1] - lights[0]
+        assert lights[0].max() < 100.0
+        assert 1 <= int((glint > 255.0).sum()) <= 100, int((glint > 255.0).sum())
+        assert glint.max() > 1000.0
