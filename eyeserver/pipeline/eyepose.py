@@ -700,9 +700,14 @@ def radius_bounds(model: EyeModel) -> tuple[float, float]:
     return 0.7 * model.prior_radius_mm, 1.45 * model.prior_radius_mm
 
 
+def _is_a_globe(radius: float, bounds: tuple[float, float]) -> bool:
+    """Whether a fitted globe radius (mm) lies within :data:`NO_GLOBE_FACTOR` of ``bounds``."""
+    return bounds[0] / NO_GLOBE_FACTOR <= radius <= bounds[1] * NO_GLOBE_FACTOR
+
+
 def _refuse_no_globe(radius: float, bounds: tuple[float, float]) -> None:
     """:class:`PoseError` for a globe radius (mm) :data:`NO_GLOBE_FACTOR` beyond ``bounds``."""
-    if not (bounds[0] / NO_GLOBE_FACTOR <= radius <= bounds[1] * NO_GLOBE_FACTOR):
+    if not _is_a_globe(radius, bounds):
         raise PoseError(f"no eye found: the globe fitted has a radius of {radius:.3g} mm, far "
                         f"outside the model's {bounds[0]:.1f}–{bounds[1]:.1f} mm")
 
@@ -907,7 +912,7 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     # with radii of 17.8 and 18.3 mm and confidences 0.58 and 0.35; `bench pose --unit left`).
     sharpness = replace(gaze, sd_deg=max(gaze.sd_deg, limbus.gaze_sd_deg))
     low, high = radius_bounds(model)
-    if not low / NO_GLOBE_FACTOR <= radius_out <= high * NO_GLOBE_FACTOR:
+    if not _is_a_globe(radius_out, (low, high)):
         return None  # no globe carries this limbus: as if none were found
     plausible = 1.0 if low <= radius_out <= high else IMPLAUSIBLE_RADIUS
     confidence = plausible * _confidence(round(globe.support * pixels_per_point),

@@ -75,12 +75,20 @@ class Surface(abc.ABC):
         closed solid's far side is not a surface that matters here: what lies behind a hole
         is reached through it)."""
         t, normals = self.intersect(o, d)
-        if clear and self.clear_at is not None:
-            hit = np.flatnonzero(np.isfinite(t))
-            if hit.size:
-                open_ = hit[self.clear_at(o + t[hit, None] * d[hit])]
-                t[open_] = np.inf
-                normals[open_] = 0.0
+        return self.cleared(o, d, t, normals) if clear else (t, normals)
+
+    def cleared(self, o: F64, d: F64, t: F64, normals: F64) -> tuple[F64, F64]:
+        """:meth:`intersect`'s ``t`` and ``normals`` with no hit where the surface is clear
+        (copies where any is)."""
+        if self.clear_at is None:
+            return t, normals
+        hit = np.flatnonzero(np.isfinite(t))
+        if not hit.size:
+            return t, normals
+        open_ = hit[self.clear_at(o + t[hit, None] * d[hit])]
+        t, normals = t.copy(), normals.copy()
+        t[open_] = np.inf
+        normals[open_] = 0.0
         return t, normals
 
 
@@ -493,11 +501,16 @@ class Scene:
         normals = np.zeros((n, 3))
         owner = np.full(n, -1, dtype=np.int64)
         flat: list[tuple[Body, Surface]] = []
+        # A glossy surface glints where it is clear too: its whole intersection is kept.
+        wet: list[_Met] = []
         for body in self.bodies:
             o_local = body.to_local(o[None, :])[0]
             d_local = d @ body.R
             for surface in body.surfaces:
-                t, nrm = surface.hit(o_local, d_local)
+                t, nrm = surface.intersect(o_local, d_local)
+                if surface.specular > 0:
+                    wet.append(_Met(body, surface, o_local, d_local, t, nrm))
+                t, nrm = surface.cleared(o_local, d_local, t, nrm)
                 closer = t < best
                 best = np.where(closer, t, best)
                 normals[closer] = nrm[closer] @ body.R.T
@@ -522,39 +535,10 @@ class Scene:
             if surface.reached_through_holes:
                 inner = np.zeros(n, dtype=bool) if inner is None else inner
                 inner[sel] = True
-        specular, mirror, mirror_points = self._glossy(o, d, best)
+        specular, mirror, mirror_points = _glossy(wet, o, d, best)
         return RayHits(t=best, points=points, normals=normals, albedo=albedo, label=label,
                        scatter=scatter, specular=specular, mirror_normals=mirror,
                        mirror_points=mirror_points, inner=inner)
-
-    def _glossy(self, o: F64, d: F64, best: F64) -> tuple[F64 | None, F64 | None, F64 | None]:
-        """The first glossy surface along each ray, clear or not, where it lies in front of (or
-        is) the hit at ``best``: reflectance, mirror normals and points (world), or Nones."""
-        glossy = [(body, surface) for body in self.bodies for surface in body.surfaces
-                  if surface.specular > 0]
-        if not glossy:
-            return None, None, None
-        n = d.shape[0]
-        nearest = np.full(n, np.inf)
-        specular = np.zeros(n)
-        mirror = np.zeros((n, 3))
-        for body, surface in glossy:
-            o_local = body.to_local(o[None, :])[0]
-            d_local = d @ body.R
-            t, nrm = surface.intersect(o_local, d_local)
-            front = np.flatnonzero((t < nearest) & (t <= best + 1e-6))
-            if not front.size:
-                continue
-            nearest[front] = t[front]
-            specular[front] = surface.specular
-            local_normals = nrm[front]
-            if surface.bumps is not None:
-                local_normals = surface.bumps.mirror_normals(
-                    o_local + t[front, None] * d_local[front], local_normals)
-            mirror[front] = local_normals @ body.R.T
-        met = np.isfinite(nearest)
-        points = o + np.where(met, nearest, 0.0)[:, None] * d
-        return specular, mirror, points
 
     def distance(self, points: F64) -> F64:
         """Distance of world points to the nearest surface of the scene (for scoring)."""
@@ -564,3 +548,42 @@ class Scene:
             for surface in body.surfaces:
                 np.minimum(best, surface.distance(local), out=best)
         return best
+
+
+@dataclass(frozen=True)
+class _Met:
+    """A surface's intersection with a cast's rays, in its body's frame."""
+
+    body: Body
+    surface: Surface
+    o: F64
+    d: F64
+    t: F64
+    normals: F64
+
+
+def _glossy(met: list[_Met], o: F64, d: F64, best: F64
+            ) -> tuple[F64 | None, F64 | None, F64 | None]:
+    """Of the glossy surfaces ``met``, the first along each ray, clear or not, where it lies in
+    front of (or is) the hit at ``best``: reflectance, mirror normals and points (world), or
+    Nones when none is glossy."""
+    if not met:
+        return None, None, None
+    n = d.shape[0]
+    nearest = np.full(n, np.inf)
+    specular = np.zeros(n)
+    mirror = np.zeros((n, 3))
+    for m in met:
+        front = np.flatnonzero((m.t < nearest) & (m.t <= best + 1e-6))
+        if not front.size:
+            continue
+        nearest[front] = m.t[front]
+        specular[front] = m.surface.specular
+        local_normals = m.normals[front]
+        if m.surface.bumps is not None:
+            local_normals = m.surface.bumps.mirror_normals(
+                m.o + m.t[front, None] * m.d[front], local_normals)
+        mirror[front] = local_normals @ m.body.R.T
+    reached = np.isfinite(nearest)
+    points = o + np.where(reached, nearest, 0.0)[:, None] * d
+    return specular, mirror, points

@@ -35,7 +35,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from eyeserver.hardware.sim.scenes import EyeSpec
+from eyeserver.hardware.sim.scenes import EyeSpec, conic_sagitta
 
 __all__ = [
     "BIOMETRY_SD",
@@ -272,12 +272,6 @@ def lid_cover(eye: EyeSpec) -> float:
     return float(arc[hidden].sum() / arc.sum())
 
 
-def _conic_sagitta(radius: float, asphericity: float, r: float) -> float:
-    """Sagitta at distance ``r`` from the axis of a conic of apical ``radius`` and conic
-    constant ``asphericity`` (Q; 0 a sphere)."""
-    return r * r / (radius * (1.0 + math.sqrt(1.0 - (1.0 + asphericity) * r * r / radius**2)))
-
-
 def describe(eye: EyeSpec) -> dict[str, float]:
     """Descriptors a bench bins its figures by.
 
@@ -306,8 +300,8 @@ def describe(eye: EyeSpec) -> dict[str, float]:
     """
     half_limbus = eye.limbus_diameter_mm / 2
     cornea = eye.cornea_radius_mm
-    asphere = abs(_conic_sagitta(cornea, eye.cornea_asphericity, half_limbus)
-                  - _conic_sagitta(cornea, 0.0, half_limbus))
+    asphere = abs(conic_sagitta(cornea, eye.cornea_asphericity, half_limbus)
+                  - conic_sagitta(cornea, 0.0, half_limbus))
     axes = eye.globe_semi_axes_mm
     spread = 0.0 if axes is None else max(axes) - min(axes)
     mismatch = max(abs(cornea - FIT_CORNEA_RADIUS_MM),

@@ -457,6 +457,12 @@ def _limbus_distance(eye: EyeSpec) -> Callable[[F64], F64]:
     return distance
 
 
+def conic_sagitta(radius: float, asphericity: float, r: float) -> float:
+    """Sagitta (mm) at ``r`` mm from the axis of a conic of apical ``radius`` (mm) and conic
+    constant ``asphericity`` (Q; 0 a sphere): the cornea's height above its rim there."""
+    return r * r / (radius * (1.0 + math.sqrt(1.0 - (1.0 + asphericity) * r * r / radius**2)))
+
+
 def _ramp_width(eye: EyeSpec) -> float:
     """The raised-cosine ramp's full width whose 10–90 % width is ``limbus_width_mm``."""
     return eye.limbus_width_mm / _RAMP_10_90
@@ -549,8 +555,7 @@ def _anatomy(eye: EyeSpec) -> _Anatomy:
         globe = Ellipsoid(np.zeros(3), axes, albedo, "sclera")
     junction = axes[2] * math.sqrt(1.0 - (half / axes[0]) ** 2)
     r, q = eye.cornea_radius_mm, eye.cornea_asphericity
-    sagitta = (r - math.sqrt(r * r - (1.0 + q) * half * half)) / (1.0 + q)
-    apex = junction + sagitta
+    apex = junction + conic_sagitta(r, q, half)
     along, across = r / (1.0 + q), r / math.sqrt(1.0 + q)
     cornea = Ellipsoid(np.array([0.0, 0.0, apex - along]), (across, across, along), albedo,
                        "cornea")
