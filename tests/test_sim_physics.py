@@ -770,6 +770,50 @@ def test_a_blink_renders_with_the_static_part_prepared_for_the_open_eye() -> Non
         np.testing.assert_allclose(blinking.ambient, whole.ambient, atol=1e-4)
 
 
+def test_an_exposure_mid_saccade_is_the_mean_of_its_moments() -> None:
+    # A camera integrates its exposure: mid-saccade the image is the mean of the light of
+    # every moment of it (rendered as equal slices of the exposure, one per ≈ pixel of travel),
+    # while an exposure of the eye at rest (drift only) is the single render at its middle.
+    saccade = ScriptEvent(t_s=0.3, kind="saccade", gaze_deg=(6.0, 0.0), duration_s=0.03)
+    motion = MotionSpec(seed=4, drift_deg=0.05, saccade_rate_hz=0.0, script=[saccade])
+    eye_motion = EyeMotion(motion)
+    assert eye_motion.sub_exposures(0.1, 0.01) == (0.1,)
+    times = eye_motion.sub_exposures(0.315, 0.01)
+    # 6° in 30 ms along a smoothstep: 13/27 of it within the 10 ms about the saccade's middle,
+    # ≈ 0.65 mm at the cornea.
+    travel = math.radians(6.0 * 13 / 27) * motion_module.SURFACE_LEVER_MM
+    assert len(times) == math.ceil(travel / motion_module.BLUR_STEP_MM) == 14
+    assert times[0] == pytest.approx(0.31 + 0.005 / len(times))
+    assert times[-1] == pytest.approx(0.32 - 0.005 / len(times))
+    # A 1-ms exposure of the same moment moves less: fewer slices.
+    assert 1 < len(eye_motion.sub_exposures(0.315, 0.001)) < motion_module.MAX_SUBEXPOSURES
+
+    sim = SimRoom(_small_room(5), clock=ManualClock(0))
+    sim.set_scene(SceneSpec(kind="eye", eye=EyeSpec(motion=motion)))
+    still = sim.render("S1", t_s=0.1, projectors={"P1": 1.0}, exposure_us=10_000.0,
+                       gain_db=0.0, rng=np.random.default_rng(1))
+    single = sim.renderer.expose("S1", sim.components("S1", 0.1, ["P1"]),
+                                 ambient_dn=sim.config.lighting.ambient_dn,
+                                 projectors={"P1": 1.0}, exposure_us=10_000.0, gain_db=0.0,
+                                 rng=np.random.default_rng(1))
+    np.testing.assert_array_equal(still, single)
+
+    blurred = sim.render("S1", t_s=0.315, projectors={"P1": 1.0}, exposure_us=10_000.0,
+                         gain_db=0.0, rng=np.random.default_rng(1))
+    moments = [sim.components("S1", t, ["P1"]) for t in times]
+    mean = Components(ambient=np.mean([m.ambient for m in moments], axis=0, dtype=np.float32),
+                      fringe={"P1": np.mean([m.fringe["P1"] for m in moments], axis=0,
+                                            dtype=np.float32)})
+    expected = sim.renderer.expose("S1", mean, ambient_dn=sim.config.lighting.ambient_dn,
+                                   projectors={"P1": 1.0}, exposure_us=10_000.0, gain_db=0.0,
+                                   rng=np.random.default_rng(1))
+    np.testing.assert_array_equal(blurred, expected)
+    # The blur smears the limbus and the fringes on the turning eye (this small room's
+    # pixels are 0.2 mm at the eye: the mean's edges lie up to 3 px from the middle's).
+    smeared = np.abs(mean.fringe["P1"] - sim.components("S1", 0.315, ["P1"]).fringe["P1"])
+    assert (smeared > 1.0).sum() > 20
+
+
 # --- rendering ahead ----------------------------------------------------------------------------
 
 

@@ -7,6 +7,7 @@ reproducible whatever order the times are asked in, and a test can drive it with
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 from functools import lru_cache
@@ -90,6 +91,26 @@ def _window_events(seed: int, window: int, saccade_rate: float, saccade_amp: flo
     return saccades, blinks
 
 
+BLUR_STEP_MM = 0.05
+"""Furthest the eye's surface moves between two of an exposure's sub-renders (mm): about a
+pixel at the eye on the default rig, so the sum of sub-renders is as smooth as the motion blur
+it stands for once the lens's own blur is added."""
+
+MAX_SUBEXPOSURES = 16
+"""Most sub-renders an exposure is made of (a 10-ms exposure in the middle of a 5° saccade
+travels ≈ 0.6 mm at the cornea: 12 sub-renders)."""
+
+SURFACE_LEVER_MM = 13.0
+"""Distance from the eye's centre of rotation to the corneal apex (mm, Gullstrand's eye):
+how far a turn of the gaze moves the front of the eye."""
+
+LID_TRAVEL_MM = 10.0
+"""The upper lid's travel from open to shut (mm; the palpebral fissure's height)."""
+
+_BLUR_PROBES = 9
+"""Times within an exposure at which the eye's state is probed for its travel."""
+
+
 class EyeMotion:
     """Evaluate a :class:`MotionSpec` at any time."""
 
@@ -157,3 +178,25 @@ class EyeMotion:
                 openness = min(openness, _blink_openness(t_s - event.t_s, event.duration_s))
         return MotionState(gaze_offset_deg=(gaze[0] + script_gaze[0], gaze[1] + script_gaze[1]),
                            head_offset_mm=head, openness=openness)
+
+    def sub_exposures(self, t_mid_s: float, exposure_s: float) -> tuple[float, ...]:
+        """Times (seconds) of the sub-renders whose mean is an exposure of ``exposure_s``
+        centred at ``t_mid_s``, so that the eye's motion within it blurs the image as it blurs
+        a camera's: equal slices of the exposure, one per :data:`BLUR_STEP_MM` of the surface's
+        travel (the gaze's turn at :data:`SURFACE_LEVER_MM`, the head's shift and the lid's
+        closing, summed over the exposure), at most :data:`MAX_SUBEXPOSURES`; ``(t_mid_s,)``
+        alone where the eye moves less than that (drift and micro-saccades within a 10-ms
+        exposure)."""
+        start = t_mid_s - exposure_s / 2
+        states = [self.state(t) for t in np.linspace(start, start + exposure_s, _BLUR_PROBES)]
+        travel = 0.0
+        for a, b in itertools.pairwise(states):
+            turn = math.hypot(b.gaze_offset_deg[0] - a.gaze_offset_deg[0],
+                              b.gaze_offset_deg[1] - a.gaze_offset_deg[1])
+            shift = math.dist(a.head_offset_mm, b.head_offset_mm)
+            travel += (math.radians(turn) * SURFACE_LEVER_MM + shift
+                       + abs(b.openness - a.openness) * LID_TRAVEL_MM)
+        count = min(MAX_SUBEXPOSURES, math.ceil(travel / BLUR_STEP_MM))
+        if count <= 1:
+            return (t_mid_s,)
+        return tuple(start + (k + 0.5) * exposure_s / count for k in range(count))

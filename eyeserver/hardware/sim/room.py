@@ -22,6 +22,7 @@ import numpy.typing as npt
 
 from eyeserver.core.clock import Clock, MonotonicClock
 from eyeserver.hardware.sim.config import RoomConfig, load_room
+from eyeserver.hardware.sim.motion import EyeMotion
 from eyeserver.hardware.sim.render import Components, Renderer
 from eyeserver.hardware.sim.scenes import SceneSpec, build_scene
 
@@ -185,8 +186,19 @@ class SimRoom:
     def _expose(self, camera_id: str, spec: SceneSpec, scene_t: float,
                 projectors: Mapping[str, float], exposure_us: float, gain_db: float,
                 rng: np.random.Generator) -> Image:
-        components = self._components(camera_id, spec, scene_t,
-                                      [p for p, i in projectors.items() if i > 0])
+        lit = [p for p, i in projectors.items() if i > 0]
+        motion = spec.eye.motion if spec.moving else None
+        times = ((scene_t,) if motion is None
+                 else EyeMotion(motion).sub_exposures(scene_t, exposure_us / 1e6))
+        components = self._components(camera_id, spec, max(0.0, times[0]), lit)
+        if len(times) > 1:
+            # Motion blur: the exposure integrates the light of every moment of it.
+            parts = [components] + [self._components(camera_id, spec, max(0.0, t), lit)
+                                    for t in times[1:]]
+            components = Components(
+                ambient=np.mean([c.ambient for c in parts], axis=0, dtype=np.float32),
+                fringe={p: np.mean([c.fringe[p] for c in parts], axis=0, dtype=np.float32)
+                        for p in components.fringe})
         lighting = self.config.lighting
         ambient = lighting.room_light_dn if self._room_lights else lighting.ambient_dn
         return self.renderer.expose(camera_id, components, ambient_dn=ambient,
