@@ -3,11 +3,13 @@ fit on the same images (the bench renders anew on every run).
 
     .venv/bin/python scripts/pose_set.py render --eyes patient --count 16 --seed 11 SETDIR
     .venv/bin/python scripts/pose_set.py fit --calibration CALDIR SETDIR
+    .venv/bin/python scripts/pose_set.py fit --stages --method spatial --calibration CALDIR SETDIR
     PYTHONPATH=/path/to/other/checkout .venv/bin/python scripts/pose_set.py fit ... SETDIR
 
 Eyes are drawn as ``eyeserver.hardware.sim.population.draw`` draws them and placed within ±5 mm
 and ±10° as the pose bench places them; each bundle keeps its ``truth.json``, which only the fit
-step's scoring reads, after the fit. A calibration comes from ``eyeserver bench accuracy --out``
+step's scoring reads, after the fit (``--stages``: also the cloud-only pose and the limbus found
+from it, each against the truth). A calibration comes from ``eyeserver bench accuracy --out``
 or the benches' ``calibrate_room``.
 """
 
@@ -17,6 +19,7 @@ import argparse
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -42,25 +45,45 @@ def render(args: argparse.Namespace) -> None:
 def fit(args: argparse.Namespace) -> None:
     from eyeserver.errors import EyeserverError
     from eyeserver.pipeline.eyepose import EyeModel, fit_eye
+    from eyeserver.pipeline.limbus import find_limbus
     from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
 
+    def off(pose_centre: Any, pose_gaze: Any, eye: dict[str, Any], key: str = "centre_mm"
+            ) -> str:
+        centre = float(np.linalg.norm(np.subtract(pose_centre, eye[key])))
+        cos = float(np.asarray(pose_gaze) @ np.asarray(eye["gaze"]))
+        return f"centre {centre:.3f} mm gaze {math.degrees(math.acos(min(1.0, cos))):.2f}°"
+
     for bundle in sorted(args.setdir.glob("eye_*")):
+        truth = json.loads((bundle / "truth.json").read_text())
+        eye, spec = truth["eye"], truth["scene"]["eye"]
+        model = EyeModel.population()
         try:
-            cloud, _ = reconstruct_bundle(args.calibration, bundle)
-            pose = fit_eye(cloud, EyeModel.population(), limbus_views(args.calibration, bundle))
+            cloud, _ = reconstruct_bundle(args.calibration, bundle, method=args.method)
+            views = limbus_views(args.calibration, bundle)
+            if args.stages:
+                rough = fit_eye(cloud, model)
+                stages = f"  cloud alone: {off(rough.centre_mm, rough.gaze, eye)}, radius " \
+                    f"{rough.globe_radius_mm:.2f} for {eye['globe_radius_mm']:.2f} mm"
+                try:
+                    limbus = find_limbus(views, rough.centre_mm, rough.gaze,
+                                         rough.globe_radius_mm, model.limbus_diameter_mm / 2)
+                    found = off(limbus.centre, limbus.normal, eye, "limbus_centre_mm")
+                    stages += f"; limbus from it: {found} (its centre), radius " \
+                        f"{limbus.radius:.2f} mm"
+                except EyeserverError as exc:
+                    stages += f"; no limbus from it: {exc}"
+            pose = fit_eye(cloud, model, views)
         except EyeserverError as exc:
             print(f"{bundle.name} refused: {exc}", flush=True)
             continue
-        truth = json.loads((bundle / "truth.json").read_text())
-        eye, spec = truth["eye"], truth["scene"]["eye"]
-        centre = float(np.linalg.norm(np.asarray(pose.centre_mm) - eye["centre_mm"]))
-        cos = float(np.asarray(pose.gaze) @ np.asarray(eye["gaze"]))
-        gaze = math.degrees(math.acos(min(1.0, cos)))
-        print(f"{bundle.name} centre {centre:.3f} mm gaze {gaze:.2f}° confidence "
+        print(f"{bundle.name} {off(pose.centre_mm, pose.gaze, eye)} confidence "
               f"{pose.confidence:.2f} ({pose.gaze_source}); limbus width "
               f"{spec['limbus_width_mm']:.2f} mm, ratio {spec['limbus_vertical_ratio']:.2f}, "
               f"iris {spec['iris_albedo']:.2f}, sclera {spec['sclera_albedo']:.2f}, "
               f"ellipsoid {spec['globe_semi_axes_mm'] is not None}", flush=True)
+        if args.stages:
+            print(stages, flush=True)
 
 
 def main() -> None:
@@ -75,6 +98,10 @@ def main() -> None:
     make.set_defaults(step=render)
     score = steps.add_parser("fit", help="fit every eye of SETDIR and score it")
     score.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
+    score.add_argument("--method", default="multi-view", choices=("multi-view", "spatial"),
+                       help="the reconstruction's fringe order")
+    score.add_argument("--stages", action="store_true",
+                       help="also score the cloud-only pose and the limbus found from it")
     score.add_argument("setdir", type=Path)
     score.set_defaults(step=fit)
     args = parser.parse_args()

@@ -16,7 +16,14 @@ from eyeserver.hardware.sim.scenes import SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.hardware.sim.truth import room_truth
 from eyeserver.io.rig_file import rig_from_dict
-from eyeserver.pipeline.eyepose import EyeModel, PoseError, fit_eye, fit_sphere, radius_bounds
+from eyeserver.pipeline.eyepose import (
+    EyeModel,
+    PoseError,
+    _surface_distance,
+    fit_eye,
+    fit_sphere,
+    radius_bounds,
+)
 from eyeserver.service.tracking import FrameSet, PoseFinder, RigReconstructor
 
 
@@ -144,3 +151,39 @@ def test_a_globe_far_outside_the_models_radii_is_refused() -> None:
         _refuse_no_globe(bounds[0] / NO_GLOBE_FACTOR - 0.01, bounds)
     _refuse_no_globe(bounds[1] * NO_GLOBE_FACTOR, bounds)
     _refuse_no_globe(bounds[0] / NO_GLOBE_FACTOR, bounds)
+
+
+def test_an_ellipsoids_limbus_depth_and_surface() -> None:
+    """The model's ellipsoid: a sphere's semi-axes give the sphere; an ellipsoid's limbus lies
+    where its cross-section's mean radius is the limbus's; its surface turns with the gaze."""
+    assert EyeModel(globe_semi_axes_mm=(12.0, 12.0, 12.0)).radius_through_limbus(5.85) \
+        == pytest.approx(12.0)
+    assert EyeModel.population().radius_through_limbus(5.85) is None
+    assert EyeModel(globe_radius_mm=11.5).radius_through_limbus(5.85) == 11.5
+    # Axial semi-axis 11 (the third: its direction +Z), across 12 and 13: s = 2·6/25.
+    model = EyeModel(globe_semi_axes_mm=(12.0, 13.0, 11.0))
+    depth = 11.0 * math.sqrt(1.0 - (12.0 / 25.0) ** 2)
+    assert model.radius_through_limbus(6.0) == pytest.approx(math.hypot(depth, 6.0))
+    # The axial semi-axis is found by its direction, whatever its place.
+    swapped = EyeModel(globe_semi_axes_mm=(11.0, 12.0, 13.0),
+                       orientation=((0.0, 1.0, 0.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0)))
+    assert swapped.radius_through_limbus(6.0) == pytest.approx(math.hypot(depth, 6.0))
+
+    # Points on the ellipsoid turned 20° about Y with the gaze lie on its surface; 0.1 mm
+    # outside along the normal-ish radial direction, 0.1 mm out.
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(200, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    local = u * np.array([12.0, 13.0, 11.0])
+    a = math.radians(20.0)
+    turn = np.array([[math.cos(a), 0.0, math.sin(a)], [0.0, 1.0, 0.0],
+                     [-math.sin(a), 0.0, math.cos(a)]])
+    centre = np.array([1.0, -2.0, -10.0])
+    gaze = turn @ np.array([0.0, 0.0, 1.0])
+    on = centre + local @ turn.T
+    np.testing.assert_allclose(_surface_distance(on, centre, 12.0, gaze, model), 0.0, atol=1e-9)
+    radial = (on - centre) / np.linalg.norm(on - centre, axis=1, keepdims=True)
+    np.testing.assert_allclose(_surface_distance(on + 0.1 * radial, centre, 12.0, gaze, model),
+                               0.1, atol=1e-9)
+    sphere = _surface_distance(on, centre, 12.0, gaze, EyeModel.population())
+    np.testing.assert_allclose(sphere, np.linalg.norm(on - centre, axis=1) - 12.0)

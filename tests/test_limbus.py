@@ -96,6 +96,46 @@ def test_an_invisible_limbus_gives_no_confident_pose(calibrated_rooms: Any, tmp_
     assert pose.confidence < DEFAULT_MIN_CONFIDENCE, pose
 
 
+ELLIPSOIDAL = SceneSpec(kind="eye", position_mm=(1.5, -1.0, -11.0), eye=EyeSpec(
+    gaze_deg=(7.0, -4.0), globe_radius_mm=12.0, globe_semi_axes_mm=(12.3, 12.1, 11.7)))
+"""An ellipsoidal globe (axial semi-axis 0.5 mm shorter than the others), the rest of the
+patient's eye as sharp as the painted one's: clear cornea, iris behind it."""
+
+
+def test_the_physicists_ellipsoid_places_the_globe(calibrated_rooms: Any, tmp_path: Path
+                                                  ) -> None:
+    """The MRI's ellipsoid places the globe's centre on the limbus at the ellipsoid's own depth
+    and the sclera is fitted to it; reduced to a sphere of its mean radius the centre lies
+    ≈ 1.5 × 0.5 mm / 2 off along the gaze (measured: 0.036 against 0.20 mm, gaze 0.07°)."""
+    _, caldir = calibrated_rooms("default")
+    truth = _record("default", ELLIPSOIDAL, tmp_path / "eye")
+    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye")
+    views = limbus_views(caldir, tmp_path / "eye")
+    axes = (12.3, 12.1, 11.7)
+
+    pose = fit_eye(cloud, EyeModel(globe_semi_axes_mm=axes), views)
+    mean = fit_eye(cloud, EyeModel(globe_radius_mm=float(np.mean(axes))), views)
+
+    assert pose.gaze_source == "limbus (images)"
+    assert np.linalg.norm(np.subtract(pose.centre_mm, truth["centre_mm"])) < 0.08
+    assert _angle_deg(pose.gaze, truth["gaze"]) < 0.2
+    assert pose.confidence > DEFAULT_MIN_CONFIDENCE
+    assert np.linalg.norm(np.subtract(mean.centre_mm, truth["centre_mm"])) > 0.15
+
+
+@pytest.mark.xfail(strict=True, reason="issue 34: with the population model (radius fitted, "
+                   "no shape given) an ellipsoidal globe's sphere puts the centre 0.86 mm off "
+                   "along the gaze at confidence 0.90; the stated sd (0.09 mm) does not count "
+                   "the unknown shape")
+def test_an_unknown_ellipsoid_gives_no_confident_wrong_pose(calibrated_rooms: Any,
+                                                            tmp_path: Path) -> None:
+    _, caldir = calibrated_rooms("default")
+    truth = _record("default", ELLIPSOIDAL, tmp_path / "eye")
+    pose = _fit(caldir, tmp_path / "eye")
+    off = float(np.linalg.norm(np.subtract(pose.centre_mm, truth["centre_mm"])))
+    assert off <= 0.2 or pose.confidence < DEFAULT_MIN_CONFIDENCE, (off, pose.confidence)
+
+
 def test_a_wrong_start_is_recovered(calibrated_rooms: Any, tmp_path: Path) -> None:
     """The cloud fit's gaze can be 25° off: the start search finds the limbus anyway."""
     _, caldir = calibrated_rooms("default")

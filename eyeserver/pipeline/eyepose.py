@@ -123,6 +123,33 @@ class EyeModel:
         """Textbook defaults: globe ≈ 12 mm (fitted, not imposed), cornea 7.8 mm, limbus 11.7 mm."""
         return cls(globe_radius_mm=None, cornea_radius_mm=7.8, limbus_diameter_mm=11.7)
 
+    def radius_through_limbus(self, limbus_radius_mm: float) -> float | None:
+        """The radius (mm) of the sphere through a limbus circle of ``limbus_radius_mm`` whose
+        centre is the globe's: the held radius of a spherical globe; for an ellipsoid, the
+        sphere through the circle where the ellipsoid's cross-section has that mean radius;
+        None where the radius is fitted.
+
+        The ellipsoid's axial semi-axis ``c`` is the one whose direction lies nearest +Z (the
+        eye looks towards the beam source at the planned pose, DESIGN §2); its cross-section
+        at ``z`` in front of the centre is an ellipse of semi-axes ``(a, b)·s``,
+        ``s = √(1 − z²/c²)``, and the circle that best follows it has the radius
+        ``s·(a + b)/2``. So the limbus lies ``z = c·√(1 − s²)`` in front of the centre with
+        ``s = 2r/(a + b)``: the ellipsoid's own depth, not the mean radius's (a sphere of the
+        mean radius puts the centre off by about 1.5 times the axial semi-axis's difference
+        from the others, docs/notes/patient-eye.md).
+        """
+        if self.globe_radius_mm is not None:
+            return self.globe_radius_mm
+        if self.globe_semi_axes_mm is None:
+            return None
+        axes = np.asarray(self.globe_semi_axes_mm, dtype=np.float64)
+        directions = np.eye(3) if self.orientation is None else np.asarray(self.orientation)
+        axial = int(np.argmax(np.abs(directions[2])))  # columns: the semi-axes' directions
+        across = np.delete(axes, axial)
+        scale = 2.0 * limbus_radius_mm / float(across.sum())
+        depth = float(axes[axial]) * math.sqrt(max(1.0 - scale * scale, 0.0))
+        return math.hypot(depth, limbus_radius_mm)
+
     @property
     def prior_radius_mm(self) -> float:
         """The radius used to seed the search: the given one, the semi-axes' mean, or 12 mm."""
@@ -867,7 +894,9 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     is found.
 
     ``fixed_radius`` holds the globe's radius (the patient's model, or the last frame's while
-    tracking); ``search`` as :func:`~eyeserver.pipeline.limbus.find_limbus`. ``started`` is
+    tracking; None: the model's ellipsoid places the globe on the limbus, see
+    :meth:`EyeModel.radius_through_limbus`, or else the sclera does); ``search`` as
+    :func:`~eyeserver.pipeline.limbus.find_limbus`. ``started`` is
     the fit's start (``time.perf_counter()``) for ``fit_ms``. ``remeasure``: the globe and gaze
     from the sclera measured again in the images and the limbus found again there
     (:func:`~eyeserver.pipeline.sclera.refit`; live tracking, whose radius is held, leaves it
@@ -878,11 +907,19 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     try:
         limbus = find_limbus(views, centre, rough_gaze, radius, model.limbus_diameter_mm / 2,
                              search=search)
+        if fixed_radius is None:
+            fixed_radius = model.radius_through_limbus(limbus.radius)
         globe = globe_on_limbus(points, limbus, fixed_radius)
     except LimbusNotFoundError:
         return None
+    surface = None
+    if model.globe_semi_axes_mm is not None and fixed_radius is not None:
+        held = fixed_radius
+
+        def surface(pts: F64, centre_at: F64, gaze_at: F64) -> F64:
+            return _surface_distance(pts, centre_at, held, gaze_at, model)
     refitted = (refit(views, limbus, globe.centre, globe.radius, globe.sclera, points,
-                      fixed_radius, model.cornea_radius_mm)
+                      fixed_radius, model.cornea_radius_mm, surface)
                 if remeasure and len(globe.sclera) >= MIN_SCLERA_POINTS else None)
     if refitted is not None:
         limbus = refitted.limbus  # found again in the images with the fringe divided out
@@ -890,8 +927,8 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
         centre_sd = np.sqrt(np.clip(np.diag(refitted.centre_cov), 0.0, None))
         gaze = Gaze(refitted.gaze, refitted.gaze_sd_deg, LIMBUS_FROM_IMAGES,
                     refitted.limbus_centre, refitted.limbus_sd_mm, limbus.radius)
-        surface_mad = float(np.median(np.abs(
-            np.linalg.norm(globe.sclera - centre_out, axis=1) - radius_out)))
+        surface_mad = float(np.median(np.abs(_surface_distance(
+            globe.sclera, centre_out, radius_out, refitted.gaze, model))))
     else:
         g = limbus.normal
         depth = float((limbus.centre - globe.centre) @ g)
@@ -903,6 +940,9 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
         gaze = Gaze(g, limbus.gaze_sd_deg, LIMBUS_FROM_IMAGES, limbus.centre,
                     limbus.centre_sd_mm, limbus.radius)
         centre_out, radius_out, surface_mad = globe.centre, globe.radius, globe.surface_mad_mm
+        if model.globe_semi_axes_mm is not None and len(globe.sclera):
+            surface_mad = float(np.median(np.abs(_surface_distance(
+                globe.sclera, centre_out, radius_out, g, model))))
     # The globe's support, not its sclera points: lids taken for the sclera of an eye that
     # shows almost none lie near the sphere in hundreds of points too (measured: 1 pose of 200,
     # 3.9 mm off with confidence 0.64: 43 points of support against 196–1,775 on 24 others;
@@ -919,6 +959,34 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
                                          WELL_SEEN_LIMBUS_POINTS, surface_mad, sharpness)
     return _pose(centre_out, centre_sd, radius_out, gaze, surface_mad, globe.points, confidence,
                  started)
+
+
+def _surface_distance(points: F64, centre: F64, radius: float, gaze: F64, model: EyeModel
+                      ) -> F64:
+    """Each point's distance (mm, + outside) from the globe: the sphere of ``radius`` about
+    ``centre``, or the model's ellipsoid about it turned with the eye so that its axial
+    semi-axis lies along ``gaze`` (radially: ``|q|·(1 − 1/‖q/axes‖)`` in the ellipsoid's
+    frame, within a few micrometres of the true distance for a globe's few-percent
+    ellipticity)."""
+    rel = points - centre
+    if model.globe_semi_axes_mm is None:
+        return np.asarray(np.linalg.norm(rel, axis=1) - radius, dtype=np.float64)
+    axes = np.asarray(model.globe_semi_axes_mm, dtype=np.float64)
+    frame = np.eye(3) if model.orientation is None else np.asarray(model.orientation)
+    axial = int(np.argmax(np.abs(frame[2])))
+    planned = frame[:, axial] * math.copysign(1.0, frame[2, axial])
+    # The smallest rotation taking the planned axial direction to the gaze (Rodrigues).
+    axis = np.cross(planned, gaze)
+    sin, cos = float(np.linalg.norm(axis)), float(planned @ gaze)
+    turn = np.eye(3)
+    if sin > 1e-12:
+        k = axis / sin
+        cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        turn = np.eye(3) + sin * cross + (1.0 - cos) * cross @ cross
+    local = rel @ (turn @ frame)
+    length = np.linalg.norm(local, axis=1)
+    scaled = np.linalg.norm(local / axes, axis=1)
+    return np.asarray(length * (1.0 - 1.0 / np.maximum(scaled, 1e-12)), dtype=np.float64)
 
 
 def pose_from_cloud(centre: F64, centre_sd: F64, radius: float, gaze: Gaze, surface_mad: float,

@@ -491,8 +491,13 @@ class GlobeFit:
     """The limbus it was fitted with."""
 
 
-def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: float | None
-                   ) -> GlobeFit:
+Surface = Callable[[F64, F64, F64], F64]
+"""Distances (mm, + outside) of points from a held globe's surface given its centre and gaze:
+an ellipsoidal globe's (``eyepose``), where a sphere's would not fit its sclera."""
+
+
+def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: float | None,
+                   surface: Surface | None = None) -> GlobeFit:
     """The sphere through the limbus circle that fits ``points`` (remeasured sclera), the
     circle's tilt and centre free within the limbus's uncertainty.
 
@@ -501,7 +506,8 @@ def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: floa
     to the sphere are soft-L1 robust at :data:`ROBUST_MM` (lids and speckle off the sphere
     count little) and weighed so that together they say what one measurement good to
     :data:`SCLERA_BIAS_MM` says; the tilts and shifts are held to 0 by the limbus's per-axis
-    uncertainties.
+    uncertainties. ``surface``, with a ``fixed_radius``: the points' distances from the
+    patient's own globe in place of the sphere's.
     """
     pts = np.asarray(points, dtype=np.float64)
     L, g, r = limbus.centre, limbus.normal, limbus.radius
@@ -525,7 +531,10 @@ def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: floa
 
     def residuals(x: F64) -> F64:
         centre_l, gaze, h = unpack(x)
-        distance = np.linalg.norm(pts - (centre_l - h * gaze), axis=1) - math.hypot(h, r)
+        if surface is not None and fixed_radius is not None:
+            distance = surface(pts, centre_l - h * gaze, gaze)
+        else:
+            distance = np.linalg.norm(pts - (centre_l - h * gaze), axis=1) - math.hypot(h, r)
         # soft L1 as a residual (its square is the loss), so the priors stay quadratic.
         robust = np.sign(distance) * ROBUST_MM * np.sqrt(
             2.0 * (np.sqrt(1.0 + (distance / ROBUST_MM) ** 2) - 1.0))
@@ -559,12 +568,14 @@ def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: floa
 
 def refit(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: float,
           sclera: F64, cloud: F64, fixed_radius: float | None,
-          cornea_radius: float | None = None) -> GlobeFit | None:
+          cornea_radius: float | None = None, surface: Surface | None = None
+          ) -> GlobeFit | None:
     """The globe and gaze from the sclera remeasured about the globe ``centre``, ``radius``
     (:func:`~eyeserver.pipeline.limbus.globe_on_limbus`'s, whose ``sclera`` points say where
     it is seen; ``cloud`` what may hide it, see :func:`remeasured`) and the limbus found again
     about it (:func:`sharpened`, with the cornea's shadow where ``cornea_radius`` is given), in
-    :data:`PASSES` passes; None where too little sclera is remeasured."""
+    :data:`PASSES` passes; None where too little sclera is remeasured. ``surface`` as
+    :func:`globe_and_gaze`."""
     fit = None
     tree = cKDTree(sclera)
     for _ in range(PASSES):
@@ -575,6 +586,6 @@ def refit(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: floa
             return fit
         limbus = _sharpened(views, limbus, centre, radius, occluders, cornea_radius)
         depth = math.sqrt(max(radius**2 - limbus.radius**2, 1.0))
-        fit = globe_and_gaze(points, limbus, depth, fixed_radius)
+        fit = globe_and_gaze(points, limbus, depth, fixed_radius, surface)
         centre, radius = fit.centre, fit.radius
     return fit
