@@ -19,6 +19,7 @@ from eyeserver.bench.pose import (
     confident_wrong,
     confident_wrong_summary,
     p95_interval,
+    passes,
     refusals,
 )
 from eyeserver.bench.pose import format_text as format_pose_text
@@ -36,6 +37,7 @@ from eyeserver.errors import EyeserverError
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.population import SHARP, biometry, describe
 from eyeserver.pipeline.demodulate import Carrier, demodulate
+from eyeserver.pipeline.eyepose import SHAPE_SD_MM
 from eyeserver.service.patients import DEFAULT_MIN_CONFIDENCE
 
 
@@ -188,7 +190,8 @@ def test_speed_bench_contrib_peer_is_guarded() -> None:
 
 def _check_pose_report(report: dict[str, Any]) -> None:
     """What every pose report holds, whatever its eyes: the bins' poses add up, each pose's
-    confident-wrong flag follows its error and confidence, refusals are counted."""
+    confident-wrong flag follows its error, confidence and unknown shape, refusals are
+    counted."""
     assert report["format"] == "eyeserver.bench.pose/2"
     assert report["min_confidence"] == DEFAULT_MIN_CONFIDENCE
     cases = report["cases"]
@@ -202,8 +205,8 @@ def _check_pose_report(report: dict[str, Any]) -> None:
     for case in cases:
         assert set(case["eye"]) == set(BINS)
         if case["error"] is None:
-            assert case["confident_wrong"] == confident_wrong(case["centre_error_mm"],
-                                                              case["confidence"])
+            assert case["confident_wrong"] == confident_wrong(
+                case["centre_error_mm"], case["confidence"], shape_sd_mm=case["shape_sd_mm"])
         else:
             assert case["confident_wrong"] is False  # a refusal is never wrong
     wrong = report["confident_wrong"]
@@ -298,6 +301,19 @@ def _row(centre_error_mm: float | None, confidence: float = 0.9, error: str | No
     return {"error": None, "eye": descriptors, "centre_error_mm": centre_error_mm,
             "gaze_error_deg": 10 * centre_error_mm, "confidence": confidence,
             "confident_wrong": confident_wrong(centre_error_mm, confidence)}
+
+
+def test_a_pose_whose_globe_shape_is_unknown_is_refused_not_confident_wrong() -> None:
+    """The bench scores absolute poses: with population defaults the daemon's check against
+    a planned pose refuses every pose (the globe's shape unknown: 2 × 0.65 mm against half of
+    0.2 mm), however confident, so none is confidently wrong and the good ones are refused."""
+    shape = {"shape_sd_mm": SHAPE_SD_MM}
+    rows = [{**_row(0.86, 0.9), **shape}, {**_row(0.03, 0.9), **shape}, _row(0.86, 0.9)]
+    assert not passes(0.9, SHAPE_SD_MM) and passes(0.9, 0.05) and not passes(0.9, 0.051)
+    assert not confident_wrong(0.86, 0.9, shape_sd_mm=SHAPE_SD_MM)
+    assert confident_wrong_summary(rows)["count"] == 1  # only the pose of a given shape
+    separation = confidence_separation(rows)
+    assert separation["good"] == 1 and separation["good_refused"] == 1
 
 
 def test_confident_wrong_poses_are_off_by_more_than_the_tolerance_yet_pass() -> None:

@@ -13,8 +13,9 @@ import json
 import math
 import zipfile
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import httpx
 import pytest
@@ -27,11 +28,24 @@ from eyeserver.api.routers.sim import NO_SIM_ROOM
 from eyeserver.calibration.artefact import ARRAYS_FILE, CALIBRATION_FILE
 from eyeserver.hardware.sim.drivers import build_sim_rig
 from eyeserver.hardware.sim.room import SimRoom
-from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError, fit_eye
+from eyeserver.pipeline.eyepose import (
+    SHAPE_SD_MM,
+    CloudLike,
+    EyeModel,
+    EyePose,
+    PoseError,
+    fit_eye,
+)
 from eyeserver.pipeline.limbus import LimbusView
 from eyeserver.service.core import Service
-from eyeserver.service.patients import Tolerances
-from eyeserver.service.verification import PoseVerification, deviation, gaze_angle_deg, judge
+from eyeserver.service.patients import ReferencePose, Tolerances
+from eyeserver.service.verification import (
+    PoseVerification,
+    deviation,
+    gaze_angle_deg,
+    judge,
+    model_sd_mm,
+)
 from tests.apiclient import API, OPERATOR_TOKEN, Client, auth, test_settings
 
 OPERATOR = auth(OPERATOR_TOKEN)
@@ -77,6 +91,45 @@ def test_the_verdict_follows_the_tolerances(delta: tuple[float, float, float], g
 
     assert (verdict.passed, verdict.in_tolerance, list(verdict.reasons)) == \
         (passed, in_tolerance, words)
+
+
+def test_a_globe_shape_the_model_does_not_give_fails_against_a_planned_pose() -> None:
+    # With population defaults the centre is known to ±0.65 mm (1 sd) along the gaze in
+    # absolute terms (eyepose.SHAPE_SD_MM): a planned pose cannot be checked to 0.2 mm.
+    found = replace(deviation((0.05, 0.0, 0.0), (0, 0, 1), (0, 0, 0), (0, 0, 1)),
+                    model_sd_mm=SHAPE_SD_MM)
+
+    verdict = judge(found, Tolerances(), 0.9)
+
+    assert not verdict.passed and verdict.in_tolerance
+    assert verdict.reasons == (
+        "the eye model gives no globe shape: against this reference the centre is known only "
+        "to ±1.30 mm (2 sd) along the gaze, more than 0.5 of the 0.2 mm tolerance; enter the "
+        "MRI's ellipsoid in the eye model or capture a reference at set-up",)
+    # On the limit (2 sd = half the tolerance) it passes.
+    assert judge(replace(found, model_sd_mm=0.05), Tolerances(), 0.9).passed
+
+
+def test_the_shape_cancels_against_a_reference_captured_with_the_same_model() -> None:
+    tilt = math.radians(2.0)
+    pose = EyePose(centre_mm=(0.0, 0.0, -10.0), centre_sd_mm=(0.01, 0.01, 0.01),
+                   globe_radius_mm=12.0, limbus_centre_mm=None, limbus_sd_mm=None,
+                   gaze=(0.0, math.sin(tilt), math.cos(tilt)), gaze_sd_deg=0.1,
+                   torsion_deg=None, surface_mad_mm=0.05, sclera_points=1000, confidence=0.9,
+                   shape_sd_mm=SHAPE_SD_MM)
+
+    def reference(source: Literal["plan", "capture"], version: int | None) -> ReferencePose:
+        evidence = None if source == "plan" else {"eye_model_version": version}
+        return ReferencePose("P", 1, 1, "now", "someone", source,
+                             {"centre_mm": [0.0, 0.0, -10.0], "gaze": [0.0, 0.0, 1.0]}, None,
+                             evidence)
+
+    # The same error of the same eye, but for the gaze's 2° turn: 0.65 × 2 sin 1°.
+    turned = SHAPE_SD_MM * 2.0 * math.sin(tilt / 2.0)
+    assert model_sd_mm(pose, reference("capture", None), None) == pytest.approx(turned)
+    assert model_sd_mm(pose, reference("capture", 3), 3) == pytest.approx(turned)
+    assert model_sd_mm(pose, reference("capture", 2), 3) == SHAPE_SD_MM  # another model
+    assert model_sd_mm(pose, reference("plan", None), None) == SHAPE_SD_MM
 
 
 # --- through the API --------------------------------------------------------------------------
@@ -392,5 +445,9 @@ def test_end_to_end_a_captured_reference_then_a_1_mm_shift(
     # (measured 0.98 mm).
     assert same["deviation"]["length_mm"] < 0.05
     assert same["deviation"]["gaze_deg"] < 0.3
+    # The population model's unknown globe shape cancels against the captured reference.
+    assert same["pose"]["shape_sd_mm"] == SHAPE_SD_MM
+    assert same["deviation"]["model_sd_mm"] < 0.01
+    assert same["passed"] is True, same["reasons"]
     assert shifted["passed"] is False
     assert shifted["deviation"]["delta_mm"] == pytest.approx([1.0, 0.0, 0.0], abs=0.1)

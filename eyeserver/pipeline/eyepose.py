@@ -151,6 +151,13 @@ class EyeModel:
         return math.hypot(depth, limbus_radius_mm)
 
     @property
+    def shape_sd_mm(self) -> float:
+        """The globe centre's sd along the gaze (mm) from the globe's shape where the model
+        does not give it (:data:`SHAPE_SD_MM`; 0 with the MRI's ellipsoid, whose own error
+        the daemon is not told)."""
+        return 0.0 if self.globe_semi_axes_mm is not None else SHAPE_SD_MM
+
+    @property
     def prior_radius_mm(self) -> float:
         """The radius used to seed the search: the given one, the semi-axes' mean, or 12 mm."""
         if self.globe_radius_mm is not None:
@@ -193,6 +200,12 @@ class EyePose:
     in the cloud (the valid region's edge, ≥ the true limbus)."""
     cornea_points: int = 0
     fit_ms: float = 0.0
+    shape_sd_mm: float = 0.0
+    """The centre's sd along the gaze (mm) from what the eye model does not say about the
+    globe's shape (:attr:`EyeModel.shape_sd_mm`), beside ``centre_sd_mm``'s measurement
+    error: common to every fit of one eye with one model, so it cancels from a displacement
+    from a reference captured with the same model (but for the gaze's turn between them),
+    and counts in full against a planned pose."""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able dictionary (lists for vectors)."""
@@ -216,6 +229,7 @@ class EyePose:
             else float(self.boundary_radius_mm),
             "cornea_points": int(self.cornea_points),
             "fit_ms": float(self.fit_ms),
+            "shape_sd_mm": float(self.shape_sd_mm),
         }
 
 
@@ -224,6 +238,14 @@ F64 = npt.NDArray[np.float64]
 
 MIN_SCLERA_POINTS = 30
 """Fewest points a globe fit is attempted on (fewer: :class:`PoseError`)."""
+
+SHAPE_SD_MM = 0.65
+"""The globe centre's sd along the gaze (mm) where the model gives no globe shape (population
+defaults, or a sphere): real globes are ellipsoids whose semi-axes differ from their mean by
+up to ±0.5 mm each (docs/eye-model.md), and the sphere fitted through the limbus to one's
+visible sclera puts the centre 1.5 times the axial semi-axis's difference from the others off
+along the gaze: 0.62–0.72 mm sd for 11–13-mm globes (geometry alone, no rendering;
+docs/notes/patient-eye.md)."""
 
 WELL_SEEN_POINTS = 300
 """Sclera points at which the confidence's point term reaches 1 − 1/e."""
@@ -814,7 +836,7 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
             return on_limbus
         plausible *= UNSEEN_LIMBUS
     return pose_from_cloud(centre, centre_sd, radius, gaze, surface_mad, len(sclera), started,
-                           plausible)
+                           plausible, shape_sd_mm=model.shape_sd_mm)
 
 
 @dataclass(frozen=True)
@@ -958,7 +980,7 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     confidence = plausible * _confidence(round(globe.support * pixels_per_point),
                                          WELL_SEEN_LIMBUS_POINTS, surface_mad, sharpness)
     return _pose(centre_out, centre_sd, radius_out, gaze, surface_mad, globe.points, confidence,
-                 started)
+                 started, model.shape_sd_mm)
 
 
 def _surface_distance(points: F64, centre: F64, radius: float, gaze: F64, model: EyeModel
@@ -991,14 +1013,14 @@ def _surface_distance(points: F64, centre: F64, radius: float, gaze: F64, model:
 
 def pose_from_cloud(centre: F64, centre_sd: F64, radius: float, gaze: Gaze, surface_mad: float,
                     sclera_points: int, started: float, plausible: float = 1.0,
-                    pixels_per_point: float = 1.0) -> EyePose:
+                    pixels_per_point: float = 1.0, *, shape_sd_mm: float = 0.0) -> EyePose:
     """The pose of a globe fitted to the cloud with its :func:`cloud_gaze`; ``plausible``
     scales the confidence (0.3 for a radius outside the model's bounds); ``pixels_per_point``
-    as :func:`pose_on_limbus`."""
+    as :func:`pose_on_limbus`; ``shape_sd_mm`` the model's (:attr:`EyePose.shape_sd_mm`)."""
     confidence = _confidence(round(sclera_points * pixels_per_point), WELL_SEEN_POINTS,
                              surface_mad, gaze) * plausible
     return _pose(centre, centre_sd, radius, gaze, surface_mad, sclera_points, confidence,
-                 started)
+                 started, shape_sd_mm)
 
 
 def _confidence(sclera_points: int, well_seen: int, surface_mad: float, gaze: Gaze) -> float:
@@ -1010,7 +1032,8 @@ def _confidence(sclera_points: int, well_seen: int, surface_mad: float, gaze: Ga
 
 
 def _pose(centre: F64, centre_sd: F64, radius: float, gaze: Gaze, surface_mad: float,
-          sclera_points: int, confidence: float, started: float) -> EyePose:
+          sclera_points: int, confidence: float, started: float, shape_sd_mm: float = 0.0
+          ) -> EyePose:
     def triple(v: F64) -> tuple[float, float, float]:
         return float(v[0]), float(v[1]), float(v[2])
 
@@ -1021,4 +1044,5 @@ def _pose(centre: F64, centre_sd: F64, radius: float, gaze: Gaze, surface_mad: f
         gaze_sd_deg=float(gaze.sd_deg), torsion_deg=None, surface_mad_mm=float(surface_mad),
         sclera_points=int(sclera_points), confidence=float(min(max(confidence, 0.0), 1.0)),
         gaze_source=gaze.source, boundary_radius_mm=gaze.boundary_radius_mm,
-        cornea_points=gaze.cornea_points, fit_ms=1000.0 * (time.perf_counter() - started))
+        cornea_points=gaze.cornea_points, fit_ms=1000.0 * (time.perf_counter() - started),
+        shape_sd_mm=float(shape_sd_mm))

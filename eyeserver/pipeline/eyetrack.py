@@ -322,7 +322,8 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
             off = np.linalg.norm(points - centre, axis=1) - radius
             return pose_from_cloud(centre, np.asarray(previous.centre_sd_mm, dtype=np.float64),
                                    radius, Gaze(last_gaze, 90.0, "none"),
-                                   float(np.median(np.abs(off))), 0, started)
+                                   float(np.median(np.abs(off))), 0, started,
+                                   shape_sd_mm=model.shape_sd_mm)
     seen_radius, lid_radius = _seen_shells(points, centre, radius)
     cov = np.full((3, 3), np.inf)
     resid = np.zeros(0)
@@ -356,4 +357,4 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
     gaze = cloud_gaze(points, sclera, centre, radius, centre_sd, model,
                       fallback=np.asarray(previous.gaze, dtype=np.float64))
     return pose_from_cloud(centre, centre_sd, radius, gaze, surface_mad, len(sclera), started,
-                           pixels_per_point=pixels_per_point)
+                           pixels_per_point=pixels_per_point, shape_sd_mm=model.shape_sd_mm)

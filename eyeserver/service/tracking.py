@@ -113,10 +113,12 @@ from eyeserver.service.patients import Patients, Tolerances
 from eyeserver.service.reconstruction import ReconstructionError, calibrated_cameras, z_range
 from eyeserver.service.tracking_worker import PoseWorker
 from eyeserver.service.verification import (
+    MODEL_SD_SHARE,
     FitFunction,
     deviation,
     judge,
     measurement_model,
+    shape_cancels,
 )
 
 __all__ = ["CAMERA_RATE_HZ", "FOLLOW_LOST_S", "FindPose", "FocusingReconstructor", "FrameSet",
@@ -584,12 +586,15 @@ def start_pose(reference: dict[str, Any], model: EyeModel) -> EyePose | None:
     the whole images (:class:`PoseFinder`).
 
     None when the model leaves the radius free (no captured reference holds it): tracking
-    holds the radius of the pose it starts from, which must then be a fitted one.
+    holds the radius of the pose it starts from, which must then be a fitted one. An
+    ellipsoid's is the sphere's through its limbus
+    (:meth:`~eyeserver.pipeline.eyepose.EyeModel.radius_through_limbus`).
     """
-    if model.globe_radius_mm is None:
+    radius = model.radius_through_limbus(model.limbus_diameter_mm / 2)
+    if radius is None:
         return None
     return EyePose(centre_mm=_triple(reference["centre_mm"]), centre_sd_mm=(0.0, 0.0, 0.0),
-                   globe_radius_mm=float(model.globe_radius_mm),
+                   globe_radius_mm=float(radius),
                    limbus_centre_mm=None if reference.get("limbus_centre_mm") is None
                    else _triple(reference["limbus_centre_mm"]),
                    limbus_sd_mm=None, gaze=_triple(reference["gaze"]), gaze_sd_deg=0.0,
@@ -982,7 +987,9 @@ class TrackingControl:
         UnknownPatientError, NoReferenceError
             No such patient, or the fraction has no reference pose (HTTP 404).
         NoActiveCalibrationError, StateConflictError
-            No calibration is active, or the daemon is busy (tracking already) (HTTP 409).
+            No calibration is active, or the daemon is busy (tracking already), or the eye
+            model leaves the globe's shape unknown against a reference that was not captured
+            with it (:func:`~eyeserver.service.verification.shape_cancels`) (HTTP 409).
         ValueError
             A bad ``dwell_frames``.
         """
@@ -991,6 +998,16 @@ class TrackingControl:
         reference = self.patients.reference(patient_id, fraction)
         stored_model = self.patients.eye_model(patient_id)
         model = measurement_model(stored_model, reference)
+        tolerance = patient.tolerances.translation_mm
+        if not shape_cancels(reference, None if stored_model is None else stored_model.version
+                             ) and 2.0 * model.shape_sd_mm > MODEL_SD_SHARE * tolerance:
+            raise StateConflictError(
+                f"cannot track against this reference: the eye model gives no globe shape, so "
+                f"against a {reference.source} reference pose (not captured at set-up with this "
+                f"eye model) the centre is known only to ±{2.0 * model.shape_sd_mm:.2f} mm "
+                f"(2 sd) along the gaze, more than {MODEL_SD_SHARE:g} of the {tolerance:g} mm "
+                "tolerance; enter the MRI's ellipsoid in the eye model or capture a reference "
+                "at set-up")
         unit_ids = service.unit_ids(patient.unit)
         with self._lock:
             if self._hold is not None:

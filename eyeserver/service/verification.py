@@ -6,8 +6,10 @@ defaults without one) and compares the pose with the fraction's newest reference
 
 * ``delta_mm = measured centre − reference centre`` (ΔX, ΔY, ΔZ in the WCS, mm) and its length;
 * ``gaze_deg``: the angle between measured and reference gaze;
-* it passes when ``|Δ| ≤ translation_mm``, ``gaze_deg ≤ gaze_deg`` tolerance and the fit's
-  confidence is at least ``min_confidence``; ``reasons`` says what failed.
+* it passes when ``|Δ| ≤ translation_mm``, ``gaze_deg ≤ gaze_deg`` tolerance, the fit's
+  confidence is at least ``min_confidence`` and what the eye model leaves unknown of the
+  globe's shape is small against the tolerance (:func:`model_sd_mm`: it cancels against a
+  reference captured at set-up, not against a planned pose); ``reasons`` says what failed.
 
 The result is stored with its evidence (capture id — its bundle and ``cloud.ply`` stay with the
 capture —, the reconstruction's calibration id, the eye-model version and the fit) as
@@ -45,8 +47,9 @@ from eyeserver.service.patients import (
 from eyeserver.service.reconstruction import limbus_views
 from eyeserver.service.storage import UnknownIdError
 
-__all__ = ["Deviation", "FitFunction", "PoseVerification", "Verdict", "deviation",
-           "gaze_angle_deg", "judge", "measurement_model"]
+__all__ = ["MODEL_SD_SHARE", "Deviation", "FitFunction", "PoseVerification", "Verdict",
+           "deviation", "gaze_angle_deg", "judge", "measurement_model", "model_sd_mm",
+           "shape_cancels"]
 
 class FitFunction(Protocol):
     """What fits an eye model to a cloud and, when given, the fringe images it came from
@@ -93,19 +96,23 @@ class Deviation:
         Angle between the measured and the reference gaze, degrees.
     limbus_delta_mm : (ΔX, ΔY, ΔZ) or None
         Limbus centre, measured − reference, when both are known.
+    model_sd_mm : float
+        The deviation's sd along the gaze from what the eye model does not say about the
+        globe's shape (:func:`model_sd_mm`), mm.
     """
 
     delta_mm: tuple[float, float, float]
     length_mm: float
     gaze_deg: float
     limbus_delta_mm: tuple[float, float, float] | None = None
+    model_sd_mm: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         """As stored and answered."""
         return {"delta_mm": list(self.delta_mm), "length_mm": self.length_mm,
                 "gaze_deg": self.gaze_deg,
                 "limbus_delta_mm": None if self.limbus_delta_mm is None
-                else list(self.limbus_delta_mm)}
+                else list(self.limbus_delta_mm), "model_sd_mm": self.model_sd_mm}
 
 
 def _difference(a: Vector, b: Vector) -> tuple[float, float, float]:
@@ -126,6 +133,39 @@ def deviation(measured_centre: Vector, measured_gaze: Vector, reference_centre: 
               else _difference(measured_limbus, reference_limbus))
     return Deviation(delta, math.hypot(*delta), gaze_angle_deg(measured_gaze, reference_gaze),
                      limbus)
+
+
+def model_sd_mm(pose: EyePose, reference: ReferencePose, eye_model_version: int | None
+                ) -> float:
+    """The sd (mm) that the globe's unknown shape (:attr:`EyePose.shape_sd_mm`) leaves in the
+    deviation of ``pose``, fitted with the patient's ``eye_model_version`` (None: population
+    defaults), from ``reference``.
+
+    A reference captured at set-up with the same eye-model version carries the same error of
+    the same eye (the sphere's centre off along the gaze by an amount fixed by the globe's
+    shape): it cancels but for the gaze's turn between them, ``shape_sd · |g − g_ref|``. A
+    planned reference, or one captured with another model, is absolute: the whole of it counts.
+    """
+    shape = float(pose.shape_sd_mm)
+    if shape_cancels(reference, eye_model_version):
+        turn = [a - b for a, b in zip(pose.gaze, reference.pose["gaze"], strict=True)]
+        return shape * math.hypot(*turn)
+    return shape
+
+
+def shape_cancels(reference: ReferencePose, eye_model_version: int | None) -> bool:
+    """Whether the globe's unknown shape cancels from a deviation from ``reference`` of a pose
+    fitted with ``eye_model_version``: the reference was captured with the same model
+    (:func:`model_sd_mm`)."""
+    evidence = reference.evidence or {}
+    return (reference.source == "capture" and "eye_model_version" in evidence
+            and evidence["eye_model_version"] == eye_model_version)
+
+
+MODEL_SD_SHARE = 0.5
+"""Share of the translation tolerance the model's own uncertainty (2 sd, :func:`model_sd_mm`)
+may take: beyond it a deviation within the tolerance says nothing (with population defaults
+against a planned pose, 2 × 0.65 mm against 0.2 mm)."""
 
 
 @dataclass(frozen=True)
@@ -150,6 +190,12 @@ def judge(found: Deviation, tolerances: Tolerances, confidence: float) -> Verdic
     if not confidence >= tolerances.min_confidence:
         reasons.append(f"fit confidence {confidence:.2f} is below "
                        f"{tolerances.min_confidence:g}")
+    if 2.0 * found.model_sd_mm > MODEL_SD_SHARE * tolerances.translation_mm:
+        reasons.append(
+            f"the eye model gives no globe shape: against this reference the centre is known "
+            f"only to ±{2.0 * found.model_sd_mm:.2f} mm (2 sd) along the gaze, more than "
+            f"{MODEL_SD_SHARE:g} of the {tolerances.translation_mm:g} mm tolerance; enter the "
+            "MRI's ellipsoid in the eye model or capture a reference at set-up")
     return Verdict(not reasons, in_tolerance, tuple(reasons))
 
 
@@ -275,8 +321,9 @@ class PoseVerification:
         seen = self._observe(patient, actor, "measure_pose", fraction, reference)
         pose = seen.pose
         ref = reference.pose
-        found = deviation(pose.centre_mm, pose.gaze, ref["centre_mm"], ref["gaze"],
-                          pose.limbus_centre_mm, ref.get("limbus_centre_mm"))
+        found = replace(deviation(pose.centre_mm, pose.gaze, ref["centre_mm"], ref["gaze"],
+                                  pose.limbus_centre_mm, ref.get("limbus_centre_mm")),
+                        model_sd_mm=model_sd_mm(pose, reference, seen.eye_model_version))
         verdict = judge(found, patient.tolerances, pose.confidence)
         store = self.service.store
         measurement_id = store.new_id("pose")
