@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from typing import Any
 
 import cv2
@@ -18,6 +19,8 @@ from eyeserver.bench.pose import (
     confidence_separation,
     confident_wrong,
     confident_wrong_summary,
+    displacement_error,
+    displacement_summary,
     p95_interval,
     passes,
     refusals,
@@ -37,7 +40,7 @@ from eyeserver.errors import EyeserverError
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.population import SHARP, biometry, describe
 from eyeserver.pipeline.demodulate import Carrier, demodulate
-from eyeserver.pipeline.eyepose import SHAPE_SD_MM
+from eyeserver.pipeline.eyepose import SHAPE_SD_MM, EyePose
 from eyeserver.service.patients import DEFAULT_MIN_CONFIDENCE
 
 
@@ -219,7 +222,9 @@ def _check_pose_report(report: dict[str, Any]) -> None:
             <= calibration["centre_axes_within_2_sd"] <= 1.0
         assert 0.0 <= calibration["gaze_within_1_sd"] <= calibration["gaze_within_2_sd"] <= 1.0
     text = format_pose_text(report)
-    for expected in ("confident wrong poses (off by > 0.2 mm, confidence ≥ min_confidence 0.5)",
+    for expected in ("confident wrong poses (off by > 0.2 mm, yet passing the check against "
+                     "a planned pose: confidence ≥ min_confidence 0.5, the globe's shape "
+                     "known)",
                      "confidence separation:", "refusals (no pose given):", "per bin",
                      "limbus width (mm)", "limbus contrast", "lid cover", "anatomy mismatch",
                      "95 % bootstrap intervals"):
@@ -254,7 +259,8 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
     # the measured radius (the sphere through the limbus of that radius: to rounding), so the
     # radius's error is the measurement's, never 0.
     sharp = _json(capsys, ["bench", "pose", "--json", "--poses", "3", "--eyes", "sharp",
-                           "--biometry", "--unit", "left", "--calibration", str(caldir)])
+                           "--biometry", "--displacement", "--unit", "left", "--calibration",
+                           str(caldir)])
     assert sharp["units"] == ["left"] and sharp["eyes"] == "sharp" and sharp["biometry"]
     assert sharp["model"].startswith("the patient's biometry")
     _check_pose_report(sharp)
@@ -278,13 +284,21 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
     assert "globe 13 mm (1 poses): centre" in format_pose_text(sharp)
     section = "\n".join(render_pose(sharp))
     assert "## Eye pose, sharp eyes, biometry given" in section
-    assert "`eyeserver bench pose --poses 3 --seed 0 --eyes sharp --biometry`: 3 of 3" in section
+    assert ("`eyeserver bench pose --poses 3 --seed 0 --eyes sharp --biometry --displacement`: "
+            "3 of 3") in section
     assert "a fail against the 0.2 mm tolerance" in section
+    # Each eye captured again, moved: the move is measured as a verification against a
+    # reference captured at set-up sees it (three pairs: a guard, not a figure).
+    moves = sharp["displacement"]
+    assert moves["pairs"] == 3 and moves["fitted"] == 3
+    assert moves["error_mm"]["max"] < 0.2 and moves["gaze_turn_error_deg"]["max"] < 0.5
+    assert all(0.0 < c["displacement"]["true_move_mm"] <= math.sqrt(3) for c in sharp["cases"])
+    assert "moves between two captures of an eye (up to 1 mm per axis" in section
     assert "stated uncertainties: centre errors within 1 and 2 sd on" in section
     # Side by side on the page, each run with its options.
     overview = "\n".join(render_pose_overview((report, sharp)))
     assert "| `--eyes patient` | 2 (" in overview
-    assert "| `--eyes sharp --biometry` | 3 (3) |" in overview
+    assert "| `--eyes sharp --biometry --displacement` | 3 (3) |" in overview
     assert main(["bench", "pose", "--unit", "centre", "--calibration", str(caldir)]) == 2
     assert "no unit centre" in capsys.readouterr().err
 
@@ -314,6 +328,37 @@ def test_a_pose_whose_globe_shape_is_unknown_is_refused_not_confident_wrong() ->
     assert confident_wrong_summary(rows)["count"] == 1  # only the pose of a given shape
     separation = confidence_separation(rows)
     assert separation["good"] == 1 and separation["good_refused"] == 1
+
+
+def test_a_move_is_scored_against_the_truths_move() -> None:
+    """Two fits of one eye: the error of the move they measure, not of either pose; the
+    shape's share of a 2° turn (0.65 × 0.035 mm) lets the check pass."""
+    def pose(centre: tuple[float, float, float], gaze: tuple[float, float, float],
+             confidence: float = 0.9) -> EyePose:
+        return EyePose(centre_mm=centre, centre_sd_mm=(0.01, 0.01, 0.01), globe_radius_mm=12.0,
+                       limbus_centre_mm=None, limbus_sd_mm=None, gaze=gaze, gaze_sd_deg=0.1,
+                       torsion_deg=None, surface_mad_mm=0.05, sclera_points=1000,
+                       confidence=confidence, shape_sd_mm=SHAPE_SD_MM)
+
+    turn = math.radians(2.0)
+    turned = (0.0, math.sin(turn), math.cos(turn))
+    first, second = pose((0.5, 0.0, -9.0), (0.0, 0.0, 1.0)), pose((1.5, 0.0, -9.1), turned)
+    truth_a = {"centre_mm": [0.0, 0.0, -10.0], "gaze": [0.0, 0.0, 1.0]}
+    truth_b = {"centre_mm": [1.0, 0.0, -10.0], "gaze": list(turned)}
+    # Both poses ≈ 1 mm off alike: the move is off by the 0.1 mm they differ.
+    move = displacement_error(first, second, truth_a, truth_b)
+    assert move["error_mm"] == pytest.approx(0.1)
+    assert move["gaze_turn_error_deg"] == pytest.approx(0.0, abs=1e-9)
+    assert move["true_move_mm"] == pytest.approx(1.0) and not move["confident_wrong"]
+    wrong = displacement_error(first, pose((1.8, 0.0, -9.0), turned), truth_a, truth_b)
+    assert wrong["error_mm"] == pytest.approx(0.3) and wrong["confident_wrong"]
+    doubtful = displacement_error(first, pose((1.8, 0.0, -9.0), turned, 0.3), truth_a, truth_b)
+    assert not doubtful["confident_wrong"]
+    rows = [{"displacement": {"error": None, **move}}, {"displacement": {"error": None, **wrong}},
+            {"displacement": {"error": "PoseError: no eye found"}}, {}]
+    summary = displacement_summary(rows)
+    assert (summary["pairs"], summary["fitted"], summary["confident_wrong"]) == (3, 2, 1)
+    assert summary["error_mm"]["max"] == pytest.approx(0.3)
 
 
 def test_confident_wrong_poses_are_off_by_more_than_the_tolerance_yet_pass() -> None:

@@ -38,6 +38,7 @@ from eyeserver.bench.report import (
     DESCRIPTORS,
     by_globe_text,
     confident_wrong_text,
+    displacement_text,
     eyes_text,
     number_text,
     p95_text,
@@ -98,6 +99,45 @@ def random_spec(rng: np.random.Generator, radius: float) -> SceneSpec:
     return _placed(rng, EyeSpec(globe_radius_mm=radius))
 
 
+MOVE_MM = 1.0
+"""Largest move of the eye per axis between a reference capture and a measurement
+(``--displacement``): set-up errors that a verification must catch are of this order."""
+
+MOVE_DEG = 2.0
+"""Largest turn of the gaze per axis between them (a patient fixating the light again)."""
+
+
+def moved(rng: np.random.Generator, spec: SceneSpec) -> SceneSpec:
+    """``spec``'s eye moved by up to :data:`MOVE_MM` per axis and turned by up to
+    :data:`MOVE_DEG` in yaw and pitch: the same eye, captured again."""
+    shift = rng.uniform(-MOVE_MM, MOVE_MM, 3)
+    turn = rng.uniform(-MOVE_DEG, MOVE_DEG, 2)
+    yaw, pitch = spec.eye.gaze_deg
+    return spec.model_copy(update={
+        "position_mm": tuple(float(p + d) for p, d in zip(spec.position, shift, strict=True)),
+        "eye": spec.eye.model_copy(update={"gaze_deg": (yaw + float(turn[0]),
+                                                        pitch + float(turn[1]))})})
+
+
+def displacement_error(first: EyePose, second: EyePose, first_truth: dict[str, Any],
+                       second_truth: dict[str, Any]) -> dict[str, Any]:
+    """How well two fits of one eye measure its move between them: the centre's
+    ``(C₂ − C₁) − (T₂ − T₁)`` (mm) and the gaze's turn ``(g₂ − g₁) − (t₂ − t₁)`` (degrees, as
+    an angle for small turns), against the truth; ``passes`` as the daemon's check against a
+    reference captured with the same model (:func:`passes` with the shape's share of the turn,
+    :func:`~eyeserver.service.verification.model_sd_mm`)."""
+    moved_by = np.subtract(second.centre_mm, first.centre_mm)
+    true_move = np.subtract(second_truth["centre_mm"], first_truth["centre_mm"])
+    turn = np.subtract(second.gaze, first.gaze)
+    true_turn = np.subtract(second_truth["gaze"], first_truth["gaze"])
+    error = float(np.linalg.norm(moved_by - true_move))
+    shape = second.shape_sd_mm * float(np.linalg.norm(turn))
+    return {"error_mm": error,
+            "gaze_turn_error_deg": math.degrees(float(np.linalg.norm(turn - true_turn))),
+            "true_move_mm": float(np.linalg.norm(true_move)),
+            "confident_wrong": error > TOLERANCE_MM and passes(second.confidence, shape)}
+
+
 @dataclass
 class Streams:
     """The bench's random streams, each its own so that one choice leaves the others' draws
@@ -108,13 +148,16 @@ class Streams:
     poses: np.random.Generator
     eyes: np.random.Generator
     errors: np.random.Generator
+    moves: np.random.Generator
+    """The eye's move between a reference capture and a measurement (``--displacement``)."""
 
     @classmethod
     def from_seed(cls, seed: int) -> Streams:
-        """The streams of ``seed`` (deterministic)."""
-        eyes, errors = np.random.SeedSequence(seed).spawn(2)
+        """The streams of ``seed`` (deterministic; a SeedSequence's children do not depend on
+        how many are spawned, so adding one left the others' draws alone)."""
+        eyes, errors, moves = np.random.SeedSequence(seed).spawn(3)
         return cls(np.random.default_rng(seed), np.random.default_rng(eyes),
-                   np.random.default_rng(errors))
+                   np.random.default_rng(errors), np.random.default_rng(moves))
 
 
 def draw_spec(streams: Streams, eyes: str, n: int) -> SceneSpec:
@@ -362,13 +405,15 @@ def by_bin(rows: list[dict[str, Any]],
 
 def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Path | None = None,
         units: list[str] | None = None, eyes: str = "patient", biometry: bool = False,
-        progress: Progress = _quiet) -> dict[str, Any]:
+        displacement: bool = False, progress: Progress = _quiet) -> dict[str, Any]:
     """The pose bench as one JSON-able document.
 
     ``units``: capture only these units (default all: the default room's two look at the one
     eye); ``eyes``: one of :data:`EYES`; ``biometry``: the patient's model from the eye's
     biometry with its measurement errors (:func:`biometry_model`) instead of the population
-    model with the radius fitted.
+    model with the radius fitted; ``displacement``: each fitted eye captured again, moved
+    (:func:`moved`), and the move measured (:func:`displacement_error`): what a verification
+    against a reference captured at set-up sees, where the globe's unknown shape cancels.
 
     Raises
     ------
@@ -412,11 +457,14 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
                 if pose is not None:
                     error_mm = np.asarray(pose.centre_mm) - truth["centre_mm"]
                     centre_error = float(np.linalg.norm(error_mm))
+                    # The stated sd per axis: the measurement's and the unknown shape's, the
+                    # latter along the gaze.
+                    stated = np.hypot(pose.centre_sd_mm,
+                                      pose.shape_sd_mm * np.abs(np.asarray(pose.gaze)))
                     row.update({
                         "centre_error_mm": centre_error,
                         "centre_error_in_sd": [float(e / sd) for e, sd in
-                                               zip(np.abs(error_mm), pose.centre_sd_mm,
-                                                   strict=True)],
+                                               zip(np.abs(error_mm), stated, strict=True)],
                         "gaze_error_deg": _angle_deg(pose.gaze, truth["gaze"]),
                         "gaze_sd_deg": pose.gaze_sd_deg,
                         "radius_error_mm": pose.globe_radius_mm - truth["globe_radius_mm"],
@@ -430,6 +478,13 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
                         "confident_wrong": confident_wrong(centre_error, pose.confidence,
                                                            min_confidence, pose.shape_sd_mm),
                         "fit_ms": 1000.0 * seconds})
+                    if displacement:
+                        again = moved(streams.moves, spec)
+                        second, second_truth, _, why = _measure(session, again, caldir,
+                                                                work / "moved", units, model)
+                        row["displacement"] = ({"error": why} if second is None else
+                                               {"error": None, **displacement_error(
+                                                   pose, second, truth, second_truth)})
                 rows.append(row)
             progress("1 mm shift between two captures")
             base = (random_spec(streams.poses, 12.0) if eyes == "sharp"
@@ -471,10 +526,27 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
         "confidence_separation": confidence_separation(rows, min_confidence),
         "refusals": refusals(rows),
         "by_bin": by_bin(rows, min_confidence)}
+    if displacement:
+        report["displacement"] = displacement_summary(rows)
     if eyes == "sharp":
         report["by_globe_radius"] = _by_globe_radius(rows)
     report.update({"shift": shift, "cases": rows})
     return report
+
+
+def displacement_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The moves measured (``--displacement``): pairs tried (fitted first captures), pairs
+    whose second capture was fitted, the centre's and the gaze turn's errors, and the
+    confidently wrong moves (off by more than :data:`TOLERANCE_MM` yet passing the check
+    against a captured reference)."""
+    pairs = [r["displacement"] for r in rows if "displacement" in r]
+    fitted = [d for d in pairs if d["error"] is None]
+    return {"move_mm": MOVE_MM, "turn_deg": MOVE_DEG, "pairs": len(pairs),
+            "fitted": len(fitted),
+            "error_mm": _stats([d["error_mm"] for d in fitted], interval=True),
+            "gaze_turn_error_deg": _stats([d["gaze_turn_error_deg"] for d in fitted],
+                                          interval=True),
+            "confident_wrong": sum(1 for d in fitted if d["confident_wrong"])}
 
 
 def _by_globe_radius(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -537,6 +609,8 @@ def format_text(report: dict[str, Any]) -> str:
     if coverage is not None:
         out.append(f"{coverage} (goal: ≥ 95 % within 2 sd)")
     out += [confident_wrong_text(report), separation_text(report), refusals_text(report)]
+    if "displacement" in report:
+        out.append(displacement_text(report))
     shift = report["shift"]
     if "measured_shift_mm" in shift:
         verdict = "FAIL (detected)" if shift["fails_tolerance"] else "pass (missed!)"

@@ -266,7 +266,8 @@ def _flags(pose: dict[str, Any]) -> str:
     """The run's command-line options beyond ``--poses`` and ``--seed``."""
     if "eyes" not in pose:
         return " --held-radius" if pose.get("held_radius") else ""
-    return f" --eyes {pose['eyes']}" + (" --biometry" if pose.get("biometry") else "")
+    return (f" --eyes {pose['eyes']}" + (" --biometry" if pose.get("biometry") else "")
+            + (" --displacement" if "displacement" in pose else ""))
 
 
 def eyes_text(pose: dict[str, Any]) -> str:
@@ -281,8 +282,9 @@ def eyes_text(pose: dict[str, Any]) -> str:
 def confident_wrong_text(pose: dict[str, Any]) -> str:
     """The pose bench's confident wrong poses in words."""
     wrong = pose["confident_wrong"]
-    return (f"confident wrong poses (off by > {wrong['wrong_above_mm']:g} mm, confidence ≥ "
-            f"min_confidence {wrong['min_confidence']:g}): {wrong['count']} of "
+    return (f"confident wrong poses (off by > {wrong['wrong_above_mm']:g} mm, yet passing the "
+            f"check against a planned pose: confidence ≥ min_confidence "
+            f"{wrong['min_confidence']:g}, the globe's shape known): {wrong['count']} of "
             f"{pose['poses']} poses ({_share_text(wrong['share_of_poses'])}), of the "
             f"{wrong['wrong']} off by > {wrong['wrong_above_mm']:g} mm "
             f"{_share_text(wrong['share_of_wrong'])} (goal 0)")
@@ -297,8 +299,25 @@ def separation_text(pose: dict[str, Any]) -> str:
             f"{_figure_text(sep['max_confidence_when_wrong'])} at most; within "
             f"{sep['good_within_mm']:g} mm ({sep['good']} poses), "
             f"{_figure_text(sep['median_confidence_when_good'])} median, "
-            f"{sep['good_refused']} ({_share_text(sep['good_refused_share'])}) below "
-            f"min_confidence {sep['min_confidence']:g} (beam holds for nothing)")
+            f"{sep['good_refused']} ({_share_text(sep['good_refused_share'])}) refused by "
+            f"the check (min_confidence {sep['min_confidence']:g}, the globe's shape; beam "
+            "holds for nothing)")
+
+
+def displacement_text(pose: dict[str, Any]) -> str:
+    """The pose bench's measured moves (``--displacement``) in words."""
+    moves = pose["displacement"]
+    error, turn = moves["error_mm"], moves["gaze_turn_error_deg"]
+    if error["median"] is None:
+        return (f"moves between two captures of an eye: none measured ({moves['pairs']} "
+                "tried)")
+    return (f"moves between two captures of an eye (up to {moves['move_mm']:g} mm per axis "
+            f"and {moves['turn_deg']:g}° per axis; {moves['fitted']} of {moves['pairs']} "
+            f"pairs fitted): centre error median {number_text(error['median'])} mm, p95 "
+            f"{p95_text(error)} mm (goal ≤ 0.1 mm); gaze turn error median "
+            f"{number_text(turn['median'])}°, p95 {p95_text(turn)}°; confidently wrong moves "
+            f"(off by > 0.2 mm, passing the check against a captured reference): "
+            f"{moves['confident_wrong']} (goal 0)")
 
 
 def refusals_text(pose: dict[str, Any]) -> str:
@@ -376,6 +395,8 @@ def render_pose(pose: dict[str, Any]) -> list[str]:
     if "confident_wrong" in pose:
         lines += [f"- {confident_wrong_text(pose)}", f"- {separation_text(pose)}",
                   f"- {refusals_text(pose)}"]
+    if "displacement" in pose:
+        lines.append(f"- {displacement_text(pose)}")
     shift = pose["shift"]
     if "measured_shift_mm" in shift:
         lines.append(f"- a {shift['true_shift_mm']} mm shift between two captures measured "

@@ -106,6 +106,10 @@ def add_parser(subparsers: Subparsers) -> None:
                       help="the patient's model from the eye's MRI and biometry, each off by "
                       "its typical measurement error (default: the population model, radius "
                       "fitted)")
+    pose.add_argument("--displacement", action="store_true",
+                      help="capture each fitted eye again, moved by up to 1 mm and turned by "
+                      "up to 2° per axis, and score the move measured: what a check against "
+                      "a reference captured at set-up sees (twice the renders)")
     pose.set_defaults(handler=_pose)
     tracking = commands.add_parser(
         "tracking", help="live tracking end to end through a daemon on loopback",
@@ -167,7 +171,8 @@ def _pose(args: argparse.Namespace) -> int:
 
     report = pose.run(load_room(args.room), poses=args.poses, seed=args.seed,
                       calibration=args.calibration, units=args.units,
-                      eyes=args.eyes, biometry=args.biometry, progress=_progress)
+                      eyes=args.eyes, biometry=args.biometry,
+                      displacement=args.displacement, progress=_progress)
     print(json.dumps(report, indent=1) if args.json else pose.format_text(report))
     return 0
 
