@@ -172,6 +172,10 @@ def _tracking_paragraph(speed: dict[str, Any], key: str, prefix: str) -> list[st
         held = reaction["first_processed_frame_after_saccade_held"]
         text += (f" The first processed frame after the scripted {reaction['saccade_deg']:g}° "
                  f"saccade {'held' if held else 'did NOT hold'} the beam.")
+    accuracy = live.get("accuracy")
+    if accuracy:
+        from eyeserver.bench.tracking import accuracy_text
+        text += f" The {accuracy_text(accuracy)}."
     blink = live.get("blink")
     if blink:
         text += (f" Of the {blink['frames_half_shut']} processed frames of the "

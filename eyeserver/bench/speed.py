@@ -819,7 +819,8 @@ def tracking_figures(live: dict[str, Any] | None, ahead: dict[str, Any] | None
                     "message received by a WebSocket client",
             "latency_ms": latency, "frames": counted, "slowest": run_report["slowest"],
             "beam_hold_reaction": run_report["beam_hold_reaction"],
-            "blink": run_report.get("blink"), "clients": run_report["clients"],
+            "blink": run_report.get("blink"), "accuracy": run_report.get("accuracy"),
+            "clients": run_report["clients"],
             "reference_fft_ms": run_report["reference_fft_ms"]}
         report[f"{prefix}frame_to_pose_median_ms"] = latency["end_to_end_median"]
         report[f"{prefix}frame_to_pose_p99_ms"] = latency["end_to_end_p99"]
