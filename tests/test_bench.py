@@ -552,6 +552,14 @@ def test_tracked_poses_are_scored_against_the_truth_at_their_frames_time() -> No
     assert accuracy["at_rest_gaze_error_deg"]["max"] == pytest.approx(1.0, abs=1e-6)
 
 
+def test_the_tracking_bench_takes_the_sharp_or_a_patients_eye(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(ValueError, match="sharp or patient"):
+        tracking.run(1.0, eyes="painted")
+    assert main(["bench", "tracking", "--eyes", "painted"]) == 2
+    assert "invalid choice: 'painted'" in capsys.readouterr().err
+
+
 def test_the_replay_bench_counts_every_frame_it_hands_the_tracking_worker(
         calibrated_rooms: Any) -> None:
     """Two seconds replayed: every frame is processed or dropped (counted), every processed

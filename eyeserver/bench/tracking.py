@@ -44,6 +44,7 @@ from eyeserver.bench.daemon import DaemonError, DaemonProcess, zip_directory
 from eyeserver.bench.simcal import calibrate_room
 from eyeserver.bench.speed import reference_ms
 from eyeserver.core.clock import MonotonicClock
+from eyeserver.hardware.sim import population
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.motion import EyeMotion, MotionSpec
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec, scene_truth
@@ -144,10 +145,14 @@ def _percentile(values: list[float], q: float) -> float | None:
 
 def run(seconds: float = 60.0, *, calibration: Path | None = None,
         room_file: Path | None = None, work: Path | None = None, workers: int = 2,
-        prerendered: bool = False, progress: Progress = _quiet) -> dict[str, Any]:
+        prerendered: bool = False, eyes: str = "sharp", seed: int = 0,
+        progress: Progress = _quiet) -> dict[str, Any]:
     """Track for ``seconds`` on a daemon on loopback (``workers``: its ``tracking_workers``;
-    ``prerendered``: the room's frames rendered before tracking, see the module) and measure;
-    the report (JSON-able)."""
+    ``prerendered``: the room's frames rendered before tracking, see the module; ``eyes``:
+    the room's sharp eye, or a patient's drawn with ``seed``
+    (:func:`~eyeserver.hardware.sim.population.draw`)) and measure; the report (JSON-able)."""
+    if eyes not in ("sharp", "patient"):
+        raise ValueError(f"eyes must be sharp or patient, not {eyes!r}")
     with tempfile.TemporaryDirectory(prefix="eyeserver-bench-tracking-") as scratch:
         base = work or Path(scratch)
         if calibration is None:
@@ -159,14 +164,14 @@ def run(seconds: float = 60.0, *, calibration: Path | None = None,
             env["EYESERVER_ROOM_FILE"] = str(room_file)
         at_start = reference_ms()
         with DaemonProcess(base / "daemon-data", log=base / "daemon.log", env=env) as daemon:
-            report = _run(daemon, seconds, calibration, prerendered, progress)
+            report = _run(daemon, seconds, calibration, prerendered, eyes, seed, progress)
         report["reference_fft_ms"] = {"at_start": round(at_start, 2),
                                       "at_end": round(reference_ms(), 2)}
         return report
 
 
 def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: bool,
-         progress: Progress) -> dict[str, Any]:
+         eyes: str, seed: int, progress: Progress) -> dict[str, Any]:
     client = daemon.client
     progress("importing the calibration, placing the eye, capturing the reference at rest")
     imported = _checked(client.post(f"{API}/calibrations", content=zip_directory(calibration),
@@ -175,6 +180,11 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: 
     _checked(client.put(f"{API}/patients/{PATIENT}", json={
         "eye": "right", "unit": UNIT, "tolerance_mm": TOLERANCE_MM,
         "tolerance_gaze_deg": TOLERANCE_GAZE_DEG}), "patient")
+    drawn = None
+    if eyes == "patient":
+        drawn = population.draw(np.random.default_rng(seed), "patient")
+        _checked(client.put(f"{API}/sim/scene", json=SceneSpec(kind="eye", eye=drawn)
+                            .model_dump(mode="json")), "patient eye")
     _checked(client.put(f"{API}/sim/eye", json={"motion": None, "gaze_deg": [0.0, 0.0]}),
              "still eye")
     reference = _checked(client.post(f"{API}/patients/{PATIENT}/fractions/1/reference/capture",
@@ -227,6 +237,8 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: 
     report["script"] = {"saccade_s": saccade_s, "blink_s": blink_s}
     report["blink"] = _blink(readers[0], EyeMotion(MotionSpec.model_validate(motion)), epoch_ns,
                              blink_s)
+    report["eyes"] = eyes
+    report["eye"] = None if drawn is None else {"seed": seed, **population.describe(drawn)}
     scene = SceneSpec.model_validate(_checked(client.get(f"{API}/sim/scene"), "scene"))
     report["accuracy"] = tracked_accuracy(
         [m for _, m in readers[0].messages if m.get("type") == "pose"], scene, epoch_ns,
@@ -463,6 +475,12 @@ def format_text(report: dict[str, Any]) -> str:
     ahead = report.get("prerendered")
     room = ("the simulated room rendered ahead" if ahead else
             "the simulated room, rendered live on the same cores")
+    eye = report.get("eye")
+    if eye:
+        room += (f", a patient's eye (seed {eye['seed']}: limbus {eye['limbus_width_mm']:.2f} mm "
+                 f"wide, contrast {eye['limbus_contrast']:.2f}, lid cover "
+                 f"{eye['lid_cover']:.2f}, anatomy mismatch {eye['anatomy_mismatch_mm']:.2f} "
+                 "mm)")
     lines = [
         f"live tracking, {report['elapsed_s']} s on {room} (unit "
         f"{report['unit']}, cameras at {report['rate_hz']:g} Hz): {report.get('stream_s')} s "

@@ -131,6 +131,11 @@ def add_parser(subparsers: Subparsers) -> None:
                           "tracking (POST /api/v1/sim/eye/prerender), so that the stream costs "
                           "the cores nothing, as real cameras: the daemon's own latency "
                           "(default: the room renders each frame live, on the same cores)")
+    tracking.add_argument("--eyes", choices=("sharp", "patient"), default="sharp",
+                          help="sharp: the room's painted eye (default); patient: a patient's "
+                          "eye drawn from the population (docs/eye-model.md) with --seed")
+    tracking.add_argument("--seed", type=int, default=0,
+                          help="which patient's eye (--eyes patient; default 0)")
     tracking.set_defaults(handler=_tracking)
 
 
@@ -182,6 +187,6 @@ def _tracking(args: argparse.Namespace) -> int:
 
     report = tracking.run(args.seconds, calibration=args.calibration, room_file=args.room,
                           workers=args.workers, prerendered=args.prerendered,
-                          progress=_progress)
+                          eyes=args.eyes, seed=args.seed, progress=_progress)
     print(json.dumps(report, indent=1) if args.json else tracking.format_text(report))
     return 0
