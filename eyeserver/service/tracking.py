@@ -113,12 +113,12 @@ from eyeserver.service.patients import Patients, Tolerances
 from eyeserver.service.reconstruction import ReconstructionError, calibrated_cameras, z_range
 from eyeserver.service.tracking_worker import PoseWorker
 from eyeserver.service.verification import (
-    MODEL_SD_SHARE,
     FitFunction,
     deviation,
     judge,
     measurement_model,
     shape_cancels,
+    shape_reason,
 )
 
 __all__ = ["CAMERA_RATE_HZ", "FOLLOW_LOST_S", "FindPose", "FocusingReconstructor", "FrameSet",
@@ -998,16 +998,11 @@ class TrackingControl:
         reference = self.patients.reference(patient_id, fraction)
         stored_model = self.patients.eye_model(patient_id)
         model = measurement_model(stored_model, reference)
-        tolerance = patient.tolerances.translation_mm
-        if not shape_cancels(reference, None if stored_model is None else stored_model.version
-                             ) and 2.0 * model.shape_sd_mm > MODEL_SD_SHARE * tolerance:
-            raise StateConflictError(
-                f"cannot track against this reference: the eye model gives no globe shape, so "
-                f"against a {reference.source} reference pose (not captured at set-up with this "
-                f"eye model) the centre is known only to ±{2.0 * model.shape_sd_mm:.2f} mm "
-                f"(2 sd) along the gaze, more than {MODEL_SD_SHARE:g} of the {tolerance:g} mm "
-                "tolerance; enter the MRI's ellipsoid in the eye model or capture a reference "
-                "at set-up")
+        if not shape_cancels(reference, None if stored_model is None else stored_model.version):
+            unknown_shape = shape_reason(model.shape_sd_mm, patient.tolerances)
+            if unknown_shape is not None:
+                raise StateConflictError("cannot track against this reference (from the "
+                                         f"{reference.source}): {unknown_shape}")
         unit_ids = service.unit_ids(patient.unit)
         with self._lock:
             if self._hold is not None:

@@ -49,7 +49,7 @@ from eyeserver.service.storage import UnknownIdError
 
 __all__ = ["MODEL_SD_SHARE", "Deviation", "FitFunction", "PoseVerification", "Verdict",
            "deviation", "gaze_angle_deg", "judge", "measurement_model", "model_sd_mm",
-           "shape_cancels"]
+           "shape_cancels", "shape_reason"]
 
 class FitFunction(Protocol):
     """What fits an eye model to a cloud and, when given, the fringe images it came from
@@ -190,13 +190,22 @@ def judge(found: Deviation, tolerances: Tolerances, confidence: float) -> Verdic
     if not confidence >= tolerances.min_confidence:
         reasons.append(f"fit confidence {confidence:.2f} is below "
                        f"{tolerances.min_confidence:g}")
-    if 2.0 * found.model_sd_mm > MODEL_SD_SHARE * tolerances.translation_mm:
-        reasons.append(
-            f"the eye model gives no globe shape: against this reference the centre is known "
-            f"only to ±{2.0 * found.model_sd_mm:.2f} mm (2 sd) along the gaze, more than "
+    unknown_shape = shape_reason(found.model_sd_mm, tolerances)
+    if unknown_shape is not None:
+        reasons.append(unknown_shape)
+    return Verdict(not reasons, in_tolerance, tuple(reasons))
+
+
+def shape_reason(model_sd_mm: float, tolerances: Tolerances) -> str | None:
+    """Why a deviation whose globe shape is this uncertain (:func:`model_sd_mm`) says nothing
+    against ``tolerances``, or None where 2 sd take at most :data:`MODEL_SD_SHARE` of the
+    translation tolerance."""
+    if 2.0 * model_sd_mm <= MODEL_SD_SHARE * tolerances.translation_mm:
+        return None
+    return (f"the eye model gives no globe shape: against this reference the centre is known "
+            f"only to ±{2.0 * model_sd_mm:.2f} mm (2 sd) along the gaze, more than "
             f"{MODEL_SD_SHARE:g} of the {tolerances.translation_mm:g} mm tolerance; enter the "
             "MRI's ellipsoid in the eye model or capture a reference at set-up")
-    return Verdict(not reasons, in_tolerance, tuple(reasons))
 
 
 @dataclass(frozen=True)
