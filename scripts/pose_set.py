@@ -4,13 +4,16 @@ fit on the same images (the bench renders anew on every run).
     .venv/bin/python scripts/pose_set.py render --eyes patient --count 16 --seed 11 SETDIR
     .venv/bin/python scripts/pose_set.py fit --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py fit --stages --method spatial --calibration CALDIR SETDIR
+    .venv/bin/python scripts/pose_set.py oracle --method spatial --calibration CALDIR SETDIR
     PYTHONPATH=/path/to/other/checkout .venv/bin/python scripts/pose_set.py fit ... SETDIR
 
 Eyes are drawn as ``eyeserver.hardware.sim.population.draw`` draws them and placed within ±5 mm
 and ±10° as the pose bench places them; each bundle keeps its ``truth.json``, which only the fit
 step's scoring reads, after the fit (``--stages``: also the cloud-only pose and the limbus found
-from it, each against the truth). A calibration comes from ``eyeserver bench accuracy --out``
-or the benches' ``calibrate_room``.
+from it, each against the truth). ``oracle`` is a diagnostic, not a fit: it hands the globe's
+stages the true limbus circle (the corneoscleral junction: the scene's horizontal limbus
+radius), to see what the rest of the fit makes of a perfectly found limbus. A calibration
+comes from ``eyeserver bench accuracy --out`` or the benches' ``calibrate_room``.
 """
 
 from __future__ import annotations
@@ -86,6 +89,40 @@ def fit(args: argparse.Namespace) -> None:
             print(stages, flush=True)
 
 
+def oracle(args: argparse.Namespace) -> None:
+    from eyeserver.errors import EyeserverError
+    from eyeserver.pipeline.eyepose import checked_cloud
+    from eyeserver.pipeline.limbus import Limbus, globe_on_limbus
+    from eyeserver.pipeline.sclera import refit
+    from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
+
+    for bundle in sorted(args.setdir.glob("eye_*")):
+        truth = json.loads((bundle / "truth.json").read_text())
+        eye, spec = truth["eye"], truth["scene"]["eye"]
+        centre, gaze = np.asarray(eye["centre_mm"]), np.asarray(eye["gaze"])
+        limbus = Limbus(centre=np.asarray(eye["limbus_centre_mm"]), normal=gaze,
+                        radius=spec["limbus_diameter_mm"] / 2, centre_sd_mm=0.01,
+                        gaze_sd_deg=0.1, radius_sd_mm=0.01, residual_px=0.2, coverage={})
+        try:
+            cloud, _ = reconstruct_bundle(args.calibration, bundle, method=args.method)
+            points, _ = checked_cloud(cloud)
+            globe = globe_on_limbus(points, limbus)
+            again = refit(limbus_views(args.calibration, bundle), limbus, globe.centre,
+                          globe.radius, globe.sclera, points, None, 7.8)
+        except EyeserverError as exc:
+            print(f"{bundle.name} no globe: {exc}", flush=True)
+            continue
+        line = (f"{bundle.name} on the true limbus: centre "
+                f"{np.linalg.norm(globe.centre - centre):.3f} mm, radius {globe.radius:.2f} "
+                f"for {eye['globe_radius_mm']:.2f} mm")
+        if again is not None:
+            cos = float(again.gaze @ gaze)
+            line += (f"; remeasured: centre {np.linalg.norm(again.centre - centre):.3f} mm, gaze "
+                     f"{math.degrees(math.acos(min(1.0, cos))):.2f}°")
+        print(f"{line} (ellipsoid {spec['globe_semi_axes_mm'] is not None}, limbus width "
+              f"{spec['limbus_width_mm']:.2f} mm)", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     steps = parser.add_subparsers(required=True)
@@ -104,6 +141,12 @@ def main() -> None:
                        help="also score the cloud-only pose and the limbus found from it")
     score.add_argument("setdir", type=Path)
     score.set_defaults(step=fit)
+    bound = steps.add_parser("oracle", help="the globe's stages from the true limbus (a "
+                             "diagnostic: what a perfectly found limbus would give)")
+    bound.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
+    bound.add_argument("--method", default="multi-view", choices=("multi-view", "spatial"))
+    bound.add_argument("setdir", type=Path)
+    bound.set_defaults(step=oracle)
     args = parser.parse_args()
     args.step(args)
 
