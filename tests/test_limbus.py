@@ -148,6 +148,32 @@ def test_an_unknown_ellipsoid_is_refused_against_a_planned_pose(calibrated_rooms
     assert any("gives no globe shape" in reason for reason in verdict.reasons)
 
 
+OVAL = SceneSpec(kind="eye", position_mm=(1.5, -1.0, -11.0), eye=EyeSpec(
+    gaze_deg=(7.0, -4.0), globe_radius_mm=12.5, limbus_vertical_ratio=0.88,
+    limbus_width_mm=0.2, iris_albedo=0.06, sclera_albedo=0.42, tear_reflectance=0.02))
+"""A patient's visible limbus: an oval 0.88 as high as wide (the sclera overlaps the cornea
+above and below) with a 0.2-mm transition, behind a clear, wet cornea."""
+
+
+def test_an_oval_limbus_is_found_with_its_junctions_radius(calibrated_rooms: Any,
+                                                           tmp_path: Path) -> None:
+    """The one-shot fit finds the visible oval and reports the horizontal half-width (the
+    corneoscleral junction, on which the globe's depth depends); a circle fitted to it came
+    out 21° and 7 mm off (measured before the oval)."""
+    _, caldir = calibrated_rooms("default")
+    truth = _record("default", OVAL, tmp_path / "eye")
+    pose = _fit(caldir, tmp_path / "eye")
+
+    assert pose.gaze_source == "limbus (images)"
+    assert _angle_deg(pose.gaze, truth["gaze"]) < 0.3
+    assert pose.boundary_radius_mm == pytest.approx(11.7 / 2, abs=0.05)
+    views = limbus_views(caldir, tmp_path / "eye")
+    found = find_limbus(views, pose.centre_mm, pose.gaze, pose.globe_radius_mm, 11.7 / 2,
+                        oval=True)
+    assert found.ratio == pytest.approx(0.88, abs=0.03)
+    assert np.linalg.norm(found.centre - truth["limbus_centre_mm"]) < 0.15
+
+
 def test_a_wrong_start_is_recovered(calibrated_rooms: Any, tmp_path: Path) -> None:
     """The cloud fit's gaze can be 25° off: the start search finds the limbus anyway."""
     _, caldir = calibrated_rooms("default")
@@ -178,16 +204,20 @@ def test_the_circle_fit_is_scipys_robust_least_squares(calibrated_rooms: Any, tm
     images = [limbus._Image(view, None) for view in views[:2]]
     edges = [limbus._edges(image, centre, normal, 11.7 / 2, 8.0) for image in images]
 
-    ours = limbus._fit_circle(images, edges, centre, normal, 11.7 / 2)
     rows = limbus._circle_residuals(images, edges, centre, normal, 11.7 / 2)
-    start = np.array([*centre, normal[0], normal[1], 11.7 / 2])
-    scipys = least_squares(lambda x: rows(x[None])[0], start, loss="cauchy", f_scale=1.0,
-                           x_scale=limbus._CIRCLE_X_SCALE, xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    # The circle (6 parameters), and the oval with its height ratio free (7).
+    for size in (6, 7):
+        ours = limbus._fit_circle(images, edges, centre, normal, 11.7 / 2, 1.0, size == 7)
+        start = np.array([*centre, normal[0], normal[1], 11.7 / 2, 1.0][:size])
+        scale = limbus._CIRCLE_X_SCALE[:size]
+        scipys = least_squares(lambda x: rows(x[None])[0], start, loss="cauchy", f_scale=1.0,
+                               x_scale=scale, xtol=1e-12, ftol=1e-12, gtol=1e-12)
 
-    assert np.linalg.norm(ours.x[:3] - start[:3]) > 0.1  # it did move
-    assert np.all(np.abs(ours.x - scipys.x) < 1e-4 * limbus._CIRCLE_X_SCALE), ours.x - scipys.x
-    assert np.allclose(ours.fun, scipys.fun, atol=1e-3)
-    assert np.allclose(ours.jac, scipys.jac, rtol=1e-3, atol=1e-3)
+        assert np.linalg.norm(ours.x[:3] - start[:3]) > 0.1  # it did move
+        assert np.all(np.abs(ours.x - scipys.x) < 1e-4 * scale), ours.x - scipys.x
+        assert np.allclose(ours.fun, scipys.fun, atol=1e-3)
+        assert np.allclose(ours.jac, scipys.jac, rtol=1e-3, atol=1e-3)
+    assert ours.x[6] == pytest.approx(1.0, abs=0.01)  # this limbus is round
 
 
 def test_following_the_eye_takes_one_round_where_the_last_gaze_still_fits(

@@ -239,6 +239,10 @@ F64 = npt.NDArray[np.float64]
 MIN_SCLERA_POINTS = 30
 """Fewest points a globe fit is attempted on (fewer: :class:`PoseError`)."""
 
+OVAL_LIMBUS = True
+"""The one-shot fit finds the limbus as an oval (:func:`~eyeserver.pipeline.limbus.find_limbus`
+``oval``); live tracking follows a circle."""
+
 SHAPE_SD_MM = 0.65
 """The globe centre's sd along the gaze (mm) where the model gives no globe shape (population
 defaults, or a sphere): real globes are ellipsoids whose semi-axes differ from their mean by
@@ -928,7 +932,7 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     """
     try:
         limbus = find_limbus(views, centre, rough_gaze, radius, model.limbus_diameter_mm / 2,
-                             search=search)
+                             search=search, oval=search and OVAL_LIMBUS)
         if fixed_radius is None:
             fixed_radius = model.radius_through_limbus(limbus.radius)
         globe = globe_on_limbus(points, limbus, fixed_radius)

@@ -233,6 +233,13 @@ SHADOW_PROBE_MM = 0.01
 """How far beyond the limbus, along the globe, the sclera is tested for the cornea's shadow
 (:func:`refined` with a :class:`Shade`): ≈ 0.1 px on the default rig."""
 
+OVAL_CORNEA_MM = 7.8
+"""Radius of the cornea whose sagitta lifts the visible oval's top and bottom (on the cornea,
+inside the junction's radius) in front of the junction's plane."""
+
+OVAL_RATIOS = (0.7, 1.15)
+"""Heights over widths an oval fit may end at; beyond them the edges fit no limbus."""
+
 FOLLOWED_TURN_DEG = 1.0
 """Live tracking takes the limbus that the last round alone finds from the last gaze only when
 it turned the gaze by no more than this (a frame at 25 Hz turns it by hundredths of a degree
@@ -271,6 +278,10 @@ class Limbus:
     """Median distance of the edges kept to the fitted circle's projections."""
     coverage: dict[str, float]
     """Per camera, the share of the circle where an edge was found."""
+    ratio: float = 1.0
+    """The visible limbus's height over its width (an oval: the sclera overlaps the cornea
+    above and below); ``radius`` is its horizontal half-width, the corneoscleral junction's
+    radius, and ``centre`` the junction's centre. 1 where a circle was fitted."""
 
 
 @dataclass(frozen=True)
@@ -393,19 +404,20 @@ class _Image:
         return np.asarray(cv2.remap(self.flat, map_x, map_y, cv2.INTER_LINEAR,
                                     borderMode=cv2.BORDER_REPLICATE), dtype=np.float32)
 
-    def outline(self, centre: F64, normal: F64, radius: float, angles: F64
-                ) -> tuple[F64, F64]:
-        """Projected circle points and their outward image normals."""
-        uv, outward = self.outlines(centre[None], normal[None], radius, angles)
+    def outline(self, centre: F64, normal: F64, radius: float, angles: F64,
+                ratio: float = 1.0) -> tuple[F64, F64]:
+        """Projected circle (or oval, :func:`_circles`) points and their outward image
+        normals."""
+        uv, outward = self.outlines(centre[None], normal[None], radius, angles, ratio)
         return uv[0], outward[0]
 
-    def outlines(self, centres: F64, normals: F64, radius: float | F64, angles: F64
-                 ) -> tuple[F64, F64]:
+    def outlines(self, centres: F64, normals: F64, radius: float | F64, angles: F64,
+                 ratio: float | F64 = 1.0) -> tuple[F64, F64]:
         """:meth:`outline` of many circles ``(H, 3)`` at once (one radius, or one each):
         ``(H, M, 2)`` each, in one projection (a call per circle cost more than the
         projecting)."""
         h, m = len(centres), len(angles)
-        on, along = _circles(centres, normals, radius, angles)
+        on, along = _circles(centres, normals, radius, angles, ratio)
         ahead = on + 1e-3 * along
         uv_all = self.project_full(np.concatenate([on, ahead, centres]))
         uv = uv_all[:h * m].reshape(h, m, 2)
@@ -418,16 +430,34 @@ class _Image:
         return uv, outward
 
 
-def _circles(centres: F64, normals: F64, radius: float | F64, angles: F64) -> tuple[F64, F64]:
+def _circles(centres: F64, normals: F64, radius: float | F64, angles: F64,
+             ratio: float | F64 = 1.0) -> tuple[F64, F64]:
     """Points ``(H·M, 3)`` of circles ``(H, 3)`` (one radius, or one each) at ``angles``, and
-    their unit tangents."""
+    their tangents.
+
+    With a ``ratio`` (one, or one each) other than 1, ovals: the half-width ``radius``
+    horizontally, ``ratio`` times it along ``_basis``'s first vector (the room's vertical for
+    a gaze near +Z; the
+    visible limbus, whose top and bottom the sclera overlaps), each point lifted along the
+    normal by the sagitta of a :data:`OVAL_CORNEA_MM` cornea between the junction's radius and
+    its own (the oval's top and bottom lie on the cornea, in front of the junction's plane).
+    """
     h = len(centres)
     u, v = _basis(normals)
     cos, sin = np.cos(angles)[None, :, None], np.sin(angles)[None, :, None]
     u, v = u[:, None, :], v[:, None, :]
     radii = np.broadcast_to(np.asarray(radius, dtype=np.float64), (h,))[:, None, None]
-    on = (centres[:, None, :] + radii * (cos * u + sin * v)).reshape(-1, 3)
-    return on, (-sin * u + cos * v).reshape(-1, 3)
+    ratios = np.broadcast_to(np.asarray(ratio, dtype=np.float64), (h,))[:, None, None]
+    if np.all(ratios == 1.0):
+        on = (centres[:, None, :] + radii * (cos * u + sin * v)).reshape(-1, 3)
+        return on, (-sin * u + cos * v).reshape(-1, 3)
+    across = radii * ratios * cos  # along u: the room's vertical for a gaze near +Z
+    along = radii * sin
+    rho = np.sqrt(across * across + along * along)
+    lift = (np.sqrt(OVAL_CORNEA_MM**2 - np.minimum(rho, OVAL_CORNEA_MM) ** 2)
+            - np.sqrt(OVAL_CORNEA_MM**2 - np.minimum(radii, OVAL_CORNEA_MM) ** 2))
+    on = centres[:, None, :] + across * u + along * v + lift * normals[:, None, :]
+    return on.reshape(-1, 3), (-ratios * sin * u + cos * v).reshape(-1, 3)
 
 
 def _start(images: Sequence[_Image], pivot: F64, arm: float, gaze: F64, radius: float,
@@ -492,13 +522,13 @@ def _dark_blob_centre(images: Sequence[_Image], limbus_radius: float) -> F64 | N
 
 
 def _edges(image: _Image, centre: F64, normal: F64, radius: float, reach: float,
-           shade: Shade | None = None) -> tuple[F64, F64]:
+           shade: Shade | None = None, ratio: float = 1.0) -> tuple[F64, F64]:
     """``(angles, edge pixels)`` of the innermost strong rising edge near the projection; with
     ``shade``, none where the cornea shadows the sclera beyond the limbus from the camera's
     projector (:func:`in_cornea_shadow`; none left out where the calibration gives no
     direction to the projector)."""
     angles = np.linspace(0.0, 2 * math.pi, SAMPLES, endpoint=False)
-    uv, outward = image.outline(centre, normal, radius, angles)
+    uv, outward = image.outline(centre, normal, radius, angles, ratio)
     offsets = np.arange(-reach, reach + 0.25, 0.5)
     rise = np.gradient(image.profiles(uv, outward, offsets), axis=1) / 0.5
     inner = rise[:, 1:-1]
@@ -526,8 +556,9 @@ def _gaze(params: F64) -> F64:
     return np.stack([gx, gy, np.sqrt(np.maximum(1e-9, 1.0 - gx * gx - gy * gy))], axis=-1)
 
 
-_STEPS = np.array([1e-6, 1e-6, 1e-6, 1e-7, 1e-7, 1e-6])
-"""Forward-difference steps of the circle's parameters (mm, gaze components, mm)."""
+_STEPS = np.array([1e-6, 1e-6, 1e-6, 1e-7, 1e-7, 1e-6, 1e-7])
+"""Forward-difference steps of the circle's parameters (mm, gaze components, mm; an oval's
+height ratio)."""
 
 
 @dataclass(frozen=True)
@@ -541,7 +572,7 @@ class _Circle:
     jac: F64
 
 
-_CIRCLE_X_SCALE = np.array([0.1, 0.1, 0.1, 0.01, 0.01, 0.1])
+_CIRCLE_X_SCALE = np.array([0.1, 0.1, 0.1, 0.01, 0.01, 0.1, 0.01])
 """Typical changes of the circle's parameters; a fit stops when its steps fall below
 :data:`_CIRCLE_XTOL` of them."""
 
@@ -554,18 +585,21 @@ def _cauchy_cost(residuals: F64) -> float:
 
 
 def _circle_residuals(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]],
-                      centre: F64, normal: F64, radius: float) -> Callable[[F64], F64]:
+                      centre: F64, normal: F64, radius: float, ratio: float = 1.0
+                      ) -> Callable[[F64], F64]:
     """The edges' distances to the projected circle's tangents (pixels) as a function of
-    parameter rows ``(H, 6)`` (centre, gaze X and Y, radius) → ``(H, N)``, all rows in one
-    projection per camera; each edge is measured along the start circle's outward normal at
-    the angle it was found at (:func:`_fit_circle`)."""
-    seen = [(image, angles, found, image.outline(centre, normal, radius, angles)[1])
+    parameter rows ``(H, 6)`` (centre, gaze X and Y, radius; ``(H, 7)``: and an oval's height
+    ratio, else ``ratio``) → ``(H, N)``, all rows in one projection per camera; each edge is
+    measured along the start outline's outward normal at the angle it was found at
+    (:func:`_fit_circle`)."""
+    seen = [(image, angles, found, image.outline(centre, normal, radius, angles, ratio)[1])
             for image, (angles, found) in zip(images, edges, strict=True) if len(angles)]
 
     def rows(params: F64) -> F64:
         out = []
+        ratios = params[:, 6] if params.shape[1] > 6 else ratio
         for image, angles, found, outward in seen:
-            on, _ = _circles(params[:, :3], _gaze(params), params[:, 5], angles)
+            on, _ = _circles(params[:, :3], _gaze(params), params[:, 5], angles, ratios)
             uv = image.project_full(on).reshape(len(params), len(angles), 2)
             out.append(((found[None] - uv) * outward[None]).sum(axis=-1))
         return np.concatenate(out, axis=1)
@@ -574,7 +608,8 @@ def _circle_residuals(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]]
 
 
 def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], centre: F64,
-                normal: F64, radius: float) -> _Circle:
+                normal: F64, radius: float, ratio: float = 1.0, fit_ratio: bool = False
+                ) -> _Circle:
     """Robust least squares (Cauchy loss, scale 1 px) of the edges' distances to the projected
     circle's tangents (pixels).
 
@@ -595,14 +630,17 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
     Measured in live tracking: ≈ 30 % less a fit (4.4 against 6.2 ms, 5 projections against
     10), the same circles within 1e-4 of their parameters' scales (tests: against SciPy's).
     """
-    rows = _circle_residuals(images, edges, centre, normal, radius)
+    rows = _circle_residuals(images, edges, centre, normal, radius, ratio)
+    size = 7 if fit_ratio else 6
+    steps, x_scale = _STEPS[:size], _CIRCLE_X_SCALE[:size]
 
     def evaluate(params: F64) -> tuple[F64, F64]:
-        """Residuals ``(N,)`` at ``params`` and their forward-difference Jacobian ``(N, 6)``."""
-        values = rows(np.vstack([params, params + np.diag(_STEPS)]))
-        return values[0], ((values[1:] - values[0]) / _STEPS[:, None]).T
+        """Residuals ``(N,)`` at ``params`` and their forward-difference Jacobian ``(N, 6)``
+        (7 with the oval's ratio)."""
+        values = rows(np.vstack([params, params + np.diag(steps)]))
+        return values[0], ((values[1:] - values[0]) / steps[:, None]).T
 
-    x = np.array([*centre, normal[0], normal[1], radius])
+    x = np.array([*centre, normal[0], normal[1], radius, ratio][:size])
     residuals, jac = evaluate(x)
     cost = _cauchy_cost(residuals)
     damping = 1e-3
@@ -621,7 +659,7 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
         if trial_cost <= cost:
             x, residuals, jac, cost = trial, trial_residuals, trial_jac, trial_cost
             damping = max(damping / 10.0, 1e-9)
-            if np.all(np.abs(step) < _CIRCLE_XTOL * _CIRCLE_X_SCALE):
+            if np.all(np.abs(step) < _CIRCLE_XTOL * x_scale):
                 break
         else:
             damping *= 10.0
@@ -632,52 +670,61 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
     return _Circle(x=x, fun=residuals, jac=jac * np.sqrt(scale)[:, None])
 
 
-def _edges_per_period(image: _Image, centre: F64, normal: F64, radius: float) -> float:
+def _edges_per_period(image: _Image, centre: F64, normal: F64, radius: float,
+                      ratio: float = 1.0) -> float:
     """How many of the circle's :data:`SAMPLES` fall within one fringe period of ``image``'s
     camera along its projection (at least 1)."""
     uv, _ = image.outline(centre, normal, radius,
-                          np.linspace(0.0, 2 * math.pi, SAMPLES, endpoint=False))
+                          np.linspace(0.0, 2 * math.pi, SAMPLES, endpoint=False), ratio)
     circumference = float(np.linalg.norm(np.diff(uv, axis=0, append=uv[:1]), axis=1).sum())
     period = image.camera.carrier.period_px / image.camera.spacing_px  # in its own pixels
     return max(1.0, period * SAMPLES / max(circumference, 1e-9))
 
 
 def _refine(images: Sequence[_Image], centre: F64, normal: F64, radius: float,
-            reaches: Sequence[float] = REACHES_PX, shade: Shade | None = None) -> Limbus:
-    """Edges and circle, a round per search reach (module steps 3 and 4), from one start."""
+            reaches: Sequence[float] = REACHES_PX, shade: Shade | None = None,
+            ratio: float = 1.0, fit_ratio: bool = False) -> Limbus:
+    """Edges and circle, a round per search reach (module steps 3 and 4), from one start;
+    with ``fit_ratio``, an oval whose height ``ratio`` is fitted too (:func:`_circles`)."""
     expected = radius
     for reach in reaches:
-        edges = [_edges(image, centre, normal, radius, reach, shade) for image in images]
+        edges = [_edges(image, centre, normal, radius, reach, shade, ratio) for image in images]
         if sum(len(a) >= MIN_COVERAGE * SAMPLES for a, _ in edges) < 2:
             raise LimbusNotFoundError("no limbus edge in at least two cameras (lids closed?)")
-        solution = _fit_circle(images, edges, centre, normal, radius)
+        solution = _fit_circle(images, edges, centre, normal, radius, ratio, fit_ratio)
         centre, normal, radius = solution.x[:3], _gaze(solution.x), float(solution.x[5])
+        if fit_ratio:
+            ratio = float(solution.x[6])
     residual = np.abs(solution.fun)
     if not 0.5 * expected < radius < 1.5 * expected:
         raise LimbusNotFoundError("the edges found fit no limbus circle")
+    if not OVAL_RATIOS[0] < ratio < OVAL_RATIOS[1]:
+        raise LimbusNotFoundError("the edges found fit no limbus oval")
     scale = 1.4826 * float(np.median(residual))
     # Edges within a fringe period of each other share their error (the fringe left in the
     # fringe-free intensity, the band's blur): each camera's information counts once per
     # period of its circle, not once per sample.
     rows = [(image, len(a)) for image, (a, _) in zip(images, edges, strict=True) if len(a)]
-    per_period = np.repeat([_edges_per_period(image, centre, normal, radius)
+    per_period = np.repeat([_edges_per_period(image, centre, normal, radius, ratio)
                             for image, _ in rows], [n for _, n in rows])
     jac = solution.jac / np.sqrt(per_period)[:, None]
     try:
         cov = np.linalg.inv(jac.T @ jac) * max(scale, 0.05) ** 2
     except np.linalg.LinAlgError:
-        cov = np.full((6, 6), np.inf)
+        cov = np.full((jac.shape[1],) * 2, np.inf)
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     return Limbus(centre=centre, normal=normal, radius=radius,
                   centre_sd_mm=float(np.linalg.norm(sd[:3])),
                   gaze_sd_deg=math.degrees(float(np.hypot(sd[3], sd[4]))),
                   radius_sd_mm=float(sd[5]), residual_px=float(np.median(residual)),
                   coverage={image.camera.camera_id: len(a) / SAMPLES
-                            for image, (a, _) in zip(images, edges, strict=True)})
+                            for image, (a, _) in zip(images, edges, strict=True)},
+                  ratio=ratio)
 
 
 def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: npt.ArrayLike,
-                globe_radius: float, limbus_radius: float, *, search: bool = True) -> Limbus:
+                globe_radius: float, limbus_radius: float, *, search: bool = True,
+                oval: bool = False) -> Limbus:
     """The limbus circle seen in ``views``, starting from a rough eye pose (see the module).
 
     The search starts about the rough pose, in a window of each image around it (and, with
@@ -718,7 +765,7 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
         # from its edges.
         try:
             limbus = _refine(images, centre0 + depth * gaze0, gaze0, limbus_radius,
-                             REACHES_PX[-1:])
+                             REACHES_PX[-1:], fit_ratio=oval)
         except LimbusNotFoundError as exc:
             failure = exc
         else:
@@ -752,7 +799,7 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
             for axis, reaches, good_only in rounds:
                 try:
                     limbus = _refine(images, centre0 + depth * axis, axis, limbus_radius,
-                                     reaches)
+                                     reaches, fit_ratio=oval)
                 except LimbusNotFoundError as exc:
                     failure = exc
                     continue
@@ -778,13 +825,25 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
             # The gaze towards the cameras (+Z) about the dark disc, tilted as it fits best.
             _, normal = _start(whole, blob, 0.0, np.array([0.0, 0.0, 1.0]), limbus_radius)
             try:
-                found.append(_refine(whole, blob, normal, limbus_radius))
+                found.append(_refine(whole, blob, normal, limbus_radius, fit_ratio=oval))
             except LimbusNotFoundError as exc:
                 failure = exc
     found = [limbus for limbus in found if limbus.residual_px <= MAX_RESIDUAL_PX]
     if not found:
         raise failure if str(failure) else LimbusNotFoundError("no limbus found")
     return min(found, key=lambda limbus: limbus.residual_px)
+
+
+def _windowed(views: Sequence[LimbusView], limbus: Limbus) -> list[_Image]:
+    """The views' images in windows about ``limbus``; :class:`LimbusNotFoundError` where
+    fewer than two cameras see it."""
+    images = []
+    for view in views:
+        with contextlib.suppress(LimbusNotFoundError):
+            images.append(_Image(view, _window(view, limbus.centre, limbus.radius)))
+    if len(images) < 2:
+        raise LimbusNotFoundError("fewer than two cameras see the limbus")
+    return images
 
 
 def refined(views: Sequence[LimbusView], limbus: Limbus, shade: Shade | None = None) -> Limbus:
@@ -800,19 +859,15 @@ def refined(views: Sequence[LimbusView], limbus: Limbus, shade: Shade | None = N
         Fewer than two cameras see enough of it, or the edges fit no circle (or lie further than
         :data:`MAX_RESIDUAL_PX` from it, as :func:`find_limbus` requires).
     """
-    images = []
-    for view in views:
-        with contextlib.suppress(LimbusNotFoundError):
-            images.append(_Image(view, _window(view, limbus.centre, limbus.radius)))
-    if len(images) < 2:
-        raise LimbusNotFoundError("fewer than two cameras see the limbus")
+    images = _windowed(views, limbus)
     # Its edges are counted once per fringe period, as the band's are. Once per half period
     # (the fringe divided out, less of the error might be shared) made the stated sds hold the
     # errors as a normal error's would (bench pose: the centre's axes within one and two sds on
     # 78/97 %, the gaze 65/98 %, against 87/100 % and 88/100 %), but gave the limbus more
     # weight against the sclera and the poses were worse (gaze 0.065° → 0.074° median, centre
     # 0.098 → 0.105 mm p95): the wider sds stay.
-    again = _refine(images, limbus.centre, limbus.normal, limbus.radius, REACHES_PX[-1:], shade)
+    again = _refine(images, limbus.centre, limbus.normal, limbus.radius, REACHES_PX[-1:], shade,
+                    limbus.ratio, fit_ratio=limbus.ratio != 1.0)
     if again.residual_px > MAX_RESIDUAL_PX:
         raise LimbusNotFoundError("the edges found fit no limbus circle")
     return again
