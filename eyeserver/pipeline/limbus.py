@@ -4,7 +4,10 @@ The cornea returns almost no projector light (transparent: what comes back is th
 behind it) while the sclera around it is bright, so in each camera the limbus is the sharpest
 dark-inside, bright-outside edge of the fringe-free intensity. A circle in space (centre ``L``,
 unit normal ``g``, radius ``r``) is fitted to those edges in every camera at once by its
-reprojection error; its normal is the gaze and its centre the limbus centre. Measured on
+reprojection error; its normal is the gaze and its centre the limbus centre. The one-shot fit
+(``find_limbus(oval=True)``) fits an oval instead, its height ratio free: a patient's visible
+limbus is ≈ 0.9 as high as wide, and the globe's depth needs the horizontal half-width (the
+corneoscleral junction), not a radius between the two (docs/notes/patient-eye.md). Measured on
 rendered eyes this gives the gaze to ≈ 0.2° and the limbus centre to ≈ 0.02 mm, where the
 cloud-only estimate (the axis of the hole the sclera leaves, :mod:`eyeserver.pipeline.eyepose`)
 strays by 5–13°: the cloud's sclera ends a fringe period outside the limbus, lopsided.
