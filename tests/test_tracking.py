@@ -583,19 +583,26 @@ def tracking(app: FastAPI, base_url: str) -> TrackingControl:
     control.finder_factory = lambda service, model: PoseFinder(pipeline.reconstruct,
                                                                pipeline.fit, model)
     control.source_factory = lambda service, units, c: ScriptedSource(c, pace_s=0.002)
-    physicist = auth(PHYSICIST_TOKEN)
-    for request in (
-        httpx.put(f"{base_url}{API}/patients/P-T1", json={"eye": "right", "unit": "left"},
-                  headers=physicist),
-        httpx.put(f"{base_url}{API}/patients/P-T1/fractions/1/reference", json=REFERENCE,
-                  headers=physicist),
-        # A planned reference is absolute: the MRI's ellipsoid gives the globe's shape.
-        httpx.post(f"{base_url}{API}/patients/P-T1/eye-models",
-                   json={"ellipsoid": {"semi_axes_mm": [12.1, 11.9, 12.4]}},
-                   headers=physicist),
-    ):
-        assert request.status_code in (200, 201), request.text
+    # A planned reference is absolute: the MRI's ellipsoid gives the globe's shape.
+    _planned_patient(base_url, "P-T1", "right", {"semi_axes_mm": [12.1, 11.9, 12.4]})
     return control
+
+
+def _planned_patient(base_url: str, patient_id: str, eye: str,
+                     ellipsoid: dict[str, Any] | None = None) -> None:
+    """A patient tracked with unit left against the planned ``REFERENCE`` for fraction 1, with
+    the MRI's ``ellipsoid`` as eye model (None: population defaults)."""
+    physicist = auth(PHYSICIST_TOKEN)
+    requests = [
+        httpx.put(f"{base_url}{API}/patients/{patient_id}", json={"eye": eye, "unit": "left"},
+                  headers=physicist),
+        httpx.put(f"{base_url}{API}/patients/{patient_id}/fractions/1/reference",
+                  json=REFERENCE, headers=physicist)]
+    if ellipsoid is not None:
+        requests.append(httpx.post(f"{base_url}{API}/patients/{patient_id}/eye-models",
+                                   json={"ellipsoid": ellipsoid}, headers=physicist))
+    for request in requests:
+        assert request.status_code in (200, 201), request.text
 
 
 def _post(base_url: str, path: str, body: dict[str, Any] | None = None,
@@ -714,14 +721,7 @@ def test_tracking_against_a_planned_pose_needs_the_globes_shape(
     # Population defaults leave the globe's shape unknown: its centre is known only to
     # ±1.3 mm along the gaze against a planned (absolute) pose, so tracking is refused rather
     # than released on it; a reference captured at set-up with the same model would do.
-    physicist = auth(PHYSICIST_TOKEN)
-    for request in (
-        httpx.put(f"{base_url}{API}/patients/P-T2", json={"eye": "left", "unit": "left"},
-                  headers=physicist),
-        httpx.put(f"{base_url}{API}/patients/P-T2/fractions/1/reference", json=REFERENCE,
-                  headers=physicist),
-    ):
-        assert request.status_code in (200, 201), request.text
+    _planned_patient(base_url, "P-T2", "left")
     refused = _post(base_url, "/tracking/start", {"patient_id": "P-T2", "fraction": 1})
     assert refused.status_code == 409, refused.text
     reason = refused.json()["detail"]

@@ -59,9 +59,10 @@ from eyeserver.service.patients import (
     DEFAULT_TOLERANCE_MM,
     EllipsoidSpec,
     EyeModelSpec,
+    Tolerances,
 )
 from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
-from eyeserver.service.verification import MODEL_SD_SHARE
+from eyeserver.service.verification import shape_reason, turned_shape_sd_mm
 
 Progress = Callable[[str], None]
 
@@ -125,13 +126,13 @@ def displacement_error(first: EyePose, second: EyePose, first_truth: dict[str, A
     ``(C₂ − C₁) − (T₂ − T₁)`` (mm) and the gaze's turn ``(g₂ − g₁) − (t₂ − t₁)`` (degrees, as
     an angle for small turns), against the truth; ``passes`` as the daemon's check against a
     reference captured with the same model (:func:`passes` with the shape's share of the turn,
-    :func:`~eyeserver.service.verification.model_sd_mm`)."""
+    :func:`~eyeserver.service.verification.turned_shape_sd_mm`)."""
     moved_by = np.subtract(second.centre_mm, first.centre_mm)
     true_move = np.subtract(second_truth["centre_mm"], first_truth["centre_mm"])
     turn = np.subtract(second.gaze, first.gaze)
     true_turn = np.subtract(second_truth["gaze"], first_truth["gaze"])
     error = float(np.linalg.norm(moved_by - true_move))
-    shape = second.shape_sd_mm * float(np.linalg.norm(turn))
+    shape = turned_shape_sd_mm(second.shape_sd_mm, second.gaze, first.gaze)
     return {"error_mm": error,
             "gaze_turn_error_deg": math.degrees(float(np.linalg.norm(turn - true_turn))),
             "true_move_mm": float(np.linalg.norm(true_move)),
@@ -258,11 +259,11 @@ def passes(confidence: float, shape_sd_mm: float = 0.0,
     """Whether the daemon's check of a pose against a planned (absolute) pose lets it through:
     its confidence passes ``min_confidence`` (``confidence >= min_confidence``; default the
     daemon's) and what the eye model leaves unknown of the globe's shape
-    (:attr:`~eyeserver.pipeline.eyepose.EyePose.shape_sd_mm`, 2 sd) takes at most
-    :data:`~eyeserver.service.verification.MODEL_SD_SHARE` of the tolerance
-    (:func:`~eyeserver.service.verification.judge`). The bench scores absolute poses."""
+    (:attr:`~eyeserver.pipeline.eyepose.EyePose.shape_sd_mm`) leaves no reason to refuse
+    (:func:`~eyeserver.service.verification.shape_reason`, as
+    :func:`~eyeserver.service.verification.judge` asks). The bench scores absolute poses."""
     return (confidence >= min_confidence
-            and 2.0 * shape_sd_mm <= MODEL_SD_SHARE * TOLERANCE_MM)
+            and shape_reason(shape_sd_mm, Tolerances(translation_mm=TOLERANCE_MM)) is None)
 
 
 def confident_wrong(centre_error_mm: float, confidence: float,

@@ -129,8 +129,7 @@ class EyeModel:
         sphere through the circle where the ellipsoid's cross-section has that mean radius;
         None where the radius is fitted.
 
-        The ellipsoid's axial semi-axis ``c`` is the one whose direction lies nearest +Z (the
-        eye looks towards the beam source at the planned pose, DESIGN §2); its cross-section
+        The ellipsoid's axial semi-axis ``c`` (:meth:`ellipsoid_frame`); its cross-section
         at ``z`` in front of the centre is an ellipse of semi-axes ``(a, b)·s``,
         ``s = √(1 − z²/c²)``, and the circle that best follows it has the radius
         ``s·(a + b)/2``. So the limbus lies ``z = c·√(1 − s²)`` in front of the centre with
@@ -143,12 +142,19 @@ class EyeModel:
         if self.globe_semi_axes_mm is None:
             return None
         axes = np.asarray(self.globe_semi_axes_mm, dtype=np.float64)
-        directions = np.eye(3) if self.orientation is None else np.asarray(self.orientation)
-        axial = int(np.argmax(np.abs(directions[2])))  # columns: the semi-axes' directions
+        _, axial = self.ellipsoid_frame()
         across = np.delete(axes, axial)
         scale = 2.0 * limbus_radius_mm / float(across.sum())
         depth = float(axes[axial]) * math.sqrt(max(1.0 - scale * scale, 0.0))
         return math.hypot(depth, limbus_radius_mm)
+
+    def ellipsoid_frame(self) -> tuple[F64, int]:
+        """The ellipsoid's semi-axes' directions in the WCS (the columns of ``orientation``;
+        the identity without one) and which of them is axial: the one nearest +Z (the eye
+        looks towards the beam source at the planned pose, DESIGN §2)."""
+        frame = (np.eye(3) if self.orientation is None
+                 else np.asarray(self.orientation, dtype=np.float64))
+        return frame, int(np.argmax(np.abs(frame[2])))
 
     @property
     def shape_sd_mm(self) -> float:
@@ -998,8 +1004,7 @@ def _surface_distance(points: F64, centre: F64, radius: float, gaze: F64, model:
     if model.globe_semi_axes_mm is None:
         return np.asarray(np.linalg.norm(rel, axis=1) - radius, dtype=np.float64)
     axes = np.asarray(model.globe_semi_axes_mm, dtype=np.float64)
-    frame = np.eye(3) if model.orientation is None else np.asarray(model.orientation)
-    axial = int(np.argmax(np.abs(frame[2])))
+    frame, axial = model.ellipsoid_frame()
     planned = frame[:, axial] * math.copysign(1.0, frame[2, axial])
     # The smallest rotation taking the planned axial direction to the gaze (Rodrigues).
     axis = np.cross(planned, gaze)

@@ -440,10 +440,10 @@ def _circles(centres: F64, normals: F64, radius: float | F64, angles: F64,
 
     With a ``ratio`` (one, or one each) other than 1, ovals: the half-width ``radius``
     horizontally, ``ratio`` times it along ``_basis``'s first vector (the room's vertical for
-    a gaze near +Z; the
-    visible limbus, whose top and bottom the sclera overlaps), each point lifted along the
-    normal by the sagitta of a :data:`OVAL_CORNEA_MM` cornea between the junction's radius and
-    its own (the oval's top and bottom lie on the cornea, in front of the junction's plane).
+    a gaze near +Z; the visible limbus, whose top and bottom the sclera overlaps), each point
+    lifted along the normal by the sagitta of a :data:`OVAL_CORNEA_MM` cornea between the
+    junction's radius and its own (the oval's top and bottom lie on the cornea, in front of
+    the junction's plane).
     """
     h = len(centres)
     u, v = _basis(normals)
@@ -837,18 +837,6 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
     return min(found, key=lambda limbus: limbus.residual_px)
 
 
-def _windowed(views: Sequence[LimbusView], limbus: Limbus) -> list[_Image]:
-    """The views' images in windows about ``limbus``; :class:`LimbusNotFoundError` where
-    fewer than two cameras see it."""
-    images = []
-    for view in views:
-        with contextlib.suppress(LimbusNotFoundError):
-            images.append(_Image(view, _window(view, limbus.centre, limbus.radius)))
-    if len(images) < 2:
-        raise LimbusNotFoundError("fewer than two cameras see the limbus")
-    return images
-
-
 def refined(views: Sequence[LimbusView], limbus: Limbus, shade: Shade | None = None) -> Limbus:
     """The last round of edges and circle (module steps 3 and 4) again, from ``limbus``: for
     views whose :attr:`~LimbusView.flat` was made with a better fringe removal
@@ -862,7 +850,12 @@ def refined(views: Sequence[LimbusView], limbus: Limbus, shade: Shade | None = N
         Fewer than two cameras see enough of it, or the edges fit no circle (or lie further than
         :data:`MAX_RESIDUAL_PX` from it, as :func:`find_limbus` requires).
     """
-    images = _windowed(views, limbus)
+    images = []
+    for view in views:
+        with contextlib.suppress(LimbusNotFoundError):
+            images.append(_Image(view, _window(view, limbus.centre, limbus.radius)))
+    if len(images) < 2:
+        raise LimbusNotFoundError("fewer than two cameras see the limbus")
     # Its edges are counted once per fringe period, as the band's are. Once per half period
     # (the fringe divided out, less of the error might be shared) made the stated sds hold the
     # errors as a normal error's would (bench pose: the centre's axes within one and two sds on

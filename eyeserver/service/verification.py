@@ -49,7 +49,7 @@ from eyeserver.service.storage import UnknownIdError
 
 __all__ = ["MODEL_SD_SHARE", "Deviation", "FitFunction", "PoseVerification", "Verdict",
            "deviation", "gaze_angle_deg", "judge", "measurement_model", "model_sd_mm",
-           "shape_cancels", "shape_reason"]
+           "shape_cancels", "shape_reason", "turned_shape_sd_mm"]
 
 class FitFunction(Protocol):
     """What fits an eye model to a cloud and, when given, the fringe images it came from
@@ -146,11 +146,17 @@ def model_sd_mm(pose: EyePose, reference: ReferencePose, eye_model_version: int 
     shape): it cancels but for the gaze's turn between them, ``shape_sd · |g − g_ref|``. A
     planned reference, or one captured with another model, is absolute: the whole of it counts.
     """
-    shape = float(pose.shape_sd_mm)
     if shape_cancels(reference, eye_model_version):
-        turn = [a - b for a, b in zip(pose.gaze, reference.pose["gaze"], strict=True)]
-        return shape * math.hypot(*turn)
-    return shape
+        return turned_shape_sd_mm(pose.shape_sd_mm, pose.gaze, reference.pose["gaze"])
+    return float(pose.shape_sd_mm)
+
+
+def turned_shape_sd_mm(shape_sd_mm: float, gaze: Vector, reference_gaze: Vector) -> float:
+    """What an unknown globe shape of sd ``shape_sd_mm`` (along the gaze, mm) leaves in the
+    move between two fits of one eye with one model: its share of the gaze's turn,
+    ``shape_sd · |g − g_ref|`` (unit gazes)."""
+    return float(shape_sd_mm) * math.hypot(*(a - b for a, b in zip(gaze, reference_gaze,
+                                                                   strict=True)))
 
 
 def shape_cancels(reference: ReferencePose, eye_model_version: int | None) -> bool:
