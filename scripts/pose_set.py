@@ -48,7 +48,7 @@ def render(args: argparse.Namespace) -> None:
 def fit(args: argparse.Namespace) -> None:
     from eyeserver.errors import EyeserverError
     from eyeserver.pipeline.eyepose import EyeModel, fit_eye
-    from eyeserver.pipeline.limbus import find_limbus
+    from eyeserver.pipeline.limbus import LimbusNotFoundError, find_limbus
     from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
 
     def off(pose_centre: Any, pose_gaze: Any, eye: dict[str, Any], key: str = "centre_mm"
@@ -74,7 +74,7 @@ def fit(args: argparse.Namespace) -> None:
                     found = off(limbus.centre, limbus.normal, eye, "limbus_centre_mm")
                     stages += f"; limbus from it: {found} (its centre), radius " \
                         f"{limbus.radius:.2f} mm"
-                except EyeserverError as exc:
+                except (EyeserverError, LimbusNotFoundError) as exc:
                     stages += f"; no limbus from it: {exc}"
             pose = fit_eye(cloud, model, views)
         except EyeserverError as exc:
