@@ -154,6 +154,10 @@ class Settings(BaseSettings):
         ``2``: a global fit of the whole images (after the eye was lost, ≈ 1 s) leaves the
         second worker following the frames; with one, a 60-s run on two cores dropped 24
         frames after the saccade (``eyeserver bench tracking --workers N`` measures it).
+    ``tracking_deadline_ms``
+        The fail-safe beam hold of live tracking: when no processed frame has been published
+        for this long, the daemon holds the beam itself and says why on ``/api/v1/ws/pose``.
+        Default ``80`` (two camera periods).
     ``tokens``
         The bearer tokens the API accepts. In the file, named tokens as an array of tables
         (``[[tokens]]`` with ``name``, ``role``, ``token``); in ``EYESERVER_TOKENS``,
@@ -246,6 +250,13 @@ class Settings(BaseSettings):
         ge=1,
         le=8,
         description="Worker processes for live tracking's frames, each on its own frames.",
+    )
+    tracking_deadline_ms: float = Field(
+        default=80.0,
+        ge=20.0,
+        le=2000.0,
+        description="Live tracking holds the beam itself when no processed frame has been "
+        "published for this long.",
     )
     job_queue: int = Field(
         default=8,

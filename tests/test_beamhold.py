@@ -95,19 +95,52 @@ def test_the_confidence_threshold_is_configurable() -> None:
     assert (low.beam_hold, high.beam_hold) == (True, False)
 
 
-def test_dropped_frames_are_counted_hold_the_beam_and_restart_the_dwell() -> None:
+def test_a_long_gap_is_counted_holds_the_beam_and_restarts_the_dwell() -> None:
     hold = BeamHold()
     _flags(hold, [_good(i) for i in range(4)])
 
-    after_gap = hold.update(_good(7))  # frames 4, 5, 6 never arrived
-    rest = [hold.update(_good(i)) for i in (8, 9, 11, 12, 13)]
+    after_gap = hold.update(_good(7))  # frames 4, 5, 6 never processed: more than 2
+    rest = [hold.update(_good(i)) for i in (8, 9, 13, 14, 15)]
 
     assert after_gap.beam_hold and after_gap.reasons == ("dropped",)
     assert (after_gap.dropped_now, after_gap.dropped_frames) == (3, 3)
     assert [d.beam_hold for d in rest] == [True, False, True, True, False]
     assert rest[2].reasons == ("dropped",)
-    assert rest[-1].dropped_frames == 4
-    assert hold.dropped_frames == 4
+    assert rest[-1].dropped_frames == 6
+    assert hold.dropped_frames == 6
+
+
+def test_a_short_gap_is_counted_but_the_hold_follows_the_eye() -> None:
+    # Missed camera periods and frames replaced by newer ones are the scheduler's, not the
+    # eye's: up to max_gap_frames (2: 80 ms) the beam stays as the frames say (issue 35: held
+    # on every gap, the beam flipped 89 times in 25 s of an eye at rest).
+    hold = BeamHold()
+    _flags(hold, [_good(i) for i in range(4)])
+
+    decisions = [hold.update(_good(i)) for i in (5, 8, 9, 10)]
+
+    assert [d.beam_hold for d in decisions] == [False, False, False, False]
+    assert [d.dropped_now for d in decisions] == [1, 2, 0, 0]
+    assert hold.dropped_frames == 3
+    strict = BeamHold(BeamHoldConfig(max_gap_frames=0))
+    _flags(strict, [_good(i) for i in range(4)])
+    assert strict.update(_good(5)).reasons == ("dropped",)
+
+
+def test_an_interruption_holds_the_beam_and_restarts_the_dwell() -> None:
+    hold = BeamHold()
+    assert _flags(hold, [_good(i) for i in range(4)])[-1] is False
+
+    hold.interrupt()  # no frame came in time
+    after = _flags(hold, [_good(4), _good(5), _good(6)])
+
+    assert hold.beam_hold is False
+    assert after == [True, True, False]
+
+
+def test_a_bad_gap_setting_is_refused() -> None:
+    with pytest.raises(ValueError, match="max_gap_frames"):
+        BeamHoldConfig(max_gap_frames=-1)
 
 
 def test_dropped_frames_may_be_only_counted() -> None:

@@ -26,7 +26,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 
 from eyeserver.api import create_app
-from eyeserver.core.clock import Clock, ManualClock
+from eyeserver.core.clock import Clock, ManualClock, MonotonicClock
 from eyeserver.core.frames import Frame, FrameMeta
 from eyeserver.hardware.base import TriggerPulse, TriggerStep
 from eyeserver.hardware.rig import AcquiredStep
@@ -205,7 +205,9 @@ def test_a_session_processes_only_the_newest_frame_and_reports_the_drops() -> No
 
     assert message is not None and message["frame"] == 3
     assert message["dropped_frames"] == 2
-    assert message["beam_hold"] is True and "dropped" in message["reasons"]
+    # Two frames unprocessed are counted, not held (BeamHoldConfig.max_gap_frames): the beam
+    # is still held here only by the dwell after frame 0.
+    assert message["beam_hold"] is True and message["reasons"] == ["dwell"]
     status = session.status()
     assert (status["frames_acquired"], status["frames_processed"],
             status["frames_dropped"]) == (4, 2, 2)
@@ -256,7 +258,8 @@ def test_several_finders_share_the_frames_and_publish_them_in_order() -> None:
 
     class Recorded(EventBus):
         def publish(self, type: str, **data: Any) -> int:
-            published.append(data)
+            if type == "pose":  # not the hold the session's end publishes
+                published.append(data)
             return 0
 
     session = TrackingSession(ScriptedSource(clock, count=frames, pace_s=0.001),
@@ -538,7 +541,8 @@ def test_the_finders_are_warmed_side_by_side_before_the_stream_where_the_eye_sho
 
     class Recorded(EventBus):
         def publish(self, type: str, **data: Any) -> int:
-            published.append(data)
+            if type == "pose":  # not the hold the session's end publishes
+                published.append(data)
             return 0
 
     expected = start_pose(REFERENCE, EyeModel(globe_radius_mm=12.0))
@@ -556,6 +560,116 @@ def test_the_finders_are_warmed_side_by_side_before_the_stream_where_the_eye_sho
     status = session.status()
     assert status["frames_acquired"] == status["frames_processed"] + status["frames_dropped"]
     assert status["frames_acquired"] == 3 and status["error"] is None
+
+
+class _Recorded:
+    """A bus that keeps what is published, in order: ``(type, fields)``."""
+
+    def __init__(self) -> None:
+        self.published: list[tuple[str, dict[str, Any]]] = []
+        self._lock = threading.Lock()
+
+    def publish(self, type: str, **data: Any) -> int:
+        with self._lock:
+            self.published.append((type, data))
+            return len(self.published)
+
+    def of(self, kind: str) -> list[dict[str, Any]]:
+        with self._lock:
+            return [data for t, data in self.published if t == kind]
+
+
+def _watched(clock: Clock, source: Any, bus: _Recorded, deadline_s: float = 0.08
+             ) -> TrackingSession:
+    pipeline = ScriptedPipeline(clock)
+    return TrackingSession(source, PoseFinder(pipeline.reconstruct, pipeline.fit,
+                                              EyeModel.population()),
+                           reference=REFERENCE, tolerances=TOLERANCES,
+                           bus=bus, clock=clock, deadline_s=deadline_s)  # type: ignore[arg-type]
+
+
+def test_no_processed_frame_within_the_deadline_holds_the_beam_and_says_why() -> None:
+    clock = ManualClock(1_000_000_000)
+    bus = _Recorded()
+    session = _watched(clock, ScriptedSource(clock, [_pose()] * 10), bus)
+    for _ in range(4):
+        session.acquire_once()
+        session.process_once()
+    assert session.status()["beam_hold"] is False
+
+    clock.advance(0.08)  # exactly the deadline: in time
+    assert session.check_deadline() is None
+    clock.advance(0.01)  # the rig has sent nothing for 90 ms
+    hold = session.check_deadline()
+
+    assert hold is not None and hold["reason"] == "no_frames" and hold["beam_hold"] is True
+    assert hold["last_frame"] == 3 and hold["silent_ms"] == pytest.approx(90.0)
+    assert bus.of("hold") == [hold]
+    status = session.status()
+    assert status["beam_hold"] is True and status["stalls"] == 1
+    assert status["stalled"]["reason"] == "no_frames"
+    assert session.check_deadline() is None  # said once per silence
+    # The next frame ends the silence; the beam falls only after the dwell again.
+    resumed = []
+    for _ in range(3):
+        session.acquire_once()
+        message = session.process_once()
+        assert message is not None
+        resumed.append(message)
+    assert [m["beam_hold"] for m in resumed] == [True, True, False]
+    assert resumed[0]["reasons"] == ["dwell"]
+    assert session.status()["stalled"] is None
+
+
+def test_frames_that_come_but_are_not_processed_are_a_stalled_worker() -> None:
+    clock = ManualClock(1_000_000_000)
+    bus = _Recorded()
+    session = _watched(clock, ScriptedSource(clock, [_pose()] * 10), bus)
+    session.acquire_once()
+    session.process_once()
+    for _ in range(3):  # 120 ms of frames, none processed
+        session.acquire_once()
+
+    hold = session.check_deadline()
+
+    assert hold is not None and hold["reason"] == "worker_stalled"
+    assert hold["frames_acquired"] == 4
+
+
+def test_the_watchdog_holds_the_beam_when_the_rig_stops_delivering() -> None:
+    # Real threads and the machine's clock: the rig's frames stop after the fifth.
+    clock = MonotonicClock()
+    release = threading.Event()
+
+    class Stalling(ScriptedSource):
+        def next_frame(self) -> FrameSet | None:
+            if self.frame == 5:
+                release.wait(TIMEOUT_S)
+            time.sleep(0.040)
+            if self.frame >= 12:
+                return None
+            frame_set = FrameSet(self.frame, self.clock.now_ns(), data=_pose())
+            self.frame += 1
+            return frame_set
+
+    bus = _Recorded()
+    session = _watched(clock, Stalling(clock), bus)
+    done = threading.Event()
+    session.start(on_end=done.set)
+    deadline = time.monotonic() + TIMEOUT_S
+    while not bus.of("hold") and time.monotonic() < deadline:
+        time.sleep(0.01)
+    stalled = session.status()
+    release.set()
+    assert done.wait(TIMEOUT_S)
+
+    holds = bus.of("hold")
+    assert holds and holds[0]["reason"] == "no_frames" and holds[0]["last_frame"] == 4
+    assert stalled["beam_hold"] is True and stalled["stalled"]["reason"] == "no_frames"
+    # Frames came again, and when the session ended by itself the beam was held with it.
+    assert [m["frame"] for m in bus.of("pose")][-1] == 11
+    assert holds[-1]["reason"] == "ended" and bus.published[-1][0] == "hold"
+    assert session.status()["beam_hold"] is True
 
 
 # --- the API and the pose stream over a real server ------------------------------------------
@@ -580,6 +694,9 @@ def tracking(app: FastAPI, base_url: str) -> TrackingControl:
     clock = ManualClock(1_000_000_000)
     pipeline = ScriptedPipeline(clock, reconstruct_s=0.012, fit_s=0.008)
     control.clock = clock
+    # The manual clock moves only with the script, not with the threads' real time: the
+    # fail-safe deadline is tested on its own (above), not against it.
+    control.deadline_s = 3600.0
     control.finder_factory = lambda service, model: PoseFinder(pipeline.reconstruct,
                                                                pipeline.fit, model)
     control.source_factory = lambda service, units, c: ScriptedSource(c, pace_s=0.002)
@@ -682,6 +799,19 @@ def test_tracking_starts_streams_and_stops_through_the_api(
     assert _post(base_url, "/captures", {"unit": "left"}).status_code == 201
 
 
+def test_the_pose_stream_beats_when_there_is_nothing_to_send_and_status_shows_the_hold(
+    base_url: str, tracking: TrackingControl
+) -> None:
+    with _connect(base_url) as ws:
+        message = _recv(ws)  # no tracking: nothing but the heartbeat, within a second or so
+
+    assert message["type"] == "heartbeat"
+    assert message["tracking"] is False and message["beam_hold"] is True
+    assert message["stalled"] is None and "time" in message
+    summary = _get(base_url, "/status")["tracking"]
+    assert summary == {"running": False, "beam_hold": True, "stalled": None}
+
+
 def test_tracking_with_two_workers_publishes_in_order(
     base_url: str, tracking: TrackingControl
 ) -> None:
@@ -757,6 +887,8 @@ def test_twenty_clients_one_never_reading_all_others_get_every_message(
         try:
             while True:
                 message = _recv(ws)
+                if message["type"] == "heartbeat":
+                    continue  # a second without messages (a slow start on a busy machine)
                 received[index].append(message)
                 if message.get("frame") == frames - 1:
                     return

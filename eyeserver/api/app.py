@@ -70,7 +70,8 @@ def _lifespan(settings: Settings) -> Callable[[FastAPI], AbstractAsyncContextMan
         app.state.patients = Patients(service.store, service.audit)
         app.state.verification = PoseVerification(service, app.state.patients)
         app.state.tracking = TrackingControl(service, app.state.patients,
-                                             workers=settings.tracking_workers)
+                                             workers=settings.tracking_workers,
+                                             deadline_s=settings.tracking_deadline_ms / 1e3)
         try:
             # systemd: READY=1 now, WATCHDOG=1 while healthy, STOPPING=1 on leaving; retention.
             async with operations(service, settings):

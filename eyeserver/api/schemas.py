@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -98,6 +98,17 @@ class UnitResponse(BaseModel):
     reason: str | None = Field(examples=[None, "S1: camera is not responding"])
 
 
+class TrackingSummary(BaseModel):
+    """Live tracking at a glance (``GET /api/v1/tracking`` has the whole status)."""
+
+    running: bool
+    beam_hold: bool = Field(description="The beam-hold flag now (true whenever tracking is not "
+                            "watching a good eye).")
+    stalled: dict[str, Any] | None = Field(description="While no processed frame came within "
+                                           "the deadline: its reason (no_frames, "
+                                           "worker_stalled), since when, the silence (ms).")
+
+
 class StatusResponse(BaseModel):
     """What the daemon is doing and how its hardware is."""
 
@@ -112,6 +123,8 @@ class StatusResponse(BaseModel):
     uptime_s: float = Field(description="Seconds since the daemon opened its hardware.",
                             examples=[12.5])
     version: str = Field(description="Version of the running eyeserver.", examples=["0.1.0"])
+    tracking: TrackingSummary | None = Field(None, description="Live tracking's beam hold and "
+                                             "fail-safe (null: tracking is not available).")
 
 
 class CaptureRequest(BaseModel):

@@ -45,10 +45,15 @@ async def opened(websocket: WebSocket, name: str, kind: type[T]) -> tuple[T, Set
 
 async def stream(websocket: WebSocket, subscription: Subscription, *,
                  first: Sequence[Message] = (),
-                 prepare: Callable[[Message], Message] | None = None) -> None:
+                 prepare: Callable[[Message], Message] | None = None,
+                 heartbeat: tuple[float, Callable[[], Message]] | None = None) -> None:
     """Send ``first``, then every message of ``subscription`` (through ``prepare``, at the
-    send) until the client disconnects or the bus closes. The socket must be accepted."""
-    sender = asyncio.create_task(_forward(websocket, subscription, first, prepare))
+    send) until the client disconnects or the bus closes. The socket must be accepted.
+
+    ``heartbeat`` ``(seconds, message)``: when nothing was sent for that long, send
+    ``message()``, so that a client can tell a quiet daemon from a dead link.
+    """
+    sender = asyncio.create_task(_forward(websocket, subscription, first, prepare, heartbeat))
     reader = asyncio.create_task(_read_until_disconnect(websocket))
     try:
         await asyncio.wait((sender, reader), return_when=asyncio.FIRST_COMPLETED)
@@ -64,12 +69,29 @@ async def stream(websocket: WebSocket, subscription: Subscription, *,
 
 
 async def _forward(websocket: WebSocket, subscription: Subscription, first: Sequence[Message],
-                   prepare: Callable[[Message], Message] | None) -> None:
+                   prepare: Callable[[Message], Message] | None,
+                   heartbeat: tuple[float, Callable[[], Message]] | None) -> None:
     for message in first:
         await websocket.send_json(message)
-    while True:
-        message = await subscription.get()
-        await websocket.send_json(message if prepare is None else prepare(message))
+    pending: asyncio.Task[Message] | None = None
+    try:
+        while True:
+            if heartbeat is None:
+                message = await subscription.get()
+            else:
+                # The wait for the next message goes on across heartbeats (a cancelled get
+                # could lose the message it was handing over).
+                if pending is None:
+                    pending = asyncio.ensure_future(subscription.get())
+                done, _ = await asyncio.wait((pending,), timeout=heartbeat[0])
+                if not done:
+                    await websocket.send_json(heartbeat[1]())
+                    continue
+                message, pending = pending.result(), None
+            await websocket.send_json(message if prepare is None else prepare(message))
+    finally:
+        if pending is not None:
+            pending.cancel()
 
 
 async def _read_until_disconnect(websocket: WebSocket) -> None:

@@ -121,13 +121,17 @@ from eyeserver.service.verification import (
     shape_reason,
 )
 
-__all__ = ["CAMERA_RATE_HZ", "FOLLOW_LOST_S", "FindPose", "FocusingReconstructor", "FrameSet",
-           "FrameSource", "LatestFrame", "PoseFinder", "Reconstructor", "RigFrameSource",
-           "RigReconstructor", "TrackFunction", "TrackedCloud", "TrackingControl",
+__all__ = ["CAMERA_RATE_HZ", "DEADLINE_S", "FOLLOW_LOST_S", "FindPose", "FocusingReconstructor",
+           "FrameSet", "FrameSource", "LatestFrame", "PoseFinder", "Reconstructor",
+           "RigFrameSource", "RigReconstructor", "TrackFunction", "TrackedCloud", "TrackingControl",
            "TrackingSession", "start_pose"]
 
 CAMERA_RATE_HZ = 25.0
 """The cameras' frame rate during live tracking."""
+
+DEADLINE_S = 2.0 / CAMERA_RATE_HZ
+"""The fail-safe's default deadline: when no processed frame has been published for this long
+(two camera periods), the session holds the beam itself (:meth:`TrackingSession.check_deadline`)."""
 
 FOLLOW_LOST_S = 1.0
 """For this long after the last frame that found the eye (by mid-exposure time), a frame after
@@ -571,6 +575,8 @@ class _Counters:
     error: str | None = None
     beam_hold: bool = True
     held_frames: int = 0
+    stall: dict[str, Any] | None = None
+    stalls: int = 0
     started: str = ""
     stopped: str | None = None
     lock: threading.Lock = field(default_factory=threading.Lock)
@@ -628,6 +634,10 @@ class TrackingSession:
         The rig's clock: frame times and latencies are on it.
     dwell_frames, hold_on_drop
         :class:`~eyeserver.service.beamhold.BeamHoldConfig`.
+    deadline_s : float, optional
+        The fail-safe: a watchdog thread holds the beam when no processed frame has been
+        published for this long (:meth:`check_deadline`; the daemon's default
+        :data:`DEADLINE_S`). None: no watchdog thread (tests call :meth:`check_deadline`).
     expected : EyePose, optional
         The last pose until the first frame is processed (:func:`start_pose` of the
         reference): the first frame is followed from where the eye should be, like any other
@@ -641,8 +651,11 @@ class TrackingSession:
     def __init__(self, source: FrameSource, find: FindPose | Sequence[FindPose], *,
                  reference: dict[str, Any], tolerances: Tolerances, bus: EventBus, clock: Clock,
                  dwell_frames: int = 3, hold_on_drop: bool = True,
+                 deadline_s: float | None = None,
                  info: dict[str, Any] | None = None, expected: EyePose | None = None,
                  ) -> None:
+        if deadline_s is not None and not deadline_s > 0:
+            raise ValueError(f"deadline_s must be positive, not {deadline_s}")
         self.source = source
         self.finders: list[FindPose] = list(find) if isinstance(find, Sequence) else [find]
         if not self.finders:
@@ -669,6 +682,9 @@ class TrackingSession:
         self._publishing = threading.Lock()  # the last pose, the beam hold, the order
         self._last_frame = -1
         self._processing = 0  # processing threads still at work
+        self.deadline_s = deadline_s
+        # The watchdog's marks on the clock: the last message published, the last frame set in.
+        self._published_ns = self._arrived_ns = clock.now_ns()
 
     # --- one step at a time (the threads loop these; tests call them directly) -------------
 
@@ -682,6 +698,7 @@ class TrackingSession:
         if frame_set is not None and not self._stop.is_set():
             with self._counters.lock:
                 self._counters.acquired += 1
+                self._arrived_ns = self.clock.now_ns()
             self.slot.put(frame_set)
         return frame_set
 
@@ -769,8 +786,53 @@ class TrackingSession:
             counters.beam_hold = decision.beam_hold
             counters.held_frames += decision.beam_hold
             counters.last = message
+            counters.stall = None
+            self._published_ns = now_ns
         self.bus.publish("pose", **message)
         return message
+
+    def check_deadline(self) -> dict[str, Any] | None:
+        """The fail-safe: when no processed frame has been published for :attr:`deadline_s`
+        (on the session's clock), hold the beam, restart the dwell and publish a ``hold``
+        message (once per silence) with its reason: ``no_frames`` when no frame set has come
+        from the rig within the deadline either, ``worker_stalled`` when frames come but none
+        is processed. The message, or None (in time, already said, or no deadline). A frame
+        published afterwards ends the silence; the beam then falls only after the dwell.
+        """
+        if self.deadline_s is None:
+            return None
+        deadline_ns = round(self.deadline_s * 1e9)
+        with self._publishing:
+            counters = self._counters
+            with counters.lock:
+                now_ns = self.clock.now_ns()
+                silent_ns = now_ns - self._published_ns
+                if (silent_ns <= deadline_ns or counters.stall is not None
+                        or self._stop.is_set()):
+                    return None
+                reason = ("no_frames" if now_ns - self._arrived_ns > deadline_ns
+                          else "worker_stalled")
+                self.beam.interrupt()
+                counters.beam_hold = True
+                counters.stalls += 1
+                counters.stall = {"reason": reason, "since": _now_text(),
+                                  "silent_ms": silent_ns / 1e6}
+                message = {"reason": reason, "beam_hold": True, "at_ns": now_ns,
+                           "silent_ms": silent_ns / 1e6, "last_frame": self._last_frame,
+                           "frames_acquired": counters.acquired}
+            self.bus.publish("hold", **message)
+        _log.warning("tracking holds the beam: no processed frame in time",
+                     extra={"reason": reason, "silent_ms": round(silent_ns / 1e6, 1)})
+        return message
+
+    def _watch_loop(self) -> None:
+        assert self.deadline_s is not None
+        step_s = self.deadline_s / 4
+        while not self._stop.wait(step_s):
+            try:
+                self.check_deadline()
+            except Exception:  # the watchdog must outlive a bad moment; say so
+                _log.exception("the tracking watchdog failed a check")
 
     # --- threads ----------------------------------------------------------------------------
 
@@ -779,11 +841,17 @@ class TrackingSession:
         :meth:`stop` or the source ends; ``on_end`` is called once all have finished."""
         self._on_end = on_end
         self._processing = len(self.finders)
+        with self._counters.lock:
+            self._published_ns = self._arrived_ns = self.clock.now_ns()
         self._threads = [threading.Thread(target=self._acquire_loop, name="tracking-acquisition",
                                           daemon=True),
                          *(threading.Thread(target=self._process_loop, args=(finder, n),
                                             name=f"tracking-processing-{n}", daemon=True)
                            for n, finder in enumerate(self.finders))]
+        if self.deadline_s is not None:
+            # Not joined at the end: it stops with the session's stop event.
+            threading.Thread(target=self._watch_loop, name="tracking-watchdog",
+                             daemon=True).start()
         for thread in self._threads:
             thread.start()
 
@@ -855,6 +923,13 @@ class TrackingSession:
                 threading.Thread(target=self._finish, name="tracking-end", daemon=True).start()
 
     def _finish(self) -> None:
+        self._stop.set()  # the watchdog too
+        with self._counters.lock:
+            self._counters.beam_hold = True
+            last_frame = self._last_frame
+        # Whatever ended it, the beam is held once no one watches the eye.
+        self.bus.publish("hold", reason="ended", beam_hold=True, at_ns=self.clock.now_ns(),
+                         last_frame=last_frame)
         for thread in self._threads:
             if thread is not threading.current_thread():
                 thread.join(_JOIN_S)
@@ -890,6 +965,8 @@ class TrackingSession:
                     "frames_processed": counters.processed,
                     "frames_dropped": self.slot.dropped, "frames_missed": self.source.missed,
                     "frames_held": counters.held_frames, "beam_hold": counters.beam_hold,
+                    "stalled": counters.stall, "stalls": counters.stalls,
+                    "deadline_ms": None if self.deadline_s is None else self.deadline_s * 1e3,
                     "error": counters.error, "last_message": counters.last}
 
 
@@ -946,6 +1023,9 @@ class TrackingControl:
     workers : int
         Pose finders per session, each on its own frames (default 2; the setting
         ``tracking_workers``).
+    deadline_s : float
+        The sessions' fail-safe deadline (:meth:`TrackingSession.check_deadline`; the setting
+        ``tracking_deadline_ms``).
     source_factory, finder_factory
         Public attributes, so tests inject scripted ones (the default finder is a
         :class:`~eyeserver.service.tracking_worker.PoseWorker` on the active calibration).
@@ -955,13 +1035,14 @@ class TrackingControl:
     """
 
     def __init__(self, service: Service, patients: Patients, *,
-                 clock: Clock | None = None, workers: int = 2,
+                 clock: Clock | None = None, workers: int = 2, deadline_s: float = DEADLINE_S,
                  source_factory: SourceFactory = rig_source,
                  finder_factory: FinderFactory = worker_finder) -> None:
         self.service = service
         self.patients = patients
         self.clock: Clock = clock if clock is not None else MonotonicClock()
         self.workers = workers
+        self.deadline_s = deadline_s
         if self.workers < 1:
             raise ValueError(f"workers must be at least 1, not {self.workers}")
         self.source_factory = source_factory
@@ -1018,7 +1099,7 @@ class TrackingControl:
                     source, finders, reference=reference.pose,
                     tolerances=patient.tolerances, bus=self.messages, clock=self.clock,
                     dwell_frames=dwell_frames, hold_on_drop=hold_on_drop,
-                    expected=start_pose(reference.pose, model),
+                    deadline_s=self.deadline_s, expected=start_pose(reference.pose, model),
                     info={"patient_id": patient_id, "fraction": fraction,
                           "unit": patient.unit, "rate_hz": CAMERA_RATE_HZ,
                           "workers": self.workers,
@@ -1078,7 +1159,8 @@ class TrackingControl:
         if session is None:
             return {"running": False, "started": None, "stopped": None, "frames_acquired": 0,
                     "frames_processed": 0, "frames_dropped": 0, "frames_missed": 0,
-                    "frames_held": 0, "beam_hold": True, "error": None, "last_message": None}
+                    "frames_held": 0, "beam_hold": True, "stalled": None, "stalls": 0,
+                    "deadline_ms": None, "error": None, "last_message": None}
         return session.status()
 
     def close(self) -> None:

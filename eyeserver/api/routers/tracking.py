@@ -7,14 +7,23 @@ reconstructed, fitted and compared with the fraction's reference
 ``POST /tracking/stop`` ends it; ``GET /tracking`` counts frames acquired, processed, dropped
 (newest frame wins) and missed, and holds the last message.
 
-``/ws/pose`` sends every processed frame's message as JSON text; authenticate as for
+``/ws/pose`` sends every processed frame's message as JSON text, a ``hold`` message when the
+daemon holds the beam without a frame, and a heartbeat when it has sent nothing for a second;
+authenticate as for
 ``/ws/events`` (``?token=`` or ``Authorization: Bearer``; otherwise closed with 1008 before any
 message). Each message is ``{"type": "pose", "seq", "time", "t", "t_ns", "frame", "pose",
 "deviation", "in_tolerance", "beam_hold", "latency_ms", "confidence", "eye", "reasons",
 "dropped_frames", "missed_frames", "delivery_ms", "processing_ms"}``: ``t`` is the frame's
 mid-exposure time (seconds on the rig's monotonic clock), ``latency_ms`` the time from it to this
 send, of which ``delivery_ms`` until the frames were in the daemon's hands and ``processing_ms``
-the reconstruction and fit. A client
+the reconstruction and fit. ``{"type": "hold", "reason", "beam_hold": true, "at_ns",
+...}`` says the beam is held without a frame: ``no_frames`` (no frame from the rig) or
+``worker_stalled`` (frames, but none processed) when no processed frame was published for the
+setting ``tracking_deadline_ms`` (80 ms: two camera periods; then also ``silent_ms``,
+``last_frame``, ``frames_acquired``), ``ended`` when the session ended; the beam then stays held
+until ``dwell_frames`` good frames came again. ``{"type": "heartbeat", "time", "tracking",
+"beam_hold", "stalled"}`` comes whenever nothing else was sent for a second: a client that hears
+nothing for longer must take the link as dead and hold the beam. A client
 that reads too slowly loses its oldest messages (at most ``event_queue_size`` are kept for it)
 and gets ``{"type": "dropped", "count": n}`` before the next one, as on ``/ws/events``; it never
 slows the daemon or the other clients.
@@ -31,10 +40,14 @@ from starlette.concurrency import run_in_threadpool
 from eyeserver.api.auth import OperatorDep
 from eyeserver.api.schemas import ErrorResponse
 from eyeserver.api.streaming import opened, stream
+from eyeserver.service.events import event_time
 from eyeserver.service.patients import PATIENT_ID_PATTERN
 from eyeserver.service.tracking import TrackingControl
 
-__all__ = ["router", "ws_router"]
+__all__ = ["HEARTBEAT_S", "router", "ws_router"]
+
+HEARTBEAT_S = 1.0
+"""``/ws/pose`` sends a heartbeat when it has sent nothing for this long (seconds)."""
 
 router = APIRouter(prefix="/tracking", tags=["tracking"])
 ws_router = APIRouter(tags=["tracking"])
@@ -60,7 +73,8 @@ class TrackingStart(BaseModel):
     dwell_frames: int = Field(3, ge=1, le=250, description="Good frames in a row before the "
                               "beam hold falls.")
     hold_on_drop: bool = Field(True, description="Hold the beam (and restart the dwell) when "
-                               "frames were dropped before a processed one.")
+                               "more than two frames went unprocessed before a processed one "
+                               "(shorter gaps are counted, not held).")
 
 
 class TrackingStatus(BaseModel):
@@ -79,6 +93,11 @@ class TrackingStatus(BaseModel):
     frames_missed: int = Field(description="Camera periods the rig could not serve in time.")
     frames_held: int = Field(description="Processed frames with the beam held.")
     beam_hold: bool
+    stalled: dict[str, Any] | None = Field(None, description="While no processed frame came "
+                                           "within the deadline: its reason (no_frames, "
+                                           "worker_stalled), since when, and the silence (ms).")
+    stalls: int = Field(0, description="Times the deadline passed without a processed frame.")
+    deadline_ms: float | None = Field(None, description="The fail-safe's deadline.")
     error: str | None = Field(description="Why the session ended by itself, if it did.")
     last_message: dict[str, Any] | None = Field(description="The last pose message.")
 
@@ -132,6 +151,12 @@ async def stream_pose(websocket: WebSocket) -> None:
         # Measured here, at the send, on the rig's clock: what the beam controller sees.
         return {**message, "latency_ms": (clock.now_ns() - t_ns) / 1e6}
 
+    def heartbeat() -> dict[str, Any]:
+        status = tracking.status()
+        return {"type": "heartbeat", "time": event_time(), "tracking": status["running"],
+                "beam_hold": status["beam_hold"], "stalled": status["stalled"]}
+
     with tracking.messages.subscribe(settings.event_queue_size) as subscription:
         await websocket.accept()
-        await stream(websocket, subscription, prepare=stamped)
+        await stream(websocket, subscription, prepare=stamped,
+                     heartbeat=(HEARTBEAT_S, heartbeat))
