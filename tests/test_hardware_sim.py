@@ -648,8 +648,22 @@ def test_projector_modes_decide_what_is_lit(open_rig: Rig, room: FakeRoom) -> No
 
 def test_closed_projector_does_not_light(open_rig: Rig) -> None:
     open_rig.projector("P1").close()
-    (left,) = open_rig.acquire(["left"])
-    assert left.frames["S1"].meta.projectors_on == ()
+    fire_step(open_rig, ("S1",))
+    assert open_rig.camera("S1").read_frame(READ_TIMEOUT_S).meta.projectors_on == ()
+
+
+def test_the_rig_asks_each_projector_before_its_pulse(open_rig: Rig) -> None:
+    # A capture with its projector gone fails instead of storing fringe-less images.
+    projector = open_rig.projector("P1")
+    assert isinstance(projector, SimProjector)
+    projector.inject_fault("disconnect")
+    with pytest.raises(DeviceDisconnectedError, match="not responding"):
+        open_rig.acquire(["left"])
+    projector.close()
+    with pytest.raises(DeviceNotOpenError):
+        open_rig.acquire(["left"])
+    (right,) = open_rig.acquire(["right"])  # the other unit's projector answers
+    assert right.frames["S3"].meta.projectors_on == ("P2",)
 
 
 def test_frames_carry_the_exposure_of_their_pulse(open_rig: Rig) -> None:
@@ -872,8 +886,11 @@ def test_projector_disconnect_and_recovery(open_rig: Rig) -> None:
     projector.inject_fault("disconnect")
     with pytest.raises(DeviceDisconnectedError, match="P1"):
         projector.set_intensity(0.5)
-    (left,) = open_rig.acquire(["left"])
-    assert left.frames["S1"].meta.projectors_on == ()  # a vanished LED driver does not light
+    fire_step(open_rig, ("S1",))
+    frame = open_rig.camera("S1").read_frame(READ_TIMEOUT_S)
+    assert frame.meta.projectors_on == ()  # a vanished LED driver does not light
+    with pytest.raises(DeviceDisconnectedError, match="P1"):
+        open_rig.acquire(["left"])  # and the rig, asking it first, does not capture
     projector.close()
     with pytest.raises(DeviceDisconnectedError):
         projector.open()

@@ -8,6 +8,7 @@ seconds on first capture); every test places the scene it needs and leaves the d
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -179,6 +180,37 @@ def test_an_unplugged_camera_faults_its_unit_until_replugged(client: Client) -> 
     assert recovered.status_code == 201, recovered.text
     assert after["state"] == "idle"
     assert all(d["health"] == "ok" for d in after["devices"])
+
+
+def test_an_unplugged_projector_fails_the_capture_and_recovers_on_replug_alone(
+        client: Client) -> None:
+    # Issue 35: a dark projector used to give 201 "ok" with fringe-less images.
+    client.put(f"{API}/sim/stage", json={"z_mm": 15.0})
+    before = client.get(f"{API}/captures").json()["total"]
+
+    unplugged = client.put(f"{API}/sim/devices/P1", json={"connected": False})
+    failed = client.post(f"{API}/captures", json={"unit": "left"})
+    status = client.get(f"{API}/status").json()
+    replugged = client.put(f"{API}/sim/devices/P1", json={"connected": True})
+    # Nobody touches the device or captures: the daemon's own recovery reopens it.
+    deadline = time.monotonic() + 30.0
+    while client.get(f"{API}/status").json()["state"] != "idle" \
+            and time.monotonic() < deadline:
+        time.sleep(0.1)
+    after = client.get(f"{API}/status").json()
+    recovered = client.post(f"{API}/captures", json={"unit": "left"})
+
+    assert unplugged.json() == {"id": "P1", "kind": "projector", "connected": False}
+    assert failed.status_code == 503
+    assert failed.json() == {"detail": "P1: projector is not responding"}
+    assert client.get(f"{API}/captures").json()["total"] == before + 1  # the recovered one only
+    assert status["state"] == "fault"
+    p1 = next(d for d in status["devices"] if d["id"] == "P1")
+    assert (p1["health"], p1["reason"]) == ("fault", "projector is not responding")
+    assert next(u for u in status["units"] if u["id"] == "left")["health"] == "fault"
+    assert replugged.status_code == 200
+    assert after["state"] == "idle" and all(d["health"] == "ok" for d in after["devices"])
+    assert recovered.status_code == 201, recovered.text
 
 
 def test_device_cables_need_a_known_device_and_a_physicist(client: Client) -> None:

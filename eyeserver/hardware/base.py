@@ -204,6 +204,23 @@ class Projector(Device):
         self._apply_strobe(bool(value))
         self._strobe = bool(value)
 
+    def check(self) -> None:
+        """Ask the device whether it can light: the rig asks before every pulse that names it,
+        so a projector that is gone fails the capture (and is put in fault) instead of leaving
+        fringe-less images that look like a measurement.
+
+        Raises
+        ------
+        DeviceError
+            The device is not open, or it does not answer or reports a fault.
+        """
+        self._require_open()
+        self._check()
+
+    def _check(self) -> None:
+        """The driver's status query (none by default: a driver that can ask its controller
+        overrides this)."""
+
     @abc.abstractmethod
     def _apply_enabled(self, value: bool) -> None: ...
 

@@ -344,7 +344,9 @@ class Rig:
             # Setting the sequence restarts it, so pulse n is step n.
             self._trigger.set_sequence(steps)
             acquired: list[AcquiredStep] = []
-            for n, _ in enumerate(steps):
+            for n, step in enumerate(steps):
+                for projector_id in step.projectors:  # a projector that is gone fails here
+                    self._projector_by_id[projector_id].check()
                 pulse = self._trigger.fire(at_ns if n == 0 else None)
                 frames = {camera_id: self._camera_by_id[camera_id].read_frame(timeout_s)
                           for camera_id in pulse.step.cameras}

@@ -615,6 +615,9 @@ class SimProjector(_SimFaults, Projector):
     def _do_close(self) -> None:
         self._wiring._unplug(self)
 
+    def _check(self) -> None:
+        self._check_connected()
+
     def _apply_enabled(self, value: bool) -> None:
         self._check_connected()
 
