@@ -314,6 +314,32 @@ def test_measurements_are_found_by_patient_fraction_and_id(
     assert nobody.status_code == 404
 
 
+def test_a_unit_that_sees_nothing_fails_the_measurement_with_its_reason(
+        client: Client, patient: str, fake_fit: FakeFit, calibration_id: str) -> None:
+    # Issue 35: with one unit's projector dark the other unit's pose passed (confidence 0.94)
+    # and nothing in the record said so. A projector driven at zero is as dark as a dead LED.
+    fake_fit.centre, fake_fit.gaze = (0.0, 0.0, -10.0), (0.0, 0.0, 1.0)
+    dimmed = client.request("PATCH", f"{API}/devices/P2", json={"intensity": 0.0})
+    assert dimmed.status_code == 200, dimmed.text
+    try:
+        body = _measure(client, patient)
+        reference = client.post(f"{API}/patients/{patient}/fractions/1/reference/capture")
+    finally:
+        relit = client.request("PATCH", f"{API}/devices/P2", json={"intensity": 1.0})
+        assert relit.status_code == 200
+    lit = _measure(client, patient)
+
+    units = body["evidence"]["units"]
+    assert units["right"]["points"] < 500 <= units["left"]["points"]
+    assert set(units["right"]["cameras"]) == {"S3", "S4"}
+    assert body["passed"] is False and body["in_tolerance"] is True
+    assert len(body["reasons"]) == 1 and body["reasons"][0].startswith("unit right gave ")
+    assert "projector may be dark" in body["reasons"][0]
+    assert reference.status_code == 422 and "unit right" in reference.json()["detail"]
+    assert lit["passed"] is True
+    assert min(u["points"] for u in lit["evidence"]["units"].values()) >= 500
+
+
 # --- the simulated eye --------------------------------------------------------------------------
 
 

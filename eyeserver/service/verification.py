@@ -9,10 +9,13 @@ defaults without one) and compares the pose with the fraction's newest reference
 * it passes when ``|Δ| ≤ translation_mm``, ``gaze_deg ≤ gaze_deg`` tolerance, the fit's
   confidence is at least ``min_confidence`` and what the eye model leaves unknown of the
   globe's shape is small against the tolerance (:func:`model_sd_mm`: it cancels against a
-  reference captured at set-up, not against a planned pose); ``reasons`` says what failed.
+  reference captured at set-up, not against a planned pose), and every unit of the patient's
+  set-up gave the reconstruction at least :data:`MIN_UNIT_POINTS` points (a unit with a dark
+  projector gives none; a captured reference is refused then); ``reasons`` says what failed.
 
 The result is stored with its evidence (capture id — its bundle and ``cloud.ply`` stay with the
-capture —, the reconstruction's calibration id, the eye-model version and the fit) as
+capture —, the reconstruction's calibration id, the eye-model version, each unit's points and
+the fit) as
 ``patients/<key>/measurements/<pose id>.json`` and a row, in one audited transaction; the
 capture of a stored measurement or captured reference is never deleted, by a person (HTTP 409)
 or the retention rule (:meth:`PoseVerification.evidence_captures`). A fit that
@@ -33,8 +36,8 @@ from datetime import UTC, datetime
 from typing import Any, Literal, Protocol
 
 from eyeserver.errors import EyeserverError
-from eyeserver.io import read_ply
-from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, fit_eye
+from eyeserver.io import RigSpec, read_ply
+from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError, fit_eye
 from eyeserver.pipeline.limbus import LimbusView
 from eyeserver.service.core import NoActiveCalibrationError, Service
 from eyeserver.service.patients import (
@@ -47,9 +50,10 @@ from eyeserver.service.patients import (
 from eyeserver.service.reconstruction import limbus_views
 from eyeserver.service.storage import UnknownIdError
 
-__all__ = ["MODEL_SD_SHARE", "Deviation", "FitFunction", "PoseVerification", "Verdict",
-           "deviation", "gaze_angle_deg", "judge", "measurement_model", "model_sd_mm",
-           "shape_cancels", "shape_reason", "turned_shape_sd_mm"]
+__all__ = ["MIN_UNIT_POINTS", "MODEL_SD_SHARE", "Deviation", "FitFunction", "PoseVerification",
+           "Verdict", "deviation", "gaze_angle_deg", "judge", "measurement_model", "model_sd_mm",
+           "shape_cancels", "shape_reason", "turned_shape_sd_mm", "unit_contributions",
+           "unit_shortfalls"]
 
 class FitFunction(Protocol):
     """What fits an eye model to a cloud and, when given, the fringe images it came from
@@ -214,6 +218,35 @@ def shape_reason(model_sd_mm: float, tolerances: Tolerances) -> str | None:
             "MRI's ellipsoid in the eye model or capture a reference at set-up")
 
 
+MIN_UNIT_POINTS = 500
+"""Fewest reconstructed points an optical unit of the patient's set-up must give for its
+measurement to count: a unit whose projector is dark (or whose view is blocked) gives none,
+and a pose from the other unit alone passed with nothing in the record saying so (issue 35).
+An eye in view gives each unit thousands (the sclera alone 3,600–6,400 on the simulated room)."""
+
+
+def unit_contributions(summary: dict[str, Any], rig: RigSpec, unit_ids: Sequence[str]
+                       ) -> dict[str, dict[str, Any]]:
+    """Each unit of ``unit_ids``: the points each of its cameras gave to a reconstruction
+    (:func:`~eyeserver.service.reconstruction.reconstruct_bundle`'s ``summary``; a camera
+    missing there gave none) and their sum."""
+    cameras = summary.get("cameras", {})
+    out: dict[str, dict[str, Any]] = {}
+    for unit_id in unit_ids:
+        unit = rig.unit(unit_id)
+        points = {c: int(cameras.get(c, {}).get("points", 0)) for c in unit.cameras}
+        out[unit_id] = {"points": sum(points.values()), "cameras": points}
+    return out
+
+
+def unit_shortfalls(units: dict[str, dict[str, Any]]) -> tuple[str, ...]:
+    """Why the units that gave fewer than :data:`MIN_UNIT_POINTS` points make a measurement
+    void (empty when every unit gave enough)."""
+    return tuple(f"unit {unit_id} gave {seen['points']} points (at least {MIN_UNIT_POINTS} "
+                 "needed): its projector may be dark or its view blocked"
+                 for unit_id, seen in units.items() if seen["points"] < MIN_UNIT_POINTS)
+
+
 @dataclass(frozen=True)
 class _Observation:
     capture_id: str
@@ -222,13 +255,15 @@ class _Observation:
     eye_model_version: int | None
     eye_model: dict[str, Any] | None
     cloud_points: int
+    units: dict[str, dict[str, Any]]
     pose: EyePose
 
     def evidence(self) -> dict[str, Any]:
         return {"capture_id": self.capture_id, "unit": self.unit,
                 "calibration_id": self.calibration_id,
                 "eye_model_version": self.eye_model_version, "eye_model": self.eye_model,
-                "cloud_points": self.cloud_points, "fit": self.pose.to_dict()}
+                "cloud_points": self.cloud_points, "units": self.units,
+                "fit": self.pose.to_dict()}
 
 
 def measurement_model(stored: EyeModelVersion | None, reference: ReferencePose | None
@@ -309,7 +344,9 @@ class PoseVerification:
             capture.id, patient.unit, str(summary["calibration_id"]),
             None if stored_model is None else stored_model.version,
             None if stored_model is None else stored_model.model.model_dump(mode="json"),
-            int(summary["points"]), pose)
+            int(summary["points"]),
+            unit_contributions(summary, service.rig_spec(), service.unit_ids(patient.unit)),
+            pose)
 
     def measure(self, patient_id: str, fraction: int, *, actor: str) -> dict[str, Any]:
         """Measure the pose of a patient's eye and compare it with the fraction's reference.
@@ -340,6 +377,9 @@ class PoseVerification:
                                   pose.limbus_centre_mm, ref.get("limbus_centre_mm")),
                         model_sd_mm=model_sd_mm(pose, reference, seen.eye_model_version))
         verdict = judge(found, patient.tolerances, pose.confidence)
+        missing = unit_shortfalls(seen.units)
+        if missing:  # a unit of the set-up saw nothing: the pose is not the whole set-up's
+            verdict = Verdict(False, verdict.in_tolerance, verdict.reasons + missing)
         store = self.service.store
         measurement_id = store.new_id("pose")
         relative = f"patients/{patient.key}/measurements/{measurement_id}.json"
@@ -383,6 +423,13 @@ class PoseVerification:
         """
         patient = self.patients.get(patient_id)
         seen = self._observe(patient, actor, "set_reference_pose", fraction)
+        missing = unit_shortfalls(seen.units)
+        if missing:
+            reason = "cannot take this capture as the reference: " + "; ".join(missing)
+            self.service.audit.record(actor, "set_reference_pose", patient.key, {
+                "patient_id": patient.patient_id, "fraction": fraction,
+                "capture_id": seen.capture_id, "error": reason}, "error")
+            raise PoseError(reason)
         pose = seen.pose
         return self.patients.set_reference(
             patient_id, fraction, {"centre_mm": list(pose.centre_mm), "gaze": list(pose.gaze),

@@ -62,7 +62,9 @@ class Measurement(BaseModel):
     evidence: dict[str, Any] = Field(description="capture_id (its bundle and cloud.ply: "
                                      "/api/v1/captures/{id}/…), unit, calibration_id, "
                                      "eye_model_version (null: population), eye_model, "
-                                     "cloud_points, fit.")
+                                     "cloud_points, units (each unit of the set-up: the "
+                                     "points it gave, per camera; one below 500 fails the "
+                                     "measurement), fit.")
 
 
 class MeasurementList(BaseModel):
