@@ -28,6 +28,7 @@ from eyeserver.api.routers.sim import NO_SIM_ROOM
 from eyeserver.calibration.artefact import ARRAYS_FILE, CALIBRATION_FILE
 from eyeserver.hardware.sim.drivers import build_sim_rig
 from eyeserver.hardware.sim.room import SimRoom
+from eyeserver.io import rig_from_dict
 from eyeserver.pipeline.eyepose import (
     SHAPE_SD_MM,
     CloudLike,
@@ -40,11 +41,14 @@ from eyeserver.pipeline.limbus import LimbusView
 from eyeserver.service.core import Service
 from eyeserver.service.patients import ReferencePose, Tolerances
 from eyeserver.service.verification import (
+    MIN_UNIT_POINTS,
     PoseVerification,
     deviation,
     gaze_angle_deg,
     judge,
     model_sd_mm,
+    unit_contributions,
+    unit_shortfalls,
 )
 from tests.apiclient import API, OPERATOR_TOKEN, Client, auth, test_settings
 
@@ -314,30 +318,61 @@ def test_measurements_are_found_by_patient_fraction_and_id(
     assert nobody.status_code == 404
 
 
-def test_a_unit_that_sees_nothing_fails_the_measurement_with_its_reason(
-        client: Client, patient: str, fake_fit: FakeFit, calibration_id: str) -> None:
+def test_a_dark_projector_fails_the_measurement_and_keeps_the_capture(
+        client: Client, patient: str, fake_fit: FakeFit, calibration_id: str,
+        data_dir: Path) -> None:
     # Issue 35: with one unit's projector dark the other unit's pose passed (confidence 0.94)
-    # and nothing in the record said so. A projector driven at zero is as dark as a dead LED.
-    fake_fit.centre, fake_fit.gaze = (0.0, 0.0, -10.0), (0.0, 0.0, 1.0)
+    # and nothing in the record said so. A projector driven at zero is as dark as a dead LED,
+    # and its driver answers: only the images tell.
+    before = client.get(f"{API}/pose/measurements", params={"patient_id": patient}).json()
     dimmed = client.request("PATCH", f"{API}/devices/P2", json={"intensity": 0.0})
     assert dimmed.status_code == 200, dimmed.text
     try:
-        body = _measure(client, patient)
-        reference = client.post(f"{API}/patients/{patient}/fractions/1/reference/capture")
+        failed = _measure(client, patient, expected=503)
+        status = client.get(f"{API}/status").json()
     finally:
         relit = client.request("PATCH", f"{API}/devices/P2", json={"intensity": 1.0})
-        assert relit.status_code == 200
-    lit = _measure(client, patient)
+    after = client.get(f"{API}/pose/measurements", params={"patient_id": patient}).json()
 
-    units = body["evidence"]["units"]
-    assert units["right"]["points"] < 500 <= units["left"]["points"]
-    assert set(units["right"]["cameras"]) == {"S3", "S4"}
-    assert body["passed"] is False and body["in_tolerance"] is True
-    assert len(body["reasons"]) == 1 and body["reasons"][0].startswith("unit right gave ")
-    assert "projector may be dark" in body["reasons"][0]
-    assert reference.status_code == 422 and "unit right" in reference.json()["detail"]
+    detail = failed["detail"]
+    assert detail.startswith("P2: no fringes in the frames it lit (S3, S4: contrast 0.0")
+    assert "the projector gives no light" in detail
+    assert after["total"] == before["total"]  # no pose from the other unit alone
+    assert status["state"] == "fault"
+    p2 = next(d for d in status["devices"] if d["id"] == "P2")
+    assert p2["health"] == "fault" and "no fringes" in p2["reason"]
+    # The capture is kept, with each camera's check in its bundle.
+    capture_id = detail.rsplit("(capture ", 1)[1].split(" kept)")[0]
+    bundle = json.loads((data_dir / "captures" / capture_id / "bundle.json").read_text())
+    checks = bundle["fringe_check"]
+    assert checks["S3"]["dark"] is True and checks["S4"]["dark"] is True
+    assert checks["S1"]["dark"] is False and checks["S1"]["contrast"] > 0.3
+    # Lit again, the next capture clears the fault (PATCH reopened nothing by hand).
+    assert relit.status_code == 200, relit.text
+    lit = _measure(client, patient)
     assert lit["passed"] is True
-    assert min(u["points"] for u in lit["evidence"]["units"].values()) >= 500
+    assert client.get(f"{API}/status").json()["state"] == "idle"
+    assert min(u["points"] for u in lit["evidence"]["units"].values()) >= MIN_UNIT_POINTS
+
+
+def test_a_unit_that_gives_too_few_points_voids_a_measurement() -> None:
+    rig = rig_from_dict({"format": "eyeserver.rig/1",
+                             "cameras": [{"id": c, "width": 640, "height": 512}
+                                         for c in ("S1", "S2", "S3", "S4")],
+                             "projectors": [{"id": "P1"}, {"id": "P2"}],
+                             "units": [{"id": "left", "projector": "P1", "cameras": ["S1", "S2"]},
+                                       {"id": "right", "projector": "P2",
+                                        "cameras": ["S3", "S4"]}]}, "<test rig>")
+    summary = {"cameras": {"S1": {"points": 9000}, "S2": {"points": 8000},
+                           "S3": {"points": 300}}}  # S4 gave nothing at all
+
+    units = unit_contributions(summary, rig, ["left", "right"])
+
+    assert units == {"left": {"points": 17000, "cameras": {"S1": 9000, "S2": 8000}},
+                     "right": {"points": 300, "cameras": {"S3": 300, "S4": 0}}}
+    (reason,) = unit_shortfalls(units)
+    assert reason.startswith(f"unit right gave 300 points (at least {MIN_UNIT_POINTS} needed)")
+    assert unit_shortfalls(unit_contributions(summary, rig, ["left"])) == ()
 
 
 # --- the simulated eye --------------------------------------------------------------------------

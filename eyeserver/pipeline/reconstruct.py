@@ -429,6 +429,61 @@ def fringe_strength(modulation: npt.ArrayLike) -> float:
     return float(np.percentile(np.asarray(modulation), 95))
 
 
+MIN_SEEN_DN = 5.0
+"""Brightness (DN, the 95th percentile of the fringe-free image) below which a frame shows
+nothing to judge its fringes on (the empty room: 0.6 DN)."""
+
+MIN_FRINGE_CONTRAST = 0.1
+"""A lit frame whose fringes' modulation is below this share of the light they ride on shows
+no fringes: its projector lit nothing. Measured on the simulated room (reference plane,
+pyramid, sharp and patient eyes): 0.57–0.62 lit, 0.29–0.32 at 30 % drive, 0.01 dark."""
+
+
+@dataclass(frozen=True)
+class FringeCheck:
+    """Whether a lit frame shows its projector's fringes (:func:`fringe_check`)."""
+
+    seen_dn: float
+    """The fringe-free image's 95th percentile (DN): how much there is to see."""
+    contrast: float
+    """The median of ``B / A`` (the fringe's amplitude over the light it rides on) where the
+    fringe-free light ``A`` is at least half :attr:`seen_dn`."""
+
+    @property
+    def judged(self) -> bool:
+        """Whether the frame shows enough to judge (:data:`MIN_SEEN_DN`)."""
+        return self.seen_dn >= MIN_SEEN_DN
+
+    @property
+    def dark(self) -> bool:
+        """Whether the frame shows a scene but no fringes on it."""
+        return self.judged and self.contrast < MIN_FRINGE_CONTRAST
+
+    def to_dict(self) -> dict[str, object]:
+        return {"seen_dn": self.seen_dn, "contrast": self.contrast, "judged": self.judged,
+                "dark": self.dark}
+
+
+def fringe_check(carrier: Carrier, image: npt.ArrayLike) -> FringeCheck:
+    """How strongly a lit frame shows the fringes of the ``carrier`` it was calibrated with.
+
+    Ambient light shows the scene whether the projector lights or not; the fringe rides on
+    the projector's own light. So a frame with light but no fringe on it was not lit, whatever
+    the projector's driver says (a dead LED, a drive level of 0). Relative to the light, not
+    to the calibration's reference plane, so that a dark iris or a grey face is judged as
+    fairly as the white plate.
+    """
+    pixels = np.asarray(image, dtype=np.float32)
+    result = demodulate(pixels, carrier, measure_bends=False)
+    light = cv2.GaussianBlur(pixels - result.modulation * np.cos(result.wrapped_phase),
+                             (0, 0), 2.0)
+    seen = float(np.percentile(light, 95))
+    bright = light >= 0.5 * seen
+    contrast = float(np.median(result.modulation[bright] / np.maximum(light[bright], 1e-3))) \
+        if seen > 0 and bright.any() else 0.0
+    return FringeCheck(seen, contrast)
+
+
 @dataclass
 class Phase:
     """A camera image demodulated against its reference: wrapped Δφ, modulation and mask."""

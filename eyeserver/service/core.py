@@ -42,7 +42,7 @@ from eyeserver.config import Settings
 from eyeserver.errors import DeviceError, DeviceValueError, EyeserverError, StateConflictError
 from eyeserver.hardware.base import Device, Stage
 from eyeserver.hardware.bundling import bundle_bit_depth, bundle_frames
-from eyeserver.hardware.rig import Rig
+from eyeserver.hardware.rig import AcquiredStep, Rig
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.drivers import build_sim_rig
 from eyeserver.hardware.sim.room import SimRoom
@@ -57,6 +57,8 @@ from eyeserver.io import (
     rig_from_dict,
     write_ply,
 )
+from eyeserver.pipeline.demodulate import Carrier
+from eyeserver.pipeline.reconstruct import MIN_FRINGE_CONTRAST, fringe_check
 from eyeserver.service.audit import SALT_FILE, AuditTrail, audit_log_path
 from eyeserver.service.calibration_files import input_capture_ids
 from eyeserver.service.device_control import apply_settings, check_settings
@@ -207,6 +209,7 @@ class Service:
         self._results_lock = threading.Lock()  # a capture's cloud and summary change together
         self._state: ServiceState = "idle"
         self._faults: dict[str, str] = {}  # device id -> reason
+        self._carrier_cache: tuple[str, dict[str, Carrier] | None] | None = None
         self._store: Store | None = None
         self._rig: Rig | None = None
         self._started = time.monotonic()
@@ -516,16 +519,70 @@ class Service:
                 raise
             frames = bundle_frames(steps)
             active = store.active_calibration()
+            checks, dark = self._fringe_checks(active, steps)
+            extra: dict[str, object] = {"simulated": self._sim_room is not None}
+            if checks is not None:
+                extra["fringe_check"] = checks
             record = store.add_capture(
                 "measurement", rig_from_dict(rig.spec(), "<daemon rig>"), frames, unit=unit,
                 calibration_id=None if active is None else active.id,
-                bit_depth=bundle_bit_depth(rig, frames),
-                extra={"simulated": self._sim_room is not None})
+                bit_depth=bundle_bit_depth(rig, frames), extra=extra)
             self.metrics.capture_stored(unit, steps)
             self.events.publish("capture.stored", capture_id=record.id, unit=unit,
                                 calibration_id=record.calibration_id)
+            if dark:
+                # Kept (the evidence of the fault), but not handed on as a measurement.
+                errors = [DeviceError(projector_id, f"{reason} (capture {record.id} kept)")
+                          for projector_id, reason in dark.items()]
+                for error in errors:
+                    self._mark_fault(error)
+                raise errors[0]
         _log.info("capture stored", extra={"capture_id": record.id, "unit": unit})
         return record
+
+    def _fringe_checks(self, active: CalibrationRecord | None, steps: Sequence[AcquiredStep]
+                       ) -> tuple[dict[str, dict[str, object]] | None, dict[str, str]]:
+        """Every lit frame's :func:`~eyeserver.pipeline.reconstruct.fringe_check` against the
+        active calibration's carriers (None without one that has them: nothing to check
+        against), and the projectors whose cameras all showed a scene but none its fringes,
+        with the reason."""
+        carriers = self._carriers(active)
+        if carriers is None:
+            return None, {}
+        checks: dict[str, dict[str, object]] = {}
+        dark: dict[str, str] = {}
+        for step in steps:
+            seen = {camera_id: fringe_check(carriers[camera_id], frame.image)
+                    for camera_id, frame in step.frames.items() if camera_id in carriers}
+            checks.update({camera_id: check.to_dict() for camera_id, check in seen.items()})
+            judged = [c for c in seen.values() if c.judged]
+            if judged and all(c.dark for c in judged):
+                contrast = max(c.contrast for c in judged)
+                for projector_id in step.pulse.step.projectors:
+                    dark[projector_id] = (
+                        f"no fringes in the frames it lit ({', '.join(seen)}: contrast "
+                        f"{contrast:.2f}, below {MIN_FRINGE_CONTRAST}): the projector gives "
+                        "no light")
+        return checks, dark
+
+    def _carriers(self, active: CalibrationRecord | None) -> dict[str, Carrier] | None:
+        """The active calibration's carrier per camera (cached by calibration id), or None."""
+        if active is None:
+            return None
+        cached = self._carrier_cache
+        if cached is not None and cached[0] == active.id:
+            return cached[1]
+        carriers: dict[str, Carrier] | None = None
+        try:
+            document = load_calibration(active.path, self.rig_spec())
+            section = document.get("phase_to_height") or {}
+            carriers = {camera_id: Carrier(tuple(entry["carrier_cycles_per_px"]))
+                        for camera_id, entry in section.get("cameras", {}).items()} or None
+        except EyeserverError as exc:  # the captures say it: no fringe_check in their bundle
+            _log.warning("no fringe check: the active calibration cannot be read",
+                         extra={"calibration_id": active.id, "reason": str(exc)})
+        self._carrier_cache = (active.id, carriers)
+        return carriers
 
     # --- calibration sessions ---------------------------------------------------------------
 
