@@ -68,6 +68,28 @@ def test_a_fresh_daemon_lists_every_device_camera_and_queue(client: Client,
     assert samples[("eyeserver_events_dropped_total", ())] == 0
     assert samples[("eyeserver_event_subscribers", ())] == 0
     assert samples[("eyeserver_reconstruction_seconds_count", ())] == 0
+    # Live tracking is listed before its first session: nothing watches the eye, so held.
+    assert samples[("eyeserver_tracking_running", ())] == 0
+    assert samples[("eyeserver_tracking_beam_hold", ())] == 1
+    for outcome in ("acquired", "processed", "dropped", "missed", "held"):
+        assert samples[("eyeserver_tracking_frames_total", (("outcome", outcome),))] == 0
+    assert samples[("eyeserver_tracking_stalls_total", ())] == 0
+    assert types["eyeserver_tracking_latency_seconds"] == "histogram"
+    assert samples[("eyeserver_tracking_latency_seconds_count", ())] == 0
+
+
+def test_a_calibration_sessions_frames_are_counted(client: Client, service: Service) -> None:
+    service.hold_session("s-metrics")
+    try:
+        service.acquire_for_session("s-metrics", lit=True)
+        service.acquire_for_session("s-metrics", lit=False)
+    finally:
+        service.release_session("s-metrics")
+
+    _, samples = _scrape(client)
+
+    for camera in service.rig.cameras:  # one lit frame, one under the room lights
+        assert samples[("eyeserver_frames_acquired_total", (("camera", camera.id),))] == 2
 
 
 def test_captures_reconstructions_and_faults_are_counted(client: Client,

@@ -22,6 +22,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 from fastapi import FastAPI
+from prometheus_client.parser import text_string_to_metric_families
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 
@@ -797,6 +798,14 @@ def test_tracking_starts_streams_and_stops_through_the_api(
     assert frames == sorted(frames)
     assert _post(base_url, "/tracking/stop").status_code == 409
     assert _post(base_url, "/captures", {"unit": "left"}).status_code == 201
+    metrics = httpx.get(f"{base_url}/metrics", headers=auth(OPERATOR_TOKEN), timeout=TIMEOUT_S)
+    samples = {(sample.name, tuple(sorted(sample.labels.items()))): sample.value
+               for family in text_string_to_metric_families(metrics.text)
+               for sample in family.samples}
+    processed = samples[("eyeserver_tracking_frames_total", (("outcome", "processed"),))]
+    assert processed >= final["frames_processed"]  # earlier sessions of this module count too
+    assert samples[("eyeserver_tracking_latency_seconds_count", ())] >= final["frames_processed"]
+    assert samples[("eyeserver_tracking_running", ())] == 0
 
 
 def test_the_pose_stream_beats_when_there_is_nothing_to_send_and_status_shows_the_hold(

@@ -677,6 +677,7 @@ class Service:
                 self._mark_fault(exc)
                 self._reset_cameras(rig.cameras, exc.device_id)
                 raise
+            self.metrics.frames_read(steps)
             frames = bundle_frames(steps, z_mm)
             return frames, bundle_bit_depth(rig, frames)
         finally:

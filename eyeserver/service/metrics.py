@@ -8,7 +8,8 @@ metric                                         type     labels / meaning
                                                         the others (idle, capturing, …, fault)
 ``eyeserver_device_up``                        gauge    ``device``, ``kind``, ``unit``: 1 ok,
                                                         0 in fault
-``eyeserver_frames_acquired_total``            counter  ``camera``: frames read in captures
+``eyeserver_frames_acquired_total``            counter  ``camera``: frames read in captures and
+                                                        calibration sessions
 ``eyeserver_frames_dropped_total``             counter  ``camera``: exposures the camera lost
                                                         (since it was last opened: a reopen after
                                                         a fault resets it, which Prometheus reads
@@ -20,6 +21,15 @@ metric                                         type     labels / meaning
                                                         jobs waiting
 ``eyeserver_queue_capacity``                   gauge    ``queue``: jobs that may wait
 ``eyeserver_events_dropped_total``             counter  events lost by slow stream clients
+``eyeserver_tracking_running``                 gauge    1 while live tracking runs
+``eyeserver_tracking_beam_hold``               gauge    1 while the beam is held (also when no
+                                                        tracking runs: nothing watches the eye)
+``eyeserver_tracking_frames_total``            counter  ``outcome``: acquired, processed,
+                                                        dropped, missed, held (over all sessions)
+``eyeserver_tracking_stalls_total``            counter  times no processed frame came within
+                                                        the deadline (the fail-safe hold)
+``eyeserver_tracking_latency_seconds``         histo.   mid-exposure to publication of each
+                                                        processed frame
 ``eyeserver_event_subscribers``                gauge    open live-stream subscriptions
 ``process_*``                                  …        prometheus_client's process figures
                                                         (start time, CPU, memory, files)
@@ -35,7 +45,7 @@ from __future__ import annotations
 
 import threading
 from collections import Counter
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 from prometheus_client import CollectorRegistry, Histogram, ProcessCollector, generate_latest
@@ -48,7 +58,8 @@ from eyeserver.hardware.rig import AcquiredStep
 if TYPE_CHECKING:
     from eyeserver.service.core import Service
 
-__all__ = ["CONTENT_TYPE", "RECONSTRUCTION_BUCKETS_S", "SERVICE_STATES", "ServiceMetrics"]
+__all__ = ["CONTENT_TYPE", "RECONSTRUCTION_BUCKETS_S", "SERVICE_STATES", "TRACKING_OUTCOMES",
+           "ServiceMetrics", "TrackingFigures"]
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 """The media type of :meth:`ServiceMetrics.render`: the classic text format, which every
@@ -58,14 +69,27 @@ escaping)."""
 RECONSTRUCTION_BUCKETS_S = (0.1, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 30.0, 60.0)
 """Upper bounds of the reconstruction-time buckets, seconds (one fused cloud takes ~1 s)."""
 
+TRACKING_LATENCY_BUCKETS_S = (0.01, 0.02, 0.03, 0.04, 0.06, 0.08, 0.12, 0.25, 0.5, 1.0)
+"""Upper bounds of tracking's latency buckets, seconds (the goal: p99 ≤ 40 ms)."""
+
+TRACKING_OUTCOMES = ("acquired", "processed", "dropped", "missed", "held")
+"""The frame counts of :data:`TrackingFigures`, as ``eyeserver_tracking_frames_total``'s
+``outcome`` label."""
+
+TrackingFigures = Mapping[str, float]
+"""What live tracking reports at a scrape: ``running`` and ``beam_hold`` (0 or 1), ``stalls``
+and each of :data:`TRACKING_OUTCOMES`, summed over every session so far."""
+
 SERVICE_STATES = ("idle", "capturing", "calibrating", "tracking", "fault")
 
 
 class ServiceMetrics:
     """The counters of one :class:`~eyeserver.service.core.Service` and their exposition.
 
-    The service calls :meth:`capture_stored` and :meth:`reconstruction_done`; :meth:`render`
-    reads everything else from the service at scrape time. Thread-safe.
+    The service calls :meth:`capture_stored`, :meth:`frames_read` and
+    :meth:`reconstruction_done`, live tracking :meth:`tracking_latency` and registers its
+    figures (:attr:`tracking`); :meth:`render` reads everything else from the service at scrape
+    time. Thread-safe.
     """
 
     def __init__(self, service: Service) -> None:
@@ -77,6 +101,11 @@ class ServiceMetrics:
         self._reconstruction = Histogram(
             "eyeserver_reconstruction_seconds", "Time of one reconstruction on its worker.",
             buckets=RECONSTRUCTION_BUCKETS_S, registry=self.registry)
+        self._latency = Histogram(
+            "eyeserver_tracking_latency_seconds", "Live tracking: mid-exposure to publication.",
+            buckets=TRACKING_LATENCY_BUCKETS_S, registry=self.registry)
+        self.tracking: Callable[[], TrackingFigures] | None = None
+        """Live tracking's figures at a scrape (set by the daemon's tracking control)."""
         self.registry.register(_LiveCollector(self))
         ProcessCollector(registry=self.registry)
 
@@ -84,8 +113,17 @@ class ServiceMetrics:
         """Count a stored capture of ``unit`` and the frames each camera gave for it."""
         with self._lock:
             self._captures[unit] += 1
+        self.frames_read(steps)
+
+    def frames_read(self, steps: Sequence[AcquiredStep]) -> None:
+        """Count the frames each camera gave (a capture's, a calibration session's)."""
+        with self._lock:
             for step in steps:
                 self._frames.update(step.frames.keys())
+
+    def tracking_latency(self, seconds: float) -> None:
+        """Count one tracked frame published ``seconds`` after its mid-exposure."""
+        self._latency.observe(seconds)
 
     def reconstruction_done(self, duration_s: float) -> None:
         """Count one reconstruction that took ``duration_s`` seconds."""
@@ -153,6 +191,26 @@ class _LiveCollector:
         for unit in _union(units, ["all"], captures):
             stored.add_metric([unit], captures.get(unit, 0))
         yield stored
+        figures = self._metrics.tracking
+        if figures is not None:
+            yield from _tracking(figures())
+
+
+def _tracking(figures: TrackingFigures) -> Iterator[Metric]:
+    for name, text in (("running", "1 while live tracking runs."),
+                       ("beam_hold", "1 while the beam is held (also when nothing is tracked).")):
+        gauge = GaugeMetricFamily(f"eyeserver_tracking_{name}", text)
+        gauge.add_metric([], figures[name])
+        yield gauge
+    frames = CounterMetricFamily("eyeserver_tracking_frames", "Live tracking's frames, over "
+                                 "all sessions.", labels=["outcome"])
+    for outcome in TRACKING_OUTCOMES:
+        frames.add_metric([outcome], figures[outcome])
+    yield frames
+    stalls = CounterMetricFamily("eyeserver_tracking_stalls", "Times no processed frame came "
+                                 "within the deadline (the fail-safe held the beam).")
+    stalls.add_metric([], figures["stalls"])
+    yield stalls
 
 
 def _queues(service: Service) -> Iterator[Metric]:

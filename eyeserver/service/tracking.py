@@ -109,6 +109,7 @@ from eyeserver.pipeline.reconstruct import (
 from eyeserver.service.beamhold import BeamHold, BeamHoldConfig, EyeSeen, FrameObservation
 from eyeserver.service.core import NoActiveCalibrationError, Service
 from eyeserver.service.events import EventBus
+from eyeserver.service.metrics import TRACKING_OUTCOMES, TrackingFigures
 from eyeserver.service.patients import Patients, Tolerances
 from eyeserver.service.reconstruction import ReconstructionError, calibrated_cameras, z_range
 from eyeserver.service.tracking_worker import PoseWorker
@@ -638,6 +639,8 @@ class TrackingSession:
         The fail-safe: a watchdog thread holds the beam when no processed frame has been
         published for this long (:meth:`check_deadline`; the daemon's default
         :data:`DEADLINE_S`). None: no watchdog thread (tests call :meth:`check_deadline`).
+    on_latency : callable, optional
+        Given each published frame's latency (seconds from mid-exposure), for the metrics.
     expected : EyePose, optional
         The last pose until the first frame is processed (:func:`start_pose` of the
         reference): the first frame is followed from where the eye should be, like any other
@@ -653,7 +656,7 @@ class TrackingSession:
                  dwell_frames: int = 3, hold_on_drop: bool = True,
                  deadline_s: float | None = None,
                  info: dict[str, Any] | None = None, expected: EyePose | None = None,
-                 ) -> None:
+                 on_latency: Callable[[float], None] | None = None) -> None:
         if deadline_s is not None and not deadline_s > 0:
             raise ValueError(f"deadline_s must be positive, not {deadline_s}")
         self.source = source
@@ -683,6 +686,7 @@ class TrackingSession:
         self._last_frame = -1
         self._processing = 0  # processing threads still at work
         self.deadline_s = deadline_s
+        self.on_latency = on_latency
         # The watchdog's marks on the clock: the last message published, the last frame set in.
         self._published_ns = self._arrived_ns = clock.now_ns()
 
@@ -789,6 +793,8 @@ class TrackingSession:
             counters.stall = None
             self._published_ns = now_ns
         self.bus.publish("pose", **message)
+        if self.on_latency is not None:
+            self.on_latency((now_ns - frame_set.t_ns) / 1e9)
         return message
 
     def check_deadline(self) -> dict[str, Any] | None:
@@ -970,6 +976,13 @@ class TrackingSession:
                     "error": counters.error, "last_message": counters.last}
 
 
+def _frame_counts(status: dict[str, Any]) -> dict[str, int]:
+    """A session status's counts under the metrics' names."""
+    return {"acquired": status["frames_acquired"], "processed": status["frames_processed"],
+            "dropped": status["frames_dropped"], "missed": status["frames_missed"],
+            "held": status["frames_held"], "stalls": status["stalls"]}
+
+
 def _now_text() -> str:
     return datetime.now(UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
@@ -1051,6 +1064,8 @@ class TrackingControl:
         self._lock = threading.Lock()
         self._session: TrackingSession | None = None
         self._hold: ExitStack | None = None
+        self._totals: dict[str, int] = dict.fromkeys((*TRACKING_OUTCOMES, "stalls"), 0)
+        service.metrics.tracking = self.figures
         self._last_status: dict[str, Any] | None = None
 
     @property
@@ -1100,6 +1115,7 @@ class TrackingControl:
                     tolerances=patient.tolerances, bus=self.messages, clock=self.clock,
                     dwell_frames=dwell_frames, hold_on_drop=hold_on_drop,
                     deadline_s=self.deadline_s, expected=start_pose(reference.pose, model),
+                    on_latency=service.metrics.tracking_latency,
                     info={"patient_id": patient_id, "fraction": fraction,
                           "unit": patient.unit, "rate_hz": CAMERA_RATE_HZ,
                           "workers": self.workers,
@@ -1126,6 +1142,8 @@ class TrackingControl:
             if self._session is not session or self._hold is None:
                 return
             hold, self._hold = self._hold, None
+            for name, value in _frame_counts(session.status()).items():
+                self._totals[name] += value
         hold.close()
         status = session.status()
         self.service.events.publish("tracking.stopped", frames_processed=status[
@@ -1162,6 +1180,19 @@ class TrackingControl:
                     "frames_held": 0, "beam_hold": True, "stalled": None, "stalls": 0,
                     "deadline_ms": None, "error": None, "last_message": None}
         return session.status()
+
+    def figures(self) -> TrackingFigures:
+        """For the metrics: ``running``, ``beam_hold`` and the frame counts and stalls summed
+        over every session so far (:data:`~eyeserver.service.metrics.TrackingFigures`)."""
+        with self._lock:
+            session = self._session if self._hold is not None else None
+            totals = dict(self._totals)
+        status = self.status()
+        if session is not None:
+            for name, value in _frame_counts(session.status()).items():
+                totals[name] += value
+        return {**totals, "running": float(status["running"]),
+                "beam_hold": float(status["beam_hold"])}
 
     def close(self) -> None:
         """Stop a running session (the daemon is shutting down). Idempotent."""
