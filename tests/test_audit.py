@@ -141,6 +141,22 @@ def test_only_physicists_read_the_audit(client: Client) -> None:
     assert client.get(f"{API}/audit", headers={"Authorization": ""}).status_code == 401
 
 
+def test_a_request_the_role_may_not_make_is_audited_as_denied(client: Client,
+                                                             service: Service) -> None:
+    denied = client.post(f"{API}/patients/P-SECRET-7/eye-models", json={},
+                         headers=auth(OPERATOR_TOKEN))
+
+    assert denied.status_code == 403
+    last = _lines(service.audit.path)[-1]
+    assert (last["actor"], last["role"], last["action"], last["outcome"]) == (
+        "operator", "operator", "denied", "denied")
+    assert last["target"] == "POST /api/v1/patients/{patient_id}/eye-models"
+    assert last["detail"] == {"needs": "physicist"}
+    assert "P-SECRET-7" not in service.audit.path.read_text()
+    physicist = client.get(f"{API}/audit").json()
+    assert physicist["entries"][0]["outcome"] == "denied"
+
+
 # --- the pieces -----------------------------------------------------------------------------
 
 

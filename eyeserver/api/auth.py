@@ -145,6 +145,22 @@ def _table(app_state: Any) -> TokenTable:
     return table
 
 
+def _audit_denied(request: Request, caller: Caller, role: Role) -> None:
+    """A known caller tried what its role may not: an audit line (``outcome`` ``denied``) naming
+    the route by its template (``/api/v1/patients/{patient_id}``), never by the path, which can
+    hold a patient id."""
+    service = getattr(request.app.state, "service", None)
+    audit = getattr(service, "audit", None)
+    if audit is None:
+        return
+    # The path with each path parameter's segment put back as its name.
+    names = {str(value): name for name, value in request.path_params.items()}
+    template = "/".join(f"{{{names[part]}}}" if part in names else part
+                        for part in request.url.path.split("/"))
+    audit.record(caller.name, "denied", f"{request.method} {template}", {"needs": role},
+                 "denied")
+
+
 def require(role: Role) -> Callable[..., Coroutine[Any, Any, Caller]]:
     """A dependency that answers 401 without a valid token and 403 below ``role``."""
 
@@ -162,6 +178,7 @@ def require(role: Role) -> Callable[..., Coroutine[Any, Any, Caller]]:
                 "the Authorization header must be 'Bearer <token>'",
                 headers={"WWW-Authenticate": "Bearer"})
         if not caller.may(role):
+            _audit_denied(request, caller, role)
             raise HTTPException(status.HTTP_403_FORBIDDEN,
                                 f"{caller.name} ({caller.role}) may not do this: it needs the "
                                 f"{role} role")

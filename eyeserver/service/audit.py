@@ -72,7 +72,7 @@ SYSTEM_ROLE = "system"
 
 PATIENT_ID_FIELD = "patient_id"
 
-Outcome = Literal["ok", "error"]
+Outcome = Literal["ok", "error", "denied"]
 
 _log = logging.getLogger(__name__)
 

@@ -34,7 +34,7 @@ class AuditLine(BaseModel):
     target: str = Field(description="The capture, calibration or device acted on.")
     detail: dict[str, Any] = Field(default_factory=dict,
                                    description="What else was recorded (patient ids hashed).")
-    outcome: Literal["ok", "error"]
+    outcome: Literal["ok", "error", "denied"]
 
 
 class AuditList(BaseModel):
