@@ -128,11 +128,14 @@ class _Reader:
             self.thread.start()
 
     def drain(self, timeout_s: float = 5.0) -> None:
-        """Read what is waiting (the silent client, at the end)."""
+        """Read what is waiting (the silent client, at the end): up to the first heartbeat,
+        which the daemon sends only once it has had nothing else to send for a second."""
         try:
             while True:
                 text = self.ws.recv(timeout=timeout_s)
                 self._received.append((time.monotonic_ns(), text))
+                if json.loads(text).get("type") == "heartbeat":
+                    return
         except TimeoutError:
             return
         except Exception as exc:  # e.g. closed by the server's keep-alive: it never answered
