@@ -602,7 +602,8 @@ class _Recorded(EventBus):
         self.messages: list[dict[str, Any]] = []
 
     def publish(self, type: str, **data: Any) -> int:
-        self.messages.append(data)
+        if type == "pose":  # not the fail-safe's holds (the first global fit, the end)
+            self.messages.append(data)
         return 0
 
 
