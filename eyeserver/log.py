@@ -17,11 +17,12 @@ from __future__ import annotations
 
 import json as jsonlib
 import logging
+import re
 import sys
 from datetime import UTC, datetime
 from typing import Any, TextIO
 
-__all__ = ["JsonFormatter", "configure_logging"]
+__all__ = ["JsonFormatter", "TokenRedactor", "configure_logging", "redacted"]
 
 # Attributes every LogRecord has; anything else on a record came in through ``extra=``.
 _RECORD_ATTRIBUTES = frozenset(
@@ -33,6 +34,36 @@ _RECORD_ATTRIBUTES = frozenset(
 _DROPPED_EXTRAS = frozenset({"color_message"})
 
 _TEXT_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+
+
+_SECRETS = re.compile(r"(?i)(?P<key>[?&;](?:access_)?token=|bearer\s+)(?P<value>[^&;\s\"']+)")
+REDACTED = "[redacted]"
+
+
+def redacted(text: str) -> str:
+    """``text`` with the value of every ``token=`` query parameter and ``Bearer`` credential
+    replaced by ``[redacted]``."""
+    return _SECRETS.sub(lambda m: m.group("key") + REDACTED, text)
+
+
+class TokenRedactor(logging.Filter):
+    """Takes tokens out of every record before it is formatted: uvicorn logs request paths
+    with their query string (``/api/v1/ws/pose?token=…``, the documented way for a browser)
+    and would write the token to the journal otherwise (issue 35). Rewrites the message and
+    its string arguments; never drops a record."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if isinstance(record.msg, str):
+            record.msg = redacted(record.msg)
+        if isinstance(record.args, tuple):
+            record.args = tuple(redacted(a) if isinstance(a, str) else a for a in record.args)
+        elif isinstance(record.args, dict):
+            record.args = {k: redacted(v) if isinstance(v, str) else v
+                           for k, v in record.args.items()}
+        for key, value in list(record.__dict__.items()):
+            if key not in _RECORD_ATTRIBUTES and isinstance(value, str):
+                setattr(record, key, redacted(value))
+        return True
 
 
 def _access_fields(record: logging.LogRecord) -> dict[str, Any]:
@@ -127,6 +158,7 @@ def configure_logging(level: str | int = "info", json: bool = True) -> None:
             root.removeHandler(handler)
             handler.close()
     handler = _StderrHandler()
+    handler.addFilter(TokenRedactor())
     handler.setFormatter(JsonFormatter() if json else logging.Formatter(_TEXT_FORMAT))
     root.addHandler(handler)
     root.setLevel(level)

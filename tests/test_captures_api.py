@@ -272,6 +272,37 @@ def test_options_are_used_and_recorded(client: Client, service: Service,
     assert cloud.quality is not None and cloud.quality.min() >= 0.05
 
 
+def test_an_empty_scene_reconstructs_to_an_empty_cloud_with_its_reason(
+        client: Client, active_id: str) -> None:
+    # Issue 35: 500, and the stored summary (no extent_mm) made every later GET 500.
+    before = client.get(f"{API}/sim/scene").json()
+    assert client.put(f"{API}/sim/scene", json={"kind": "empty"}).status_code == 200
+    try:
+        capture_id = _capture(client)["id"]
+    finally:
+        assert client.put(f"{API}/sim/scene", json=before).status_code == 200
+
+    made = client.post(f"{API}/captures/{capture_id}/reconstruction")
+    again = client.get(f"{API}/captures/{capture_id}/reconstruction")
+
+    assert made.status_code == 200, made.text
+    assert made.json()["points"] == 0 and made.json()["extent_mm"] is None
+    assert made.json()["empty_reason"].startswith("no surface was reconstructed")
+    assert again.status_code == 200 and again.json() == made.json()
+
+
+def test_offsets_beyond_what_the_store_holds_are_422(client: Client) -> None:
+    huge = "99999999999999999999"
+    answers = [client.get(f"{API}/captures", params={"offset": huge}),
+               client.get(f"{API}/pose/measurements",
+                          params={"patient_id": "P", "offset": "2785830935783066828800"}),
+               client.get(f"{API}/patients/P/eye-models/"
+                          "108528543049643317716051804321908523008")]
+
+    assert [a.status_code for a in answers] == [422, 422, 422], [a.text for a in answers]
+    assert client.get(f"{API}/captures", params={"offset": str(2**63 - 1)}).status_code == 200
+
+
 @pytest.mark.parametrize(("body", "problem"), [
     ({"method": "fast"}, "method"),
     ({"roi": [0, 0, 0, 1, 1]}, "roi"),

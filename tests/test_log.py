@@ -74,3 +74,23 @@ def test_level_filters_and_reconfiguring_replaces_the_handler(
 def test_unknown_level_is_rejected() -> None:
     with pytest.raises(ValueError, match="level"):
         configure_logging("chatty")
+
+
+def test_no_token_ever_reaches_a_log_line(capsys: pytest.CaptureFixture[str]) -> None:
+    configure_logging("info", json=True)
+    access = logging.getLogger("uvicorn.access")
+    access.info('%s - "%s %s HTTP/%s" %d', "127.0.0.1:5", "GET",
+                "/api/v1/ws/pose?token=s3cr3t-one&x=1", "1.1", 101)
+    logging.getLogger("uvicorn.error").info('%s - "WebSocket %s" [accepted]', "127.0.0.1:5",
+                                            "/api/v1/ws/events?access_token=s3cr3t-two")
+    logging.getLogger("eyeserver.test").warning("Authorization: Bearer s3cr3t-three",
+                                                extra={"url": "/x?token=s3cr3t-four"})
+    configure_logging("info", json=False)
+    access.info('%s - "%s %s HTTP/%s" %d', "127.0.0.1:5", "GET", "/?token=s3cr3t-five", "1.1",
+                200)
+
+    err = capsys.readouterr().err
+    assert "s3cr3t" not in err
+    assert err.count("[redacted]") == 6  # the access line has it in message and path
+    first = json.loads(err.splitlines()[0])
+    assert first["path"] == "/api/v1/ws/pose?token=[redacted]&x=1"

@@ -76,6 +76,9 @@ def test_serve_answers_health_and_stops(tmp_path: Path) -> None:
         try:
             response = _wait_until_healthy(process, f"http://127.0.0.1:{port}/api/v1/health", log)
             assert response.json()["status"] == "ok"
+            # The browser's way to a stream puts the token in the query: never in the log.
+            httpx.get(f"http://127.0.0.1:{port}/api/v1/status?token=never-logged-7f3a",
+                      timeout=30)
             assert data_dir.is_dir()
         finally:
             if process.poll() is None:
@@ -93,3 +96,5 @@ def test_serve_answers_health_and_stops(tmp_path: Path) -> None:
     messages = [record["message"] for record in records]
     assert "eyeserver starting" in messages
     assert "eyeserver stopped" in messages
+    assert "never-logged-7f3a" not in log.read_text()
+    assert any("token=[redacted]" in str(record.get("path")) for record in records)

@@ -8,6 +8,7 @@ seconds on first capture); every test places the scene it needs and leaves the d
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -211,6 +212,39 @@ def test_an_unplugged_projector_fails_the_capture_and_recovers_on_replug_alone(
     assert replugged.status_code == 200
     assert after["state"] == "idle" and all(d["health"] == "ok" for d in after["devices"])
     assert recovered.status_code == 201, recovered.text
+
+
+@pytest.mark.parametrize(("path", "body"), [
+    ("/sim/scene", {"kind": "eye", "rotation_deg": [0, math.inf, 0]}),
+    ("/sim/scene", {"kind": "eye", "position_mm": [0, 0, math.nan]}),
+    ("/sim/scene", {"kind": "eye", "position_mm": [1e308, 0, 0]}),
+    ("/sim/scene", {"kind": "chessboard", "square_mm": math.inf}),
+    ("/sim/scene", {"kind": "eye", "eye": {"gaze_deg": [1e308, 0]}}),
+    ("/sim/scene", {"kind": "eye", "eye": {"aperture_mm": [math.inf, 7.5]}}),
+    ("/sim/chessboard", {"position_mm": [0, -math.inf, 0]}),
+    ("/sim/chessboard", {"rotation_deg": [1e308, 0, 0]}),
+    ("/sim/eye", {"gaze_deg": [math.nan, 0]}),
+    ("/sim/eye", {"position_mm": [0, 0, 1e308]}),
+    ("/sim/eye", {"motion": {"saccade_rate_hz": 1e5}}),
+    ("/sim/eye", {"motion": {"drift_deg": math.inf}}),
+    ("/sim/eye", {"motion": {"script": [{"t_s": 1e308, "kind": "blink"}]}}),
+    ("/sim/eye", {"motion": {"script": [{"t_s": 1, "kind": "shift",
+                                         "shift_mm": [math.nan, 0, 0]}]}}),
+])
+def test_every_number_of_a_scene_is_finite_and_bounded_422(client: Client, path: str,
+                                                             body: dict[str, Any]) -> None:
+    # Issue 35: an infinite rotation was accepted (200), then every capture, GET /sim/eye and
+    # /sim/truth answered 500 until the scene was replaced.
+    client.put(f"{API}/sim/scene", json={"kind": "eye"})
+    before = client.get(f"{API}/sim/scene").json()
+
+    refused = client.put(f"{API}{path}", content=json.dumps(body, allow_nan=True),
+                         headers={"content-type": "application/json"})
+
+    assert refused.status_code == 422, refused.text
+    assert client.get(f"{API}/sim/scene").json() == before
+    assert client.get(f"{API}/sim/eye").status_code == 200
+    assert client.get(f"{API}/sim/truth").status_code == 200
 
 
 def test_device_cables_need_a_known_device_and_a_physicist(client: Client) -> None:

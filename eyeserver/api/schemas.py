@@ -29,6 +29,11 @@ _CAPTURE_ID_EXAMPLE = "cap-20261123T151200123Z-4f2a"
 _CALIBRATION_ID_EXAMPLE = "cal-20261123T151200123Z-9c1d"
 
 
+MAX_SQL_INT = 2**63 - 1
+"""The largest integer SQLite stores: offsets and versions beyond it are 422, not a 500 from
+the store (issue 35)."""
+
+
 class HealthResponse(BaseModel):
     """The daemon is up and answering."""
 
@@ -256,7 +261,11 @@ class ReconstructionResponse(BaseModel):
     calibration_id: str = Field(description="The (active) calibration used.",
                                 examples=[_CALIBRATION_ID_EXAMPLE])
     points: int = Field(description="Points in the fused cloud.", examples=[240000])
-    extent_mm: Extent | None = Field(description="Bounding box; null for an empty cloud.")
+    extent_mm: Extent | None = Field(None, description="Bounding box; null for an empty "
+                                     "cloud.")
+    empty_reason: str | None = Field(None, description="Why the cloud is empty (a valid "
+                                     "answer: nothing in view carried fringes); null when it "
+                                     "is not.")
     cameras: dict[str, CameraSurface] = Field(description="Per camera, by camera id.")
     dropped: dict[str, int] = Field(
         description="Points removed during fusion, by reason.",

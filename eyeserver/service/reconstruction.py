@@ -137,6 +137,11 @@ def unit_pairs(bundle: Bundle) -> list[tuple[int, str, str]]:
     return [(index, ids[0], ids[1]) for (index, _), ids in by_unit.items() if len(ids) >= 2]
 
 
+EMPTY_REASON = ("no surface was reconstructed: nothing in the cameras' view carried its "
+                "projector's fringes (an empty room, a dark projector)")
+"""Why a reconstruction's cloud is empty: a valid answer, stated in its summary."""
+
+
 def limbus_views(calibration: str | Path, bundle_path: str | Path) -> list[LimbusView]:
     """Each camera's first fringe image in a bundle, with its calibration: where the eye fit
     looks for the limbus (:func:`~eyeserver.pipeline.eyepose.fit_eye`)."""
@@ -227,4 +232,8 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
     if len(cloud):
         summary["extent_mm"] = {"min": cloud.points.min(axis=0).tolist(),
                                 "max": cloud.points.max(axis=0).tolist()}
+    else:
+        summary["extent_mm"] = None
+        summary["empty_reason"] = EMPTY_REASON if not region and not min_quality else \
+            f"{EMPTY_REASON}, or the region or minimum quality left none"
     return cloud, summary

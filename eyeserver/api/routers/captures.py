@@ -16,6 +16,7 @@ from starlette.concurrency import run_in_threadpool
 from eyeserver.api.auth import PhysicistDep
 from eyeserver.api.deps import ServiceDep
 from eyeserver.api.schemas import (
+    MAX_SQL_INT,
     CaptureList,
     CaptureRequest,
     CaptureResponse,
@@ -84,7 +85,7 @@ async def create_capture(request: CaptureRequest, service: ServiceDep) -> Captur
 async def list_captures(
     service: ServiceDep,
     limit: Annotated[int, Query(ge=1, le=1000, description="Page size.")] = 50,
-    offset: Annotated[int, Query(ge=0, description="Captures to skip.")] = 0,
+    offset: Annotated[int, Query(ge=0, le=MAX_SQL_INT, description="Captures to skip.")] = 0,
     unit: Annotated[str | None, Query(description="Only captures of this unit "
                                                   "(or 'all').")] = None,
     kind: Annotated[BundleKind | None, Query(description="Only captures of this bundle "

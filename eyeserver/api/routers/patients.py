@@ -16,7 +16,7 @@ from starlette.concurrency import run_in_threadpool
 
 from eyeserver.api.auth import PhysicistDep
 from eyeserver.api.deps import ServiceDep, app_state
-from eyeserver.api.schemas import ErrorResponse
+from eyeserver.api.schemas import MAX_SQL_INT, ErrorResponse
 from eyeserver.service.patients import (
     DEFAULT_MIN_CONFIDENCE,
     DEFAULT_TOLERANCE_GAZE_DEG,
@@ -193,7 +193,8 @@ async def list_eye_models(patient_id: PatientIdPath, patients: PatientsDep) -> E
 @router.get("/{patient_id}/eye-models/{version}", summary="One eye-model version",
             responses={404: {"model": ErrorResponse, "description": "No such patient or "
                              "version."}})
-async def get_eye_model(patient_id: PatientIdPath, version: Annotated[int, Path(ge=1)],
+async def get_eye_model(patient_id: PatientIdPath,
+                        version: Annotated[int, Path(ge=1, le=MAX_SQL_INT)],
                         patients: PatientsDep) -> EyeModelResponse:
     """One stored version."""
     record = await run_in_threadpool(patients.eye_model, patient_id, version)

@@ -16,7 +16,7 @@ from starlette.concurrency import run_in_threadpool
 
 from eyeserver.api.auth import OperatorDep
 from eyeserver.api.routers.patients import VerificationDep
-from eyeserver.api.schemas import ErrorResponse
+from eyeserver.api.schemas import MAX_SQL_INT, ErrorResponse
 from eyeserver.service.patients import PATIENT_ID_PATTERN
 
 __all__ = ["router"]
@@ -103,7 +103,7 @@ async def list_measurements(
     patient_id: Annotated[str, Query(pattern=PATIENT_ID_PATTERN)],
     fraction: Annotated[int | None, Query(ge=1, le=1000)] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 50,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    offset: Annotated[int, Query(ge=0, le=MAX_SQL_INT)] = 0,
 ) -> MeasurementList:
     """A patient's measurements (of one fraction with ``fraction``), newest first."""
     items, total = await run_in_threadpool(lambda: verification.find(

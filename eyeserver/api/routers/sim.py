@@ -21,9 +21,9 @@ from starlette.concurrency import run_in_threadpool
 from eyeserver.api.auth import OperatorDep, PhysicistDep
 from eyeserver.api.deps import ServiceDep
 from eyeserver.api.schemas import ErrorResponse
-from eyeserver.hardware.sim.motion import MotionSpec
-from eyeserver.hardware.sim.scenes import SceneSpec
-from eyeserver.service.simroom import PRERENDER_MAX_S, STAGE_TRAVEL_MM, SimRoomControl, Vec3
+from eyeserver.hardware.sim.motion import GazeAngle, MotionSpec
+from eyeserver.hardware.sim.scenes import Position, Rotation, SceneSpec
+from eyeserver.service.simroom import PRERENDER_MAX_S, STAGE_TRAVEL_MM, SimRoomControl
 
 __all__ = ["NO_SIM_ROOM", "router"]
 
@@ -63,12 +63,12 @@ class StagePosition(BaseModel):
 class ChessboardPose(BaseModel):
     """Where the calibration chessboard stands (the room's default board)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    position_mm: Vec3 = Field((0.0, 0.0, 0.0), description="The board's centre in the WCS, "
+    position_mm: Position = Field((0.0, 0.0, 0.0), description="The board's centre in the WCS, "
                               "mm; at the origin and unrotated it is the origin board.",
                               examples=[(0.0, 0.0, 5.0)])
-    rotation_deg: Vec3 = Field((0.0, 0.0, 0.0), description="Rotation about X, Y, Z, degrees "
+    rotation_deg: Rotation = Field((0.0, 0.0, 0.0), description="Rotation about X, Y, Z, degrees "
                                "(applied Rz·Ry·Rx, board → world).", examples=[(20.0, 0.0, 0.0)])
 
 
@@ -123,13 +123,13 @@ async def put_chessboard(pose: ChessboardPose, room: SimRoomDep, caller: Operato
 class SimEyeRequest(BaseModel):
     """The patient eye's pose, anatomy or motion; fields left out keep their current values."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-    position_mm: Vec3 | None = Field(None, description="The globe centre at rest, WCS, mm "
+    position_mm: Position | None = Field(None, description="The globe centre at rest, WCS, mm "
                                      "(default eye: (0, 0, -10)).", examples=[(0.5, 0.0, -10.0)])
-    rotation_deg: Vec3 | None = Field(None, description="The head's rotation about X, Y, Z, "
+    rotation_deg: Rotation | None = Field(None, description="The head's rotation about X, Y, Z, "
                                       "degrees (Rz·Ry·Rx).")
-    gaze_deg: tuple[float, float] | None = Field(None, description="(yaw towards +X, pitch "
+    gaze_deg: tuple[GazeAngle, GazeAngle] | None = Field(None, description="(yaw towards +X, pitch "
                                                  "towards +Y) of the gaze, degrees.",
                                                  examples=[(2.0, -1.0)])
     globe_radius_mm: float | None = Field(None, gt=5, lt=20)

@@ -36,11 +36,21 @@ from eyeserver.hardware.sim.geometry import (
     constant_albedo,
     pose_matrix,
 )
-from eyeserver.hardware.sim.motion import EyeMotion, MotionSpec
+from eyeserver.hardware.sim.motion import EyeMotion, GazeAngle, MotionSpec
 from eyeserver.hardware.sim.optics import rotation_x, rotation_y
 
 F64 = npt.NDArray[np.float64]
 Vec3 = tuple[float, float, float]
+
+RoomCoordinate = Annotated[float, Field(ge=-500.0, le=500.0)]
+"""A position's coordinate in the room (mm): the rig's view spans a few centimetres about
+the origin; a finite bound keeps every body's numbers finite (issue 35)."""
+
+Angle = Annotated[float, Field(ge=-360.0, le=360.0)]
+"""A rotation's angle (degrees)."""
+
+Position = tuple[RoomCoordinate, RoomCoordinate, RoomCoordinate]
+Rotation = tuple[Angle, Angle, Angle]
 
 SceneKind = Literal["empty", "chessboard", "plate", "reference", "pyramid", "wedge",
                     "eye_phantom_1", "eye_phantom_2", "eye"]
@@ -79,7 +89,7 @@ class EyeSpec(BaseModel):
     the eye looks straight, y up and z along the gaze.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     globe_radius_mm: Annotated[float, Field(gt=5, lt=20)] = 12.0
     globe_semi_axes_mm: tuple[Annotated[float, Field(gt=5, lt=20)],
@@ -118,17 +128,20 @@ class EyeSpec(BaseModel):
         "for water): each projector's glint on cornea and sclera; 0 none")
     tear_glints: Annotated[int, Field(ge=0, le=20)] = Field(
         0, description="small bumps in the tear film (mucus, debris) that each glint")
-    gaze_deg: tuple[float, float] = Field(
+    gaze_deg: tuple[GazeAngle, GazeAngle] = Field(
         (0.0, 0.0), description="(yaw towards +X, pitch towards +Y) of the gaze, degrees")
-    aperture_mm: tuple[float, float] = Field(
-        (11.0, 7.5), description="half-width and half-height of the lid opening (retractors)")
-    aperture_offset_mm: tuple[float, float] = Field(
+    aperture_mm: tuple[Annotated[float, Field(gt=0, le=1000)],
+                       Annotated[float, Field(ge=0, le=1000)]] = Field(
+        (11.0, 7.5), description="half-width and half-height of the lid opening (retractors; "
+        "1000 mm: no lids in the way)")
+    aperture_offset_mm: tuple[Annotated[float, Field(ge=-100, le=100)],
+                              Annotated[float, Field(ge=-100, le=100)]] = Field(
         (0.0, 0.0), description="the lid opening's centre from the globe's axis at rest (x, y): "
         "a low upper lid covers the top of the limbus")
-    lid_gap_mm: Annotated[float, Field(gt=0)] = 1.2
+    lid_gap_mm: Annotated[float, Field(gt=0, le=10)] = 1.2
     lashes: Annotated[int, Field(ge=0, le=200)] = Field(
         0, description="lashes on the upper lid's margin, thin dark occluders")
-    features_seed: Annotated[int, Field(ge=0)] = Field(
+    features_seed: Annotated[int, Field(ge=0, le=2**63 - 1)] = Field(
         0, description="places the tear-film bumps and the lashes")
     motion: MotionSpec | None = None
 
@@ -156,14 +169,14 @@ class EyeSpec(BaseModel):
 class SceneSpec(BaseModel):
     """What stands in the room: a scene kind, its pose and its parameters."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     kind: SceneKind = "empty"
-    position_mm: Vec3 | None = Field(None, description="None: the kind's default position")
-    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
-    cols: Annotated[int, Field(ge=2)] = 9
-    rows: Annotated[int, Field(ge=2)] = 6
-    square_mm: Annotated[float, Field(gt=0)] = 4.5
+    position_mm: Position | None = Field(None, description="None: the kind's default position")
+    rotation_deg: Rotation = (0.0, 0.0, 0.0)
+    cols: Annotated[int, Field(ge=2, le=50)] = 9
+    rows: Annotated[int, Field(ge=2, le=50)] = 6
+    square_mm: Annotated[float, Field(gt=0, le=50)] = 4.5
     eye: EyeSpec = EyeSpec()
 
     @model_validator(mode="after")
