@@ -8,8 +8,12 @@ each test leaves it idle and healthy.
 from __future__ import annotations
 
 import functools
+import io
+import json
+import socket
 import threading
 import time
+import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -23,7 +27,8 @@ from eyeserver.api import create_app
 from eyeserver.hardware.sim.drivers import SimCamera
 from eyeserver.io import read_bundle
 from eyeserver.service.core import Service
-from tests.apiclient import API, Client, serving, test_settings
+from tests.apiclient import API, OPERATOR_TOKEN, Client, serving, test_settings
+from tests.liveserver import live_server
 
 
 def _camera(service: Service, camera_id: str) -> SimCamera:
@@ -339,3 +344,59 @@ def test_the_openapi_document_has_the_routes_and_examples(client: Client) -> Non
     request = document["components"]["schemas"]["CaptureRequest"]
     assert request["properties"]["unit"]["examples"] == ["all", "left"]
     assert "201" in document["paths"]["/api/v1/captures"]["post"]["responses"]
+
+
+def test_a_bugs_500_leaves_the_keep_alive_connection_usable(tmp_path: Path) -> None:
+    # Issue 35: after any 500 the next request on the same connection was reset.
+    app = create_app(test_settings(tmp_path / "data"))
+
+    async def boom() -> None:
+        raise RuntimeError("a bug")
+
+    app.add_api_route("/api/v1/boom-for-test", boom)
+    with live_server(app) as url:
+        host, port = url.removeprefix("http://").split(":")
+        request = (f"GET /api/v1/boom-for-test HTTP/1.1\r\nHost: {host}\r\n"
+                   f"Authorization: Bearer {OPERATOR_TOKEN}\r\n\r\n").encode()
+        health = f"GET /api/v1/health HTTP/1.1\r\nHost: {host}\r\n\r\n".encode()
+        with socket.create_connection((host, int(port)), timeout=30) as sock:
+            stream = sock.makefile("rb")
+            sock.sendall(request)
+            first = _read_response(stream)
+            sock.sendall(health)
+            second = _read_response(stream)
+
+    assert first[0] == 500 and json.loads(first[1]) == {"detail": "internal server error"}
+    assert second[0] == 200 and json.loads(second[1])["status"] == "ok"
+
+
+def _read_response(stream: Any) -> tuple[int, bytes]:
+    status = int(stream.readline().split()[1])
+    length = 0
+    while (line := stream.readline()) not in (b"\r\n", b""):
+        name, _, value = line.decode().partition(":")
+        if name.lower() == "content-length":
+            length = int(value)
+    return status, stream.read(length)
+
+
+def test_uploads_unpack_in_the_data_directory_and_leftovers_go_at_start(tmp_path: Path) -> None:
+    # Issue 35: uploads unpacked into the system's temporary directory, were left there by a
+    # kill -9, and error messages named them.
+    data_dir = tmp_path / "data"
+    leftover = data_dir / "uploads" / "calibration-killed"
+    leftover.mkdir(parents=True)
+    (leftover / "arrays.npz").write_bytes(bytes(1024))
+    app = create_app(test_settings(data_dir))
+    with serving(app) as client:
+        assert not leftover.exists()
+        bad = io.BytesIO()
+        with zipfile.ZipFile(bad, "w") as archive:
+            archive.writestr("calibration.json", "{not json")
+            archive.writestr("arrays.npz", b"")
+        answer = client.post(f"{API}/calibrations", content=bad.getvalue(),
+                             headers={"content-type": "application/zip"})
+
+    assert answer.status_code == 422
+    assert answer.json()["detail"].startswith("upload:calibration.json: not valid JSON")
+    assert list((data_dir / "uploads").iterdir()) == []

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import stat
 import zipfile
 from collections.abc import Callable
@@ -156,6 +157,84 @@ def test_a_downloaded_calibration_imports_without_its_evidence(tmp_path: Path, c
     unpack_calibration_zip(_zip(members), tmp_path, max_unpacked_bytes=10**8)
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([ARRAYS_FILE,
                                                                 CALIBRATION_FILE])
+
+
+def _document_with(caldir: Path, change: Callable[[dict[str, Any]], None]) -> bytes:
+    document = json.loads((caldir / CALIBRATION_FILE).read_text())
+    change(document)
+    return json.dumps(document, allow_nan=True).encode()
+
+
+def _arrays_with(caldir: Path, name: str, value: np.ndarray) -> bytes:
+    with np.load(caldir / ARRAYS_FILE) as stored:
+        arrays = {key: stored[key] for key in stored.files}
+    arrays[name] = value
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def _declares_two_gib() -> bytes:
+    """An npz whose one member's header declares 2 GiB of float64, with almost no data."""
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<f8", "fortran_order": False,
+                                                  "shape": (1 << 28,)})
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w", zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr("zeros.npy", header.getvalue() + bytes(4096))
+    return buffer.getvalue()
+
+
+def _set(path: str, value: Any) -> Callable[[dict[str, Any]], None]:
+    def change(document: dict[str, Any]) -> None:
+        *parents, last = path.split(".")
+        for key in parents:
+            document = document[key]
+        document[last] = value
+    return change
+
+
+@pytest.mark.parametrize(("member", "make", "field"), [
+    (CALIBRATION_FILE, lambda c: _document_with(c, _set("cameras.S1.dist",
+                                                          [math.nan, 0, 0, 0, 0])), "NaN"),
+    (CALIBRATION_FILE, lambda c: _document_with(c, _set("cameras.S1.dist", "abc")),
+     "cameras.S1.dist"),
+    (CALIBRATION_FILE, lambda c: _document_with(c, _set("cameras.S2.K",
+                                                          [[1e308, 0, 320], [0, 1e308, 256],
+                                                           [0, 0, 1]])), "cameras.S2.K"),
+    (CALIBRATION_FILE, lambda c: _document_with(c, _set("cameras.S2.K",
+                                                          [[-2500, 0, 320], [0, 2500, 256],
+                                                           [0, 0, 1]])), "cameras.S2.K"),
+    (CALIBRATION_FILE, lambda c: _document_with(c, _set("cameras.S3.R",
+                                                          [[1, 0.5, 0], [0, 1, 0], [0, 0, 1]])),
+     "cameras.S3.R"),
+    (CALIBRATION_FILE, lambda c: _document_with(c, _set("quality.reprojection_median_px",
+                                                          math.inf)), "Infinity"),
+    (CALIBRATION_FILE, lambda c: _document_with(
+        c, _set("phase_to_height.cameras.S4.carrier_cycles_per_px", [0.04])),
+     "phase_to_height.cameras.S4.carrier_cycles_per_px"),
+    (CALIBRATION_FILE, lambda c: b"[" * 100_000 + b"]" * 100_000, "nested too deep"),
+    (ARRAYS_FILE, lambda c: _arrays_with(c, "reference_phase_S1", np.zeros((10, 10))),
+     "reference_phase_S1"),
+    (ARRAYS_FILE, lambda c: _arrays_with(c, "reference_phase_S2",
+                                         np.full((512, 640), np.nan)), "reference_phase_S2"),
+    (ARRAYS_FILE, lambda c: _declares_two_gib(), "zeros.npy"),
+], ids=["nan dist", "text dist", "huge K", "negative focal", "sheared R", "infinite quality",
+        "short carrier", "deep", "small reference", "nan reference", "2 GiB declared"])
+def test_a_calibration_with_an_impossible_number_is_422_naming_the_field(
+        client: Client, caldir: Path, member: str, make: Callable[[Path], bytes],
+        field: str) -> None:
+    # Issue 35: these were accepted (201) and activatable, and using them gave 500.
+    before = client.get(f"{API}/calibrations").json()
+    members = _calibration_members(caldir)
+    members[member] = make(caldir)
+
+    response = client.post(f"{API}/calibrations", content=_zip(members), headers=ZIP)
+
+    assert response.status_code == 422, response.text
+    assert field in response.json()["detail"]
+    assert "/tmp" not in response.json()["detail"]  # no server path in the answer
+    assert client.get(f"{API}/calibrations").json() == before
 
 
 def test_a_calibration_of_another_rig_is_refused(client: Client, caldir: Path) -> None:

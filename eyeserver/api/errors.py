@@ -36,6 +36,7 @@ from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from eyeserver.api.schemas import ErrorResponse
 from eyeserver.errors import (
@@ -142,8 +143,47 @@ async def _invalid_request(request: Request, exc: Exception) -> JSONResponse:
                         content={"detail": _finite(jsonable_encoder(exc.errors()))})
 
 
+class _CaughtBugs:
+    """Pure ASGI middleware: an exception no handler reported becomes a JSON 500, logged with
+    its traceback, and goes no further.
+
+    Starlette's outermost layer answers such an exception with a 500 too, but then raises it
+    on to the server, which drops the connection: the client's next request on the same
+    keep-alive connection was reset (issue 35). Caught here, inside that layer, the
+    connection stays usable. An exception after the response began cannot be answered; it is
+    raised on as before.
+    """
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def tracked(message: Message) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        try:
+            await self.app(scope, receive, tracked)
+        except Exception:
+            if started:
+                raise
+            _log.exception("request failed: a bug", extra={
+                "method": scope.get("method"), "path": scope.get("path")})
+            response = JSONResponse(status_code=500, content=ErrorResponse(
+                detail="internal server error").model_dump())
+            await response(scope, receive, send)
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Register the handlers that turn exceptions into JSON error responses on ``app``."""
     app.add_exception_handler(EyeserverError, _eyeserver_error)
     app.add_exception_handler(RequestValidationError, _invalid_request)
     app.add_exception_handler(Exception, _unexpected_error)
+    app.add_middleware(_CaughtBugs)

@@ -26,6 +26,7 @@ import contextlib
 import hashlib
 import json
 import logging
+import shutil
 import tempfile
 import threading
 import time
@@ -39,7 +40,13 @@ from typing import Any, Literal
 import eyeserver
 from eyeserver.calibration.artefact import load_calibration
 from eyeserver.config import Settings
-from eyeserver.errors import DeviceError, DeviceValueError, EyeserverError, StateConflictError
+from eyeserver.errors import (
+    DeviceError,
+    DeviceValueError,
+    EyeserverError,
+    FormatError,
+    StateConflictError,
+)
 from eyeserver.hardware.base import Device, Stage
 from eyeserver.hardware.bundling import bundle_bit_depth, bundle_frames
 from eyeserver.hardware.rig import AcquiredStep, Rig
@@ -103,6 +110,10 @@ SUMMARY_FILE = "reconstruction.json"
 """The summary of the reconstruction that made :data:`CLOUD_FILE`, kept beside it."""
 
 _log = logging.getLogger(__name__)
+
+UPLOADS_DIR = "uploads"
+"""Under the data directory: where an upload unpacks while it is checked (never the system's
+temporary directory, where a killed daemon left up to 200 MiB, issue 35)."""
 
 
 def _json_scalar(value: object) -> object:
@@ -237,6 +248,8 @@ class Service:
             The rig cannot be built or opened (the store is closed again).
         """
         data_dir = self._settings.ensure_data_dir()
+        # Uploads unpack under the data directory; what a killed daemon left there goes.
+        shutil.rmtree(data_dir / UPLOADS_DIR, ignore_errors=True)
         self.audit.open()
         try:
             store = Store.open(data_dir, audit_sink=self.audit.record_stored)
@@ -704,16 +717,29 @@ class Service:
         limit = self._settings.max_upload_mb * 2**20
         if len(archive) > limit:
             raise UploadTooLargeError(f"the upload exceeds {self._settings.max_upload_mb} MiB")
+        uploads = self._uploads_dir()
         with self.audit.failures(actor, "import_calibration", "upload"), \
-                tempfile.TemporaryDirectory(prefix="eyeserver-calibration-") as unpacked:
+                tempfile.TemporaryDirectory(prefix="calibration-", dir=uploads) as unpacked:
             unpack_calibration_zip(archive, Path(unpacked), max_unpacked_bytes=limit)
-            load_calibration(unpacked, self.rig_spec())
+            try:
+                load_calibration(unpacked, self.rig_spec(), max_arrays_bytes=limit)
+            except FormatError as exc:  # named as in the upload, not where it was unpacked
+                raise FormatError(f"upload:{Path(exc.path).relative_to(unpacked).as_posix()}"
+                                  if Path(exc.path).is_relative_to(unpacked) else "upload",
+                                  exc.field, exc.reason) from None
             # The unpack directory is gone by now: say where the calibration came from instead.
             source = f"upload by {actor}, sha256:{hashlib.sha256(archive).hexdigest()}"
             record = self.store.import_calibration(unpacked, actor=actor, source=source)
         _log.info("calibration imported", extra={"calibration_id": record.id, "actor": actor})
         self.events.publish("calibration.imported", calibration_id=record.id, actor=actor)
         return record
+
+    def _uploads_dir(self) -> Path:
+        """Where uploads unpack: inside the data directory (its disk, its permissions), emptied
+        at every start."""
+        directory = self._settings.ensure_data_dir() / UPLOADS_DIR
+        directory.mkdir(mode=0o700, exist_ok=True)
+        return directory
 
     def activate_calibration(self, calibration_id: str, *, actor: str) -> CalibrationRecord:
         """Make a stored calibration the one new captures and reconstructions use.
