@@ -7,14 +7,17 @@ each test leaves it idle and healthy.
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import functools
 import io
 import json
 import socket
+import sqlite3
 import threading
 import time
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +30,7 @@ from eyeserver.api import create_app
 from eyeserver.hardware.sim.drivers import SimCamera
 from eyeserver.io import read_bundle
 from eyeserver.service.core import Service
+from eyeserver.service.storage import StorageError
 from tests.apiclient import API, OPERATOR_TOKEN, Client, serving, test_settings
 from tests.liveserver import live_server
 
@@ -400,3 +404,32 @@ def test_uploads_unpack_in_the_data_directory_and_leftovers_go_at_start(tmp_path
     assert answer.status_code == 422
     assert answer.json()["detail"].startswith("upload:calibration.json: not valid JSON")
     assert list((data_dir / "uploads").iterdir()) == []
+
+
+def test_a_full_disk_is_507_with_the_reason_everywhere(tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    # Issue 35: SQLite's "database or disk is full" gave 500 on patient creation or deletion.
+    app = create_app(test_settings(tmp_path / "data"))
+    with serving(app) as client:
+        store = app.state.service.store
+
+        @contextlib.contextmanager
+        def full() -> Iterator[None]:
+            raise sqlite3.OperationalError("database or disk is full")
+            yield
+
+        monkeypatch.setattr(store, "transaction", full)
+        patient = client.put(f"{API}/patients/P-1", json={"eye": "left"})
+        monkeypatch.undo()
+
+        def no_space(*args: Any, **kwargs: Any) -> None:
+            raise StorageError("capture x: cannot write the bundle") from OSError(
+                errno.ENOSPC, "No space left on device")
+
+        monkeypatch.setattr(store, "add_capture", no_space)
+        capture = client.post(f"{API}/captures", json={"unit": "left"})
+
+    for answer in (patient, capture):
+        assert answer.status_code == 507, answer.text
+        assert answer.json()["detail"].startswith("the data directory's disk is full") or \
+            "cannot write the bundle" in answer.json()["detail"]

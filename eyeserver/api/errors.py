@@ -21,6 +21,7 @@ other ``DeviceError``         503
 ``FormatError``               422
 ``ConfigError``               422
 other ``EyeserverError``      500
+a full disk (SQLite, ENOSPC)  507
 ============================  ======
 
 The body is always :class:`~eyeserver.api.schemas.ErrorResponse`, ``{"detail": "<reason>"}``.
@@ -28,8 +29,10 @@ The body is always :class:`~eyeserver.api.schemas.ErrorResponse`, ``{"detail": "
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
+import sqlite3
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -101,7 +104,7 @@ def status_code_for(error: EyeserverError) -> int:
 async def _eyeserver_error(request: Request, exc: Exception) -> JSONResponse:
     # Starlette's handler signature takes any Exception; only EyeserverError is registered here.
     assert isinstance(exc, EyeserverError)
-    status_code = status_code_for(exc)
+    status_code = 507 if _disk_full(exc) else status_code_for(exc)
     _log.log(
         logging.ERROR if status_code >= 500 else logging.INFO,
         "request failed",
@@ -115,6 +118,32 @@ async def _eyeserver_error(request: Request, exc: Exception) -> JSONResponse:
     )
     body = ErrorResponse(detail=str(exc))
     return JSONResponse(status_code=status_code, content=body.model_dump())
+
+
+def _disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` (or what caused it) says the data directory's disk is full."""
+    while exc is not None:
+        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+            return True
+        if isinstance(exc, sqlite3.OperationalError) and "full" in str(exc):
+            return True  # SQLite's "database or disk is full"
+        exc = exc.__cause__ or exc.__context__  # type: ignore[assignment]
+    return False
+
+
+async def _database_error(request: Request, exc: Exception) -> JSONResponse:
+    """SQLite's errors: a full disk is 507 with the reason (patients, poses and every other
+    write go through the index; it gave 500, issue 35), anything else a bug's 500."""
+    if _disk_full(exc):
+        _log.error("request failed: the disk is full", extra={
+            "method": request.method, "path": request.url.path, "reason": str(exc)})
+        body = ErrorResponse(detail="the data directory's disk is full: nothing was changed; "
+                             "free space (or let retention delete old captures) and retry")
+        return JSONResponse(status_code=507, content=body.model_dump())
+    _log.error("request failed: a database error", exc_info=exc, extra={
+        "method": request.method, "path": request.url.path})
+    return JSONResponse(status_code=500, content=ErrorResponse(
+        detail="internal server error").model_dump())
 
 
 async def _unexpected_error(request: Request, exc: Exception) -> JSONResponse:
@@ -185,5 +214,6 @@ def install_error_handlers(app: FastAPI) -> None:
     """Register the handlers that turn exceptions into JSON error responses on ``app``."""
     app.add_exception_handler(EyeserverError, _eyeserver_error)
     app.add_exception_handler(RequestValidationError, _invalid_request)
+    app.add_exception_handler(sqlite3.Error, _database_error)
     app.add_exception_handler(Exception, _unexpected_error)
     app.add_middleware(_CaughtBugs)
