@@ -42,7 +42,8 @@ if [[ ! -x $PREFIX/venv/bin/python ]]; then
     "$PYTHON" -m venv "$PREFIX/venv"
 fi
 "$PREFIX/venv/bin/python" -m pip install --quiet --upgrade pip
-"$PREFIX/venv/bin/python" -m pip install --quiet "$source_dir"
+# Exactly the versions the release was tested with (docs/soup.md, scripts/soup.py).
+"$PREFIX/venv/bin/python" -m pip install --quiet --constraint "$here/constraints.txt" "$source_dir"
 install -m 0644 "$source_dir/README.md" "$PREFIX/README.md"
 
 install -d -m 0750 -g "$SERVICE_USER" "$CONFIG_DIR"

@@ -154,6 +154,11 @@ class Settings(BaseSettings):
         ``2``: a global fit of the whole images (after the eye was lost, ≈ 1 s) leaves the
         second worker following the frames; with one, a 60-s run on two cores dropped 24
         frames after the saccade (``eyeserver bench tracking --workers N`` measures it).
+    ``public_api_docs``
+        ``true`` (default): the OpenAPI document (``/api/v1/openapi.json``) and its interactive
+        view (``/api/v1/docs``) are open without a token, like ``/api/v1/health``; they
+        describe the API, not its data. ``false``: the document needs a token of any role and
+        the interactive view is off.
     ``tracking_deadline_ms``
         The fail-safe beam hold of live tracking: when no processed frame has been published
         for this long, the daemon holds the beam itself and says why on ``/api/v1/ws/pose``.
@@ -250,6 +255,11 @@ class Settings(BaseSettings):
         ge=1,
         le=8,
         description="Worker processes for live tracking's frames, each on its own frames.",
+    )
+    public_api_docs: bool = Field(
+        default=True,
+        description="The OpenAPI document and /docs open without a token (false: the document "
+        "needs one, /docs is off).",
     )
     tracking_deadline_ms: float = Field(
         default=80.0,

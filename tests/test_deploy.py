@@ -4,8 +4,11 @@ the daemon provides, and install.sh is valid bash (it is never run here)."""
 from __future__ import annotations
 
 import configparser
+import importlib.metadata
+import re
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -40,3 +43,18 @@ def test_the_unit_is_a_notify_service_with_a_watchdog_user_and_state_directory()
 @pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
 def test_install_script_is_valid_bash() -> None:
     subprocess.run(["bash", "-n", str(DEPLOY / "install.sh")], check=True)
+
+
+def test_every_runtime_dependency_is_pinned_and_has_a_purpose() -> None:
+    # The SOUP list (docs/soup.md) and the installer's pins come from one script.
+    subprocess.run([sys.executable, str(DEPLOY.parent / "scripts" / "soup.py"), "--check"],
+                   check=True)
+    pinned = {line.split("==")[0] for line in (DEPLOY / "constraints.txt").read_text()
+              .splitlines() if "==" in line}
+    soup = (DEPLOY.parent / "docs" / "soup.md").read_text()
+    for requirement in importlib.metadata.requires("eyeserver") or []:
+        if "extra ==" in requirement:
+            continue
+        name = re.split(r"[ <>=!~;\[]", requirement, maxsplit=1)[0].lower()
+        assert name in pinned, name
+        assert f"| {name} |" in soup, name

@@ -433,3 +433,17 @@ def test_a_full_disk_is_507_with_the_reason_everywhere(tmp_path: Path,
         assert answer.status_code == 507, answer.text
         assert answer.json()["detail"].startswith("the data directory's disk is full") or \
             "cannot write the bundle" in answer.json()["detail"]
+
+
+@pytest.mark.parametrize("public", [True, False])
+def test_the_api_documents_are_open_or_need_a_token_as_configured(tmp_path: Path,
+                                                                  public: bool) -> None:
+    settings = test_settings(tmp_path / "data").model_copy(update={"public_api_docs": public})
+    with serving(create_app(settings)) as client:
+        anonymous = client.get(f"{API}/openapi.json", headers={"Authorization": ""})
+        with_token = client.get(f"{API}/openapi.json")
+        docs = client.get(f"{API}/docs", headers={"Authorization": ""})
+
+    assert anonymous.status_code == (200 if public else 401)
+    assert with_token.status_code == 200 and "/api/v1/status" in with_token.json()["paths"]
+    assert docs.status_code == (200 if public else 404)

@@ -9,12 +9,14 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator, Callable
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
+from typing import Annotated
 
 from fastapi import Depends, FastAPI
+from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
 
 import eyeserver
-from eyeserver.api.auth import TokenTable, require
+from eyeserver.api.auth import Caller, TokenTable, require
 from eyeserver.api.errors import AUTH_RESPONSES, install_error_handlers
 from eyeserver.api.routers import (
     audit,
@@ -96,18 +98,26 @@ def create_app(settings: Settings) -> FastAPI:
     :class:`~eyeserver.service.core.Service` (store, then rig) into ``app.state.service`` and
     closes it on shut-down, after reading the bearer tokens into ``app.state.tokens``
     (:mod:`eyeserver.api.auth`). ``/health`` uses neither. The OpenAPI document is
-    served at ``/api/v1/openapi.json`` and its interactive view at ``/api/v1/docs``.
+    served at ``/api/v1/openapi.json`` and its interactive view at ``/api/v1/docs``, without a
+    token unless ``public_api_docs`` is off (then the document needs one and the view is off).
     """
     app = FastAPI(
         title="eyeserver",
         summary="Eye surface and pose by single-shot fringe projection.",
         version=eyeserver.__version__,
         lifespan=_lifespan(settings),
-        openapi_url=f"{API_PREFIX}/openapi.json",
-        docs_url=f"{API_PREFIX}/docs",
+        openapi_url=f"{API_PREFIX}/openapi.json" if settings.public_api_docs else None,
+        docs_url=f"{API_PREFIX}/docs" if settings.public_api_docs else None,
         redoc_url=None,
     )
     app.state.settings = settings
+    if not settings.public_api_docs:
+        async def openapi_document(_: Annotated[Caller, Depends(require("operator"))]
+                                   ) -> JSONResponse:
+            return JSONResponse(app.openapi())
+
+        app.add_api_route(f"{API_PREFIX}/openapi.json", openapi_document,
+                          include_in_schema=False)
     install_error_handlers(app)
     app.include_router(health.router, prefix=API_PREFIX)
     # WebSocket routes authenticate themselves before accepting (websocket_caller).
