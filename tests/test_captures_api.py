@@ -191,7 +191,8 @@ def test_a_deletion_needs_a_reason(client: Client, uncalibrated_id: str,
     response = client.delete(f"{API}/captures/{uncalibrated_id}", params=params)
 
     assert response.status_code == 422
-    assert response.json()["detail"][0]["loc"] == ["query", "reason"]
+    assert response.json()["errors"][0]["loc"] == ["query", "reason"]
+    assert response.json()["detail"].startswith("query.reason: ")
     assert client.get(f"{API}/captures/{uncalibrated_id}").status_code == 200
 
 

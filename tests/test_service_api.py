@@ -447,3 +447,20 @@ def test_the_api_documents_are_open_or_need_a_token_as_configured(tmp_path: Path
     assert anonymous.status_code == (200 if public else 401)
     assert with_token.status_code == 200 and "/api/v1/status" in with_token.json()["paths"]
     assert docs.status_code == (200 if public else 404)
+
+
+def test_the_document_describes_every_answer_and_errors_have_one_shape(client: Client) -> None:
+    document = client.get(f"{API}/openapi.json").json()
+    schemas = document["components"]["schemas"]
+
+    for path, methods in document["paths"].items():
+        for method, operation in methods.items():
+            assert {"500", "507"} <= set(operation["responses"]), (method, path)
+            if "requestBody" in operation:
+                assert "400" in operation["responses"], (method, path)
+    assert schemas["HTTPValidationError"]["properties"]["detail"]["type"] == "string"
+    invalid = client.post(f"{API}/captures", json={"unit": 7, "extra": True})
+    assert invalid.status_code == 422
+    assert isinstance(invalid.json()["detail"], str) and "body.unit" in invalid.json()["detail"]
+    assert [e["loc"][-1] for e in invalid.json()["errors"]] == ["unit", "extra"]
+    assert client.get(f"{API}/captures/nope").json().keys() == {"detail"}

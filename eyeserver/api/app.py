@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator, Callable
 from contextlib import AbstractAsyncContextManager, asynccontextmanager
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, FastAPI
 from fastapi.responses import JSONResponse
@@ -132,4 +132,43 @@ def create_app(settings: Settings) -> FastAPI:
                            responses=AUTH_RESPONSES)
     # Where Prometheus looks by default, outside the versioned API; a token all the same.
     app.include_router(metrics.router, dependencies=authenticated, responses=AUTH_RESPONSES)
+    _document_every_answer(app)
     return app
+
+
+_EVERY_OPERATION = {
+    "500": "A bug (the body says only that; the log has the details).",
+    "507": "The data directory's disk is full; nothing was changed.",
+}
+_WITH_A_BODY = {"400": "The body could not be read (not UTF-8, not JSON)."}
+
+
+def _document_every_answer(app: FastAPI) -> None:
+    """Make the OpenAPI document describe every answer the daemon gives: a validation error's
+    body is :class:`~eyeserver.api.schemas.ErrorResponse` like every other error's (FastAPI
+    documents its own list under ``detail``), and every operation may answer 500 and 507, one
+    with a body also 400 (issue 35: 596 fuzzed answers had a status the document did not
+    list)."""
+    generate = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is not None:
+            return app.openapi_schema
+        schema = generate()
+        components = schema.setdefault("components", {}).setdefault("schemas", {})
+        if "ErrorResponse" in components:
+            components["HTTPValidationError"] = {**components["ErrorResponse"],
+                                                 "title": "HTTPValidationError"}
+        error = {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorResponse"}}}
+        for methods in schema.get("paths", {}).values():
+            for operation in methods.values():
+                answers = operation.setdefault("responses", {})
+                extra = {**_EVERY_OPERATION,
+                         **(_WITH_A_BODY if "requestBody" in operation else {})}
+                for status_code, description in extra.items():
+                    answers.setdefault(status_code, {"description": description,
+                                                     "content": error})
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]

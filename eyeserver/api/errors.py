@@ -117,7 +117,7 @@ async def _eyeserver_error(request: Request, exc: Exception) -> JSONResponse:
         },
     )
     body = ErrorResponse(detail=str(exc))
-    return JSONResponse(status_code=status_code, content=body.model_dump())
+    return JSONResponse(status_code=status_code, content=body.model_dump(exclude_none=True))
 
 
 def _disk_full(exc: BaseException) -> bool:
@@ -139,18 +139,18 @@ async def _database_error(request: Request, exc: Exception) -> JSONResponse:
             "method": request.method, "path": request.url.path, "reason": str(exc)})
         body = ErrorResponse(detail="the data directory's disk is full: nothing was changed; "
                              "free space (or let retention delete old captures) and retry")
-        return JSONResponse(status_code=507, content=body.model_dump())
+        return JSONResponse(status_code=507, content=body.model_dump(exclude_none=True))
     _log.error("request failed: a database error", exc_info=exc, extra={
         "method": request.method, "path": request.url.path})
     return JSONResponse(status_code=500, content=ErrorResponse(
-        detail="internal server error").model_dump())
+        detail="internal server error").model_dump(exclude_none=True))
 
 
 async def _unexpected_error(request: Request, exc: Exception) -> JSONResponse:
     # A bug, not a reported failure: the details go to the log (the server logs the traceback),
     # the client only learns that it was not its fault.
     body = ErrorResponse(detail="internal server error")
-    return JSONResponse(status_code=500, content=body.model_dump())
+    return JSONResponse(status_code=500, content=body.model_dump(exclude_none=True))
 
 
 def _finite(value: Any) -> Any:
@@ -164,12 +164,17 @@ def _finite(value: Any) -> Any:
 
 
 async def _invalid_request(request: Request, exc: Exception) -> JSONResponse:
-    # FastAPI's own 422 (a list of reasons under "detail"), except that it echoes each bad
-    # input: a JSON body may hold NaN or Infinity (Python's parser reads them) but a response
-    # cannot, so those are echoed as text instead of failing with a 500.
+    # Like every error: "detail" a string (each problem's location and message), with
+    # FastAPI's list of problems under "errors" (it had them under "detail", which the
+    # document says is a string, issue 35). Each bad input is echoed there: a JSON body may
+    # hold NaN or Infinity (Python's parser reads them) but a response cannot, so those are
+    # echoed as text instead of failing with a 500.
     assert isinstance(exc, RequestValidationError)
-    return JSONResponse(status_code=422,
-                        content={"detail": _finite(jsonable_encoder(exc.errors()))})
+    errors = _finite(jsonable_encoder(exc.errors()))
+    reasons = "; ".join(f"{'.'.join(str(part) for part in e.get('loc', ()))}: {e.get('msg')}"
+                        for e in errors)
+    return JSONResponse(status_code=422, content=ErrorResponse(
+        detail=reasons or "invalid request", errors=errors).model_dump(exclude_none=True))
 
 
 class _CaughtBugs:
@@ -206,7 +211,7 @@ class _CaughtBugs:
             _log.exception("request failed: a bug", extra={
                 "method": scope.get("method"), "path": scope.get("path")})
             response = JSONResponse(status_code=500, content=ErrorResponse(
-                detail="internal server error").model_dump())
+                detail="internal server error").model_dump(exclude_none=True))
             await response(scope, receive, send)
 
 

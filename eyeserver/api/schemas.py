@@ -50,6 +50,9 @@ class ErrorResponse(BaseModel):
         description="Why the request failed, in words meant for a person.",
         examples=["cam-left: no frame within 500 ms"],
     )
+    errors: list[dict[str, Any]] | None = Field(
+        None, description="For a request that failed validation (422): each problem with its "
+        "location (loc), message (msg) and type, as pydantic reports it; null otherwise.")
 
 
 Health = Literal["ok", "fault"]
