@@ -231,3 +231,18 @@ def test_the_routes_are_documented(client: Client) -> None:
             f"{API}/patients/{{patient_id}}/fractions/{{fraction}}/reference/capture",
             f"{API}/pose/measure", f"{API}/pose/measurements",
             f"{API}/pose/measurements/{{measurement_id}}", f"{API}/sim/eye"} <= set(paths)
+
+
+@pytest.mark.parametrize(("path", "body"), [
+    ("/patients/P-BOOL", {"eye": "left", "min_confidence": False}),
+    ("/patients/P-BOOL/fractions/1/reference",
+     {"centre_mm": [0, 0, -10], "gaze": [0, 0, 1], "limbus_centre_mm": [0, 0, False]}),
+])
+def test_a_boolean_is_no_number_422(client: Client, path: str, body: dict[str, Any]) -> None:
+    # The API fuzz (issue 35): pydantic read false as 0 and stored it.
+    client.put(f"{API}/patients/P-BOOL", json={"eye": "left"})
+
+    refused = client.put(f"{API}{path}", json=body)
+
+    assert refused.status_code == 422, refused.text
+    assert "a number is needed, not true or false" in refused.json()["detail"]

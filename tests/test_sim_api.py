@@ -230,6 +230,10 @@ def test_an_unplugged_projector_fails_the_capture_and_recovers_on_replug_alone(
     ("/sim/eye", {"motion": {"script": [{"t_s": 1e308, "kind": "blink"}]}}),
     ("/sim/eye", {"motion": {"script": [{"t_s": 1, "kind": "shift",
                                          "shift_mm": [math.nan, 0, 0]}]}}),
+    ("/sim/scene", {"kind": "eye", "rotation_deg": [0, 0, False]}),
+    ("/sim/stage", {"z_mm": False}),
+    ("/sim/eye", {"motion": {"script": [{"t_s": 1, "kind": "shift",
+                                         "shift_mm": [0, 0, True]}]}}),
 ])
 def test_every_number_of_a_scene_is_finite_and_bounded_422(client: Client, path: str,
                                                              body: dict[str, Any]) -> None:

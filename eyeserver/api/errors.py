@@ -32,13 +32,16 @@ from __future__ import annotations
 import errno
 import logging
 import math
+import re
 import sqlite3
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.encoders import jsonable_encoder
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from eyeserver.api.schemas import ErrorResponse
@@ -177,6 +180,33 @@ async def _invalid_request(request: Request, exc: Exception) -> JSONResponse:
         detail=reasons or "invalid request", errors=errors).model_dump(exclude_none=True))
 
 
+def _allowed_methods(app: FastAPI, path: str) -> list[str]:
+    """The methods the OpenAPI document lists for the path template ``path`` matches."""
+    matches: list[tuple[int, list[str]]] = []
+    for template, methods in app.openapi().get("paths", {}).items():
+        parts = re.split(r"(\{[^/}]+\})", template)
+        pattern = "".join("[^/]+" if part.startswith("{") else re.escape(part) for part in parts)
+        if re.fullmatch(pattern, path):
+            matches.append((template.count("{"), [method.upper() for method in methods]))
+    # The most literal template is the path's (/jobs/reconstructions, not /jobs/{job_id}).
+    fewest = min((count for count, _ in matches), default=0)
+    return sorted({m for count, methods in matches if count == fewest for m in methods})
+
+
+async def _http_error(request: Request, exc: Exception) -> Response:
+    """Starlette's HTTP errors as FastAPI answers them, but a 405's ``Allow`` lists every
+    method of the path: Starlette lists only those of the first route of that path, and the
+    methods of one path can lie in several routers (GET and PATCH /devices/{id}: the API
+    fuzz, issue 35)."""
+    assert isinstance(exc, StarletteHTTPException)
+    if exc.status_code == 405:
+        allowed = _allowed_methods(request.app, request.url.path)
+        if allowed:
+            return JSONResponse(status_code=405, content={"detail": "Method Not Allowed"},
+                                headers={"Allow": ", ".join(allowed)})
+    return await http_exception_handler(request, exc)
+
+
 class _CaughtBugs:
     """Pure ASGI middleware: an exception no handler reported becomes a JSON 500, logged with
     its traceback, and goes no further.
@@ -219,6 +249,7 @@ def install_error_handlers(app: FastAPI) -> None:
     """Register the handlers that turn exceptions into JSON error responses on ``app``."""
     app.add_exception_handler(EyeserverError, _eyeserver_error)
     app.add_exception_handler(RequestValidationError, _invalid_request)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(sqlite3.Error, _database_error)
     app.add_exception_handler(Exception, _unexpected_error)
     app.add_middleware(_CaughtBugs)

@@ -32,8 +32,9 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 
+from eyeserver.core.validation import NumbersOnly
 from eyeserver.errors import EyeserverError
 from eyeserver.pipeline.eyepose import EyeModel
 from eyeserver.service.audit import AuditTrail
@@ -115,7 +116,7 @@ class Tolerances:
                 "min_confidence": self.min_confidence}
 
 
-class EllipsoidSpec(BaseModel):
+class EllipsoidSpec(NumbersOnly):
     """The anterior segment as an ellipsoid (from MRI)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -147,7 +148,7 @@ class EllipsoidSpec(BaseModel):
         return self
 
 
-class EyeModelSpec(BaseModel):
+class EyeModelSpec(NumbersOnly):
     """A patient's eye model as imported: a sphere, an ellipsoid, or population defaults.
 
     ``{}`` is the population model: the globe's radius is fitted, cornea 7.8 mm, limbus
@@ -196,7 +197,7 @@ class EyeModelSpec(BaseModel):
             cornea_radius_mm=self.cornea_radius_mm, limbus_diameter_mm=self.limbus_diameter_mm)
 
 
-class ReferencePoseSpec(BaseModel):
+class ReferencePoseSpec(NumbersOnly):
     """A reference pose in the WCS, from the treatment plan."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)

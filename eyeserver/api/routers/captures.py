@@ -81,7 +81,7 @@ async def create_capture(request: CaptureRequest, service: ServiceDep) -> Captur
 
 @router.get("/captures", summary="List captures",
             responses={422: {"description": "A malformed filter: kind, calibration id, time, "
-                             "or since not before until."}})
+                             "or since after until."}})
 async def list_captures(
     service: ServiceDep,
     limit: Annotated[int, Query(ge=1, le=1000, description="Page size.")] = 50,
@@ -101,8 +101,8 @@ async def list_captures(
     ] = None,
 ) -> CaptureList:
     """Captures newest first, one page at a time; every filter given must hold."""
-    if since is not None and until is not None and since >= until:
-        raise HTTPException(422, f"since ({since.isoformat()}) must be before until "
+    if since is not None and until is not None and since > until:
+        raise HTTPException(422, f"since ({since.isoformat()}) must not be after until "
                                  f"({until.isoformat()})")
     records, total = await run_in_threadpool(
         lambda: service.store.list_captures(limit, offset, unit, since, until=until, kind=kind,

@@ -17,6 +17,7 @@ from starlette.concurrency import run_in_threadpool
 from eyeserver.api.auth import PhysicistDep
 from eyeserver.api.deps import ServiceDep, app_state
 from eyeserver.api.schemas import MAX_SQL_INT, ErrorResponse
+from eyeserver.core.validation import NumbersOnly
 from eyeserver.service.patients import (
     DEFAULT_MIN_CONFIDENCE,
     DEFAULT_TOLERANCE_GAZE_DEG,
@@ -55,7 +56,7 @@ PatientsDep = Annotated[Patients, Depends(get_patients)]
 VerificationDep = Annotated[PoseVerification, Depends(get_verification)]
 
 
-class PatientRequest(BaseModel):
+class PatientRequest(NumbersOnly):
     """A patient's treated eye, measuring unit and tolerances."""
 
     model_config = ConfigDict(extra="forbid")

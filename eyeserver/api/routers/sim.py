@@ -21,6 +21,7 @@ from starlette.concurrency import run_in_threadpool
 from eyeserver.api.auth import OperatorDep, PhysicistDep
 from eyeserver.api.deps import ServiceDep
 from eyeserver.api.schemas import ErrorResponse
+from eyeserver.core.validation import NumbersOnly
 from eyeserver.hardware.sim.motion import GazeAngle, MotionSpec
 from eyeserver.hardware.sim.scenes import Position, Rotation, SceneSpec
 from eyeserver.service.simroom import PRERENDER_MAX_S, STAGE_TRAVEL_MM, SimRoomControl
@@ -49,7 +50,7 @@ async def _sim_room(service: ServiceDep) -> SimRoomControl:
 SimRoomDep = Annotated[SimRoomControl, Depends(_sim_room)]
 
 
-class StagePosition(BaseModel):
+class StagePosition(NumbersOnly):
     """Where the simulated motorised stage puts the flat calibration plate."""
 
     model_config = ConfigDict(extra="forbid")
@@ -60,7 +61,7 @@ class StagePosition(BaseModel):
                         "normal to Z, centred on the axis.", examples=[10.0])
 
 
-class ChessboardPose(BaseModel):
+class ChessboardPose(NumbersOnly):
     """Where the calibration chessboard stands (the room's default board)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -120,7 +121,7 @@ async def put_chessboard(pose: ChessboardPose, room: SimRoomDep, caller: Operato
         pose.position_mm, pose.rotation_deg, actor=caller.name))
 
 
-class SimEyeRequest(BaseModel):
+class SimEyeRequest(NumbersOnly):
     """The patient eye's pose, anatomy or motion; fields left out keep their current values."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)

@@ -14,7 +14,9 @@ from functools import lru_cache
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
+
+from eyeserver.core.validation import NumbersOnly
 
 _WINDOW_S = 10.0
 
@@ -28,7 +30,7 @@ HeadShift = Annotated[float, Field(ge=-30.0, le=30.0)]
 MAX_SCRIPT_EVENTS = 1000
 
 
-class ScriptEvent(BaseModel):
+class ScriptEvent(NumbersOnly):
     """One scripted event: a gaze shift (saccade) or a blink starting at ``t_s``."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -42,7 +44,7 @@ class ScriptEvent(BaseModel):
     duration_s: Annotated[float, Field(gt=0, le=60)] = 0.03
 
 
-class MotionSpec(BaseModel):
+class MotionSpec(NumbersOnly):
     """How the simulated eye moves. All zero rates and no script: a still eye.
 
     Every number is finite and bounded (an eye's rates and amplitudes, with room to spare): a
@@ -52,7 +54,7 @@ class MotionSpec(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    seed: Annotated[int, Field(ge=0, le=2**63 - 1)] = 0
+    seed: Annotated[int, Field(ge=0, le=2**53)] = 0
     drift_deg: Annotated[float, Field(ge=0, le=5, description="RMS fixational drift")] = 0.05
     saccade_rate_hz: Annotated[float, Field(ge=0, le=10)] = 1.0
     saccade_amplitude_deg: Annotated[float, Field(ge=0, le=30)] = 0.3

@@ -19,9 +19,10 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import numpy.typing as npt
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import ConfigDict, Field, model_validator
 from scipy.spatial import cKDTree
 
+from eyeserver.core.validation import NumbersOnly
 from eyeserver.hardware.sim.geometry import (
     AlbedoFn,
     Body,
@@ -78,7 +79,7 @@ _DEFAULT_POSITION: dict[str, Vec3] = {
 }
 
 
-class EyeSpec(BaseModel):
+class EyeSpec(NumbersOnly):
     """The patient eye's anatomy, optics and lids, and where it looks.
 
     The defaults are the old painted eye (``eyeserver.hardware.sim.population.SHARP``): a
@@ -141,7 +142,7 @@ class EyeSpec(BaseModel):
     lid_gap_mm: Annotated[float, Field(gt=0, le=10)] = 1.2
     lashes: Annotated[int, Field(ge=0, le=200)] = Field(
         0, description="lashes on the upper lid's margin, thin dark occluders")
-    features_seed: Annotated[int, Field(ge=0, le=2**63 - 1)] = Field(
+    features_seed: Annotated[int, Field(ge=0, le=2**53)] = Field(
         0, description="places the tear-film bumps and the lashes")
     motion: MotionSpec | None = None
 
@@ -166,7 +167,7 @@ class EyeSpec(BaseModel):
                 and self.aperture_offset_mm == (0.0, 0.0))
 
 
-class SceneSpec(BaseModel):
+class SceneSpec(NumbersOnly):
     """What stands in the room: a scene kind, its pose and its parameters."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
