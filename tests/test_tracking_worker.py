@@ -32,7 +32,6 @@ from eyeserver.pipeline.eyepose import (
     LIMBUS_FROM_IMAGES,
     WELL_SEEN_LIMBUS_POINTS,
     EyeModel,
-    PoseError,
     fit_eye,
 )
 from eyeserver.pipeline.eyetrack import track_eye
@@ -54,6 +53,7 @@ from eyeserver.service.tracking_worker import (
     TrackingWorkerError,
     _widen,
 )
+from eyeserver.service.verification import MIN_UNIT_POINTS
 
 TIMEOUT_S = 30.0
 
@@ -186,9 +186,28 @@ def test_a_frame_set_goes_to_the_worker_without_waiting_for_it_to_read(
 def test_a_frame_without_an_eye_is_a_pose_error_and_the_worker_goes_on(
         frames: tuple[RigSpec, list[FrameSet]], worker: PoseWorker) -> None:
     _, (rest, _, empty) = frames
-    with pytest.raises(PoseError):
+    # An empty room shows the unit nothing: lost, the beam held, with the reason.
+    with pytest.raises(ReconstructionError, match="unit left gave 0 points"):
         worker(empty, None)
     assert worker(rest, None).gaze_source == "limbus (images)"
+
+
+def test_a_frame_set_with_a_dark_unit_is_lost_with_the_reason(calibrated_rooms: Any) -> None:
+    # Issue 35: one unit's projector dark, the pose came from the other unit alone.
+    _, caldir = calibrated_rooms("default")
+    with SimSession.open(load_room(None), seed=12) as session:
+        rig = rig_from_dict(session.rig.spec(), "<simulated rig>")
+        session.room.set_scene(SceneSpec(kind="eye"))
+        session.rig.projector("P2").set_intensity(0.0)  # answers, but gives no light
+        dark = FrameSet(0, 0, session.rig.acquire(["left", "right"]))
+        session.rig.projector("P2").set_intensity(1.0)
+        lit = FrameSet(1, 40_000_000, session.rig.acquire(["left", "right"]))
+    reconstruct = RigReconstructor(caldir, rig)
+
+    with pytest.raises(ReconstructionError, match=r"unit right gave \d+ points") as caught:
+        reconstruct(dark)
+    assert "unit left" not in str(caught.value)
+    assert len(reconstruct(lit).points) > MIN_UNIT_POINTS
 
 
 def test_an_unexpected_failure_in_the_worker_names_the_frame_and_the_cause(

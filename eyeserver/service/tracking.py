@@ -114,6 +114,7 @@ from eyeserver.service.patients import Patients, Tolerances
 from eyeserver.service.reconstruction import ReconstructionError, calibrated_cameras, z_range
 from eyeserver.service.tracking_worker import PoseWorker
 from eyeserver.service.verification import (
+    MIN_UNIT_POINTS,
     FitFunction,
     deviation,
     judge,
@@ -399,7 +400,10 @@ class RigReconstructor:
 
     Each unit's first two cameras fix each other's fringe order (the default method); the
     clouds of the units are fused. Raises :class:`ReconstructionError` for a calibration
-    without phase-to-height models.
+    without phase-to-height models, and for a frame set in which a unit gave fewer than
+    :data:`~eyeserver.service.verification.MIN_UNIT_POINTS` points (counted as the pixels they
+    stand for): its projector dark, its view blocked. The frame is then lost, the beam held
+    with that reason, rather than posed from the other unit alone.
 
     After :meth:`focus` on a pose, each camera's image is reconstructed only inside the window
     around that eye (:func:`~eyeserver.pipeline.eyetrack.pose_window`), a few times fewer pixels
@@ -459,6 +463,7 @@ class RigReconstructor:
         parts = []
         views: list[LimbusView] = []
         pixels = 0
+        unit_pixels: dict[str, int] = {}
         for step in frame_set.steps:
             by_unit: dict[str, list[str]] = {}
             for camera_id in step.frames:
@@ -499,6 +504,14 @@ class RigReconstructor:
                                       self._rig.camera_index(camera_id),
                                       self._rig.unit_of_camera(camera_id).id))
                     pixels += len(cloud.points) * factor**2
+                    unit = self._rig.unit_of_camera(camera_id).id
+                    unit_pixels[unit] = unit_pixels.get(unit, 0) + len(cloud.points) * factor**2
+        dark = {unit: n for unit, n in unit_pixels.items() if n < MIN_UNIT_POINTS}
+        if dark:
+            # A unit that sees nothing: the pose would be the other unit's alone (issue 35).
+            raise ReconstructionError("; ".join(
+                f"unit {unit} gave {n} points (at least {MIN_UNIT_POINTS} needed): its "
+                "projector may be dark or its view blocked" for unit, n in dark.items()))
         fused = fuse(parts)
         whole = PointCloud(fused.points.astype(np.float32), fused.quality, fused.camera)
         counted = sum(len(part.points) for part in parts)
