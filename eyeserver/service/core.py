@@ -507,7 +507,9 @@ class Service:
             ``acquisition_queue`` jobs are already waiting (nothing was captured).
         DeviceError
             A device failed; it and its unit are in fault until it can be reopened (by the next
-            capture that needs it, or by the background recovery).
+            capture that needs it, or by the background recovery). Also a projector whose lit
+            frames show a scene but none of its fringes (:meth:`_fringe_checks`): the capture
+            is kept, named in the reason, but not returned as a measurement.
         """
         unit_ids = self.unit_ids(unit)
         with self._lock:
