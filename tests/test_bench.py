@@ -623,3 +623,18 @@ def test_p95_interval_measures_the_draws_luck() -> None:
     assert (p95_text({"p95": 0.1, "p95_interval": [0.05, 0.12]}, " mm")
             == "0.100 mm (0.050–0.120 mm)")
     assert p95_text({"p95": 0.1}) == "0.100"
+
+
+def test_holds_at_rest_count_the_frames_held_after_the_first_release() -> None:
+    def frame(hold: bool, *reasons: str) -> dict[str, Any]:
+        return {"beam_hold": hold, "reasons": list(reasons)}
+
+    before = [frame(True, "start"), frame(True, "dwell"), frame(False), frame(True, "dropped"),
+              frame(True, "dwell"), frame(False), frame(False), frame(True, "low_confidence")]
+
+    holds = tracking._holds_at_rest(before)
+
+    assert holds == {"released_at_rest": True, "frames_at_rest": 6, "held_at_rest": 3,
+                     "holds_rising_at_rest": 2,
+                     "held_at_rest_reasons": {"dropped": 1, "dwell": 1, "low_confidence": 1}}
+    assert tracking._holds_at_rest([frame(True, "start")])["released_at_rest"] is False

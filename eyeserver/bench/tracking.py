@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import gc
+import itertools
 import json
 import math
 import socket
@@ -128,13 +129,15 @@ class _Reader:
             self.thread.start()
 
     def drain(self, timeout_s: float = 5.0) -> None:
-        """Read what is waiting (the silent client, at the end): up to the first heartbeat,
-        which the daemon sends only once it has had nothing else to send for a second."""
+        """Read what is waiting (the silent client, at the end): up to the ``hold`` the
+        session's end publishes, its last message (kept: a full queue drops the oldest). Not
+        up to a timeout alone: the stream's heartbeat never lets it go quiet."""
         try:
             while True:
                 text = self.ws.recv(timeout=timeout_s)
                 self._received.append((time.monotonic_ns(), text))
-                if json.loads(text).get("type") == "heartbeat":
+                message = json.loads(text)
+                if message.get("type") == "hold" and message.get("reason") == "ended":
                     return
         except TimeoutError:
             return
@@ -148,14 +151,17 @@ def _percentile(values: list[float], q: float) -> float | None:
 
 def run(seconds: float = 60.0, *, calibration: Path | None = None,
         room_file: Path | None = None, work: Path | None = None, workers: int = 2,
-        prerendered: bool = False, eyes: str = "sharp", seed: int = 0,
+        prerendered: bool = False, eyes: str = "sharp", seed: int = 0, unit: str = UNIT,
         progress: Progress = _quiet) -> dict[str, Any]:
-    """Track for ``seconds`` on a daemon on loopback (``workers``: its ``tracking_workers``;
+    """Track for ``seconds`` on a daemon on loopback (``unit``: the patient's, ``all`` for
+    both units interleaved; ``workers``: its ``tracking_workers``;
     ``prerendered``: the room's frames rendered before tracking, see the module; ``eyes``:
     the room's sharp eye, or a patient's drawn with ``seed``
     (:func:`~eyeserver.hardware.sim.population.draw`)) and measure; the report (JSON-able)."""
     if eyes not in ("sharp", "patient"):
         raise ValueError(f"eyes must be sharp or patient, not {eyes!r}")
+    if unit == "all" and prerendered:
+        raise ValueError("the room renders ahead for one unit: --unit all needs live rendering")
     with tempfile.TemporaryDirectory(prefix="eyeserver-bench-tracking-") as scratch:
         base = work or Path(scratch)
         if calibration is None:
@@ -167,21 +173,21 @@ def run(seconds: float = 60.0, *, calibration: Path | None = None,
             env["EYESERVER_ROOM_FILE"] = str(room_file)
         at_start = reference_ms()
         with DaemonProcess(base / "daemon-data", log=base / "daemon.log", env=env) as daemon:
-            report = _run(daemon, seconds, calibration, prerendered, eyes, seed, progress)
+            report = _run(daemon, seconds, calibration, prerendered, eyes, seed, unit, progress)
         report["reference_fft_ms"] = {"at_start": round(at_start, 2),
                                       "at_end": round(reference_ms(), 2)}
         return report
 
 
 def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: bool,
-         eyes: str, seed: int, progress: Progress) -> dict[str, Any]:
+         eyes: str, seed: int, unit: str, progress: Progress) -> dict[str, Any]:
     client = daemon.client
     progress("importing the calibration, placing the eye, capturing the reference at rest")
     imported = _checked(client.post(f"{API}/calibrations", content=zip_directory(calibration),
                                     headers={"content-type": "application/zip"}), "import")
     _checked(client.post(f"{API}/calibrations/{imported['id']}/activate"), "activation")
     _checked(client.put(f"{API}/patients/{PATIENT}", json={
-        "eye": "right", "unit": UNIT, "tolerance_mm": TOLERANCE_MM,
+        "eye": "right", "unit": unit, "tolerance_mm": TOLERANCE_MM,
         "tolerance_gaze_deg": TOLERANCE_GAZE_DEG}), "patient")
     drawn = None
     if eyes == "patient":
@@ -207,10 +213,10 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: 
     ahead = None
     if prerendered:
         script_s = lead_s + seconds + PRERENDER_MARGIN_S
-        progress(f"rendering {script_s:g} s of the moving eye ahead (unit {UNIT}'s cameras; "
+        progress(f"rendering {script_s:g} s of the moving eye ahead (unit {unit}'s cameras; "
                  "≈ 0.3–0.5 s a second of script)")
         ahead = _checked(client.post(f"{API}/sim/eye/prerender", json={
-            "unit": UNIT, "seconds": script_s}, timeout=3600), "rendering ahead")
+            "unit": unit, "seconds": script_s}, timeout=3600), "rendering ahead")
     before = time.monotonic_ns()
     eye = _checked(client.get(f"{API}/sim/eye"), "eye truth")
     after = time.monotonic_ns()
@@ -241,6 +247,7 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: 
     report["blink"] = _blink(readers[0], EyeMotion(MotionSpec.model_validate(motion)), epoch_ns,
                              blink_s)
     report["eyes"] = eyes
+    report["unit"] = unit
     report["eye"] = None if drawn is None else {"seed": seed, **population.describe(drawn)}
     scene = SceneSpec.model_validate(_checked(client.get(f"{API}/sim/scene"), "scene"))
     report["accuracy"] = tracked_accuracy(
@@ -361,6 +368,23 @@ def _track(client: Any, seconds: float, saccade_s: float, lead_s: float, silent:
     return status, elapsed_s, started, start_ns
 
 
+def _holds_at_rest(before: list[dict[str, Any]]) -> dict[str, Any]:
+    """The beam held while the eye rests in tolerance (before the saccade, from the first
+    release of the beam on): the frames held, the times it rose, and why (the hold must follow
+    the eye, not the scheduler; issue 35's both-units run held 88 % of its frames)."""
+    released = next((k for k, m in enumerate(before) if not m["beam_hold"]), None)
+    rest = [] if released is None else before[released:]
+    reasons: dict[str, int] = {}
+    for m in rest:
+        for reason in m["reasons"] if m["beam_hold"] else ():
+            reasons[reason] = reasons.get(reason, 0) + 1
+    return {"released_at_rest": released is not None, "frames_at_rest": len(rest),
+            "held_at_rest": sum(1 for m in rest if m["beam_hold"]),
+            "holds_rising_at_rest": sum(1 for a, b in itertools.pairwise(rest)
+                                        if b["beam_hold"] and not a["beam_hold"]),
+            "held_at_rest_reasons": reasons}
+
+
 def _report(seconds: float, elapsed_s: float, started: dict[str, Any], start_ns: int,
             status: dict[str, Any], reference: dict[str, Any], readers: list[_Reader],
             silent: _Reader, saccade_end_ns: int) -> dict[str, Any]:
@@ -395,6 +419,7 @@ def _report(seconds: float, elapsed_s: float, started: dict[str, Any], start_ns:
         # Only meaningful when the beam was not already held for the same reason at rest.
         "held_out_of_tolerance_before_saccade": sum(
             1 for m in before if "out_of_tolerance" in m["reasons"]),
+        **_holds_at_rest(before),
         "processed_before_saccade": len(before),
         "first_after_saccade_gaze_deg": None if first_after is None or
         first_after["deviation"] is None else first_after["deviation"]["gaze_deg"],
@@ -512,6 +537,10 @@ def format_text(report: dict[str, Any]) -> str:
         f"  (before the saccade {reaction['held_out_of_tolerance_before_saccade']} of "
         f"{reaction['processed_before_saccade']} processed frames were already held out of "
         "tolerance)",
+        f"  at rest (unit {report.get('unit', UNIT)}, from the first release to the saccade): "
+        f"held on {reaction.get('held_at_rest')} of {reaction.get('frames_at_rest')} processed "
+        f"frames, rose {reaction.get('holds_rising_at_rest')} times "
+        f"({reaction.get('held_at_rest_reasons') or '-'}; goal: none)",
         f"  fits: {report['fits']['with_pose']} with a pose, {report['fits']['without_pose']} "
         f"without; {report['fits']['in_tolerance']} in tolerance; at rest median |Δ| "
         f"{_fmt(report['fits']['at_rest_length_mm_median'], 3)} mm, gaze "

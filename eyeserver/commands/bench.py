@@ -136,6 +136,9 @@ def add_parser(subparsers: Subparsers) -> None:
                           "eye drawn from the population (docs/eye-model.md) with --seed")
     tracking.add_argument("--seed", type=int, default=0,
                           help="which patient's eye (--eyes patient; default 0)")
+    tracking.add_argument("--unit", default="left", metavar="ID",
+                          help="the patient's unit: left (default), right, or all (both units "
+                          "interleaved; with the room rendering live)")
     tracking.set_defaults(handler=_tracking)
 
 
@@ -185,8 +188,12 @@ def _pose(args: argparse.Namespace) -> int:
 def _tracking(args: argparse.Namespace) -> int:
     from eyeserver.bench import tracking
 
+    if args.unit == "all" and args.prerendered:
+        raise EyeserverError("bench tracking: --unit all needs the room rendering live (the "
+                             "room renders ahead for one unit); leave out --prerendered")
     report = tracking.run(args.seconds, calibration=args.calibration, room_file=args.room,
                           workers=args.workers, prerendered=args.prerendered,
-                          eyes=args.eyes, seed=args.seed, progress=_progress)
+                          eyes=args.eyes, seed=args.seed, unit=args.unit,
+                          progress=_progress)
     print(json.dumps(report, indent=1) if args.json else tracking.format_text(report))
     return 0
