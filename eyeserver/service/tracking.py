@@ -114,13 +114,13 @@ from eyeserver.service.patients import Patients, Tolerances
 from eyeserver.service.reconstruction import ReconstructionError, calibrated_cameras, z_range
 from eyeserver.service.tracking_worker import PoseWorker
 from eyeserver.service.verification import (
-    MIN_UNIT_POINTS,
     FitFunction,
     deviation,
     judge,
     measurement_model,
     shape_cancels,
     shape_reason,
+    unit_shortfalls,
 )
 
 __all__ = ["CAMERA_RATE_HZ", "DEADLINE_S", "FOLLOW_LOST_S", "FindPose", "FocusingReconstructor",
@@ -506,12 +506,10 @@ class RigReconstructor:
                     pixels += len(cloud.points) * factor**2
                     unit = self._rig.unit_of_camera(camera_id).id
                     unit_pixels[unit] = unit_pixels.get(unit, 0) + len(cloud.points) * factor**2
-        dark = {unit: n for unit, n in unit_pixels.items() if n < MIN_UNIT_POINTS}
-        if dark:
-            # A unit that sees nothing: the pose would be the other unit's alone (issue 35).
-            raise ReconstructionError("; ".join(
-                f"unit {unit} gave {n} points (at least {MIN_UNIT_POINTS} needed): its "
-                "projector may be dark or its view blocked" for unit, n in dark.items()))
+        # A unit that sees nothing: the pose would be the other unit's alone (issue 35).
+        missing = unit_shortfalls({unit: {"points": n} for unit, n in unit_pixels.items()})
+        if missing:
+            raise ReconstructionError("; ".join(missing))
         fused = fuse(parts)
         whole = PointCloud(fused.points.astype(np.float32), fused.quality, fused.camera)
         counted = sum(len(part.points) for part in parts)
