@@ -119,8 +119,15 @@ async def _eyeserver_error(request: Request, exc: Exception) -> JSONResponse:
             "reason": str(exc),
         },
     )
-    body = ErrorResponse(detail=str(exc))
-    return JSONResponse(status_code=status_code, content=body.model_dump(exclude_none=True))
+    return _answer(status_code, str(exc))
+
+
+def _answer(status_code: int, detail: str, errors: list[Any] | None = None,
+            headers: dict[str, str] | None = None) -> JSONResponse:
+    """An error's answer: :class:`~eyeserver.api.schemas.ErrorResponse` (``errors`` only where
+    there are some)."""
+    return JSONResponse(status_code=status_code, headers=headers, content=ErrorResponse(
+        detail=detail, errors=errors).model_dump(exclude_none=True))
 
 
 def _disk_full(exc: BaseException) -> bool:
@@ -132,28 +139,6 @@ def _disk_full(exc: BaseException) -> bool:
             return True  # SQLite's "database or disk is full"
         exc = exc.__cause__ or exc.__context__  # type: ignore[assignment]
     return False
-
-
-async def _database_error(request: Request, exc: Exception) -> JSONResponse:
-    """SQLite's errors: a full disk is 507 with the reason (patients, poses and every other
-    write go through the index; it gave 500, issue 35), anything else a bug's 500."""
-    if _disk_full(exc):
-        _log.error("request failed: the disk is full", extra={
-            "method": request.method, "path": request.url.path, "reason": str(exc)})
-        body = ErrorResponse(detail="the data directory's disk is full: nothing was changed; "
-                             "free space (or let retention delete old captures) and retry")
-        return JSONResponse(status_code=507, content=body.model_dump(exclude_none=True))
-    _log.error("request failed: a database error", exc_info=exc, extra={
-        "method": request.method, "path": request.url.path})
-    return JSONResponse(status_code=500, content=ErrorResponse(
-        detail="internal server error").model_dump(exclude_none=True))
-
-
-async def _unexpected_error(request: Request, exc: Exception) -> JSONResponse:
-    # A bug, not a reported failure: the details go to the log (the server logs the traceback),
-    # the client only learns that it was not its fault.
-    body = ErrorResponse(detail="internal server error")
-    return JSONResponse(status_code=500, content=body.model_dump(exclude_none=True))
 
 
 def _finite(value: Any) -> Any:
@@ -176,8 +161,7 @@ async def _invalid_request(request: Request, exc: Exception) -> JSONResponse:
     errors = _finite(jsonable_encoder(exc.errors()))
     reasons = "; ".join(f"{'.'.join(str(part) for part in e.get('loc', ()))}: {e.get('msg')}"
                         for e in errors)
-    return JSONResponse(status_code=422, content=ErrorResponse(
-        detail=reasons or "invalid request", errors=errors).model_dump(exclude_none=True))
+    return _answer(422, reasons or "invalid request", errors)
 
 
 def _allowed_methods(app: FastAPI, path: str) -> list[str]:
@@ -202,14 +186,15 @@ async def _http_error(request: Request, exc: Exception) -> Response:
     if exc.status_code == 405:
         allowed = _allowed_methods(request.app, request.url.path)
         if allowed:
-            return JSONResponse(status_code=405, content={"detail": "Method Not Allowed"},
-                                headers={"Allow": ", ".join(allowed)})
+            return _answer(405, "Method Not Allowed", headers={"Allow": ", ".join(allowed)})
     return await http_exception_handler(request, exc)
 
 
 class _CaughtBugs:
-    """Pure ASGI middleware: an exception no handler reported becomes a JSON 500, logged with
-    its traceback, and goes no further.
+    """Pure ASGI middleware: an exception no handler reported becomes a JSON 500 (a bug: the
+    details go to the log with the traceback, the client only learns that it was not its
+    fault), or 507 where it says the disk is full (SQLite's "database or disk is full" from
+    any write of the index: it gave 500, issue 35), and goes no further.
 
     Starlette's outermost layer answers such an exception with a 500 too, but then raises it
     on to the server, which drops the connection: the client's next request on the same
@@ -235,13 +220,19 @@ class _CaughtBugs:
 
         try:
             await self.app(scope, receive, tracked)
-        except Exception:
+        except Exception as exc:
             if started:
                 raise
-            _log.exception("request failed: a bug", extra={
-                "method": scope.get("method"), "path": scope.get("path")})
-            response = JSONResponse(status_code=500, content=ErrorResponse(
-                detail="internal server error").model_dump(exclude_none=True))
+            where = {"method": scope.get("method"), "path": scope.get("path")}
+            if _disk_full(exc):
+                _log.error("request failed: the disk is full", extra={**where,
+                                                                       "reason": str(exc)})
+                response = _answer(507, "the data directory's disk is full: nothing was "
+                                   "changed; free space (or let retention delete old "
+                                   "captures) and retry")
+            else:
+                _log.exception("request failed: a bug", extra=where)
+                response = _answer(500, "internal server error")
             await response(scope, receive, send)
 
 
@@ -250,6 +241,4 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(EyeserverError, _eyeserver_error)
     app.add_exception_handler(RequestValidationError, _invalid_request)
     app.add_exception_handler(StarletteHTTPException, _http_error)
-    app.add_exception_handler(sqlite3.Error, _database_error)
-    app.add_exception_handler(Exception, _unexpected_error)
     app.add_middleware(_CaughtBugs)

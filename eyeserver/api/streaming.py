@@ -73,21 +73,19 @@ async def _forward(websocket: WebSocket, subscription: Subscription, first: Sequ
                    heartbeat: tuple[float, Callable[[], Message]] | None) -> None:
     for message in first:
         await websocket.send_json(message)
+    quiet_s, beat = heartbeat if heartbeat is not None else (None, None)
+    # The wait for the next message goes on across heartbeats (a cancelled get could lose the
+    # message it was handing over).
     pending: asyncio.Task[Message] | None = None
     try:
         while True:
-            if heartbeat is None:
-                message = await subscription.get()
-            else:
-                # The wait for the next message goes on across heartbeats (a cancelled get
-                # could lose the message it was handing over).
-                if pending is None:
-                    pending = asyncio.ensure_future(subscription.get())
-                done, _ = await asyncio.wait((pending,), timeout=heartbeat[0])
-                if not done:
-                    await websocket.send_json(heartbeat[1]())
-                    continue
-                message, pending = pending.result(), None
+            if pending is None:
+                pending = asyncio.ensure_future(subscription.get())
+            done, _ = await asyncio.wait((pending,), timeout=quiet_s)
+            if not done and beat is not None:
+                await websocket.send_json(beat())
+                continue
+            message, pending = pending.result(), None
             await websocket.send_json(message if prepare is None else prepare(message))
     finally:
         if pending is not None:

@@ -33,6 +33,7 @@ import socket
 import tempfile
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -374,15 +375,12 @@ def _holds_at_rest(before: list[dict[str, Any]]) -> dict[str, Any]:
     the eye, not the scheduler; issue 35's both-units run held 88 % of its frames)."""
     released = next((k for k, m in enumerate(before) if not m["beam_hold"]), None)
     rest = [] if released is None else before[released:]
-    reasons: dict[str, int] = {}
-    for m in rest:
-        for reason in m["reasons"] if m["beam_hold"] else ():
-            reasons[reason] = reasons.get(reason, 0) + 1
+    held = [m for m in rest if m["beam_hold"]]
     return {"released_at_rest": released is not None, "frames_at_rest": len(rest),
-            "held_at_rest": sum(1 for m in rest if m["beam_hold"]),
+            "held_at_rest": len(held),
             "holds_rising_at_rest": sum(1 for a, b in itertools.pairwise(rest)
                                         if b["beam_hold"] and not a["beam_hold"]),
-            "held_at_rest_reasons": reasons}
+            "held_at_rest_reasons": dict(Counter(r for m in held for r in m["reasons"]))}
 
 
 def _report(seconds: float, elapsed_s: float, started: dict[str, Any], start_ns: int,

@@ -184,22 +184,20 @@ def _arrays(path: Path, rig: RigSpec, max_bytes: int) -> dict[str, np.ndarray]:
         with zipfile.ZipFile(path) as archive:
             declared = 0
             for info in archive.infolist():
-                declared += info.file_size
                 with archive.open(info) as member:
                     version = np.lib.format.read_magic(member)
                     shape, _, dtype = (np.lib.format.read_array_header_1_0(member)
                                        if version == (1, 0)
                                        else np.lib.format.read_array_header_2_0(member))
-                declared = max(declared, declared - info.file_size
-                               + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize)
+                # The larger of what the zip and the array's header declare.
+                declared += max(info.file_size,
+                                int(np.prod(shape, dtype=np.int64)) * dtype.itemsize)
                 if declared > max_bytes or dtype.hasobject:
                     raise FormatError(path, info.filename, "declares more data than a "
                                       f"calibration holds (over {max_bytes >> 20} MiB) or "
                                       "Python objects")
         with np.load(path, allow_pickle=False) as stored:
             arrays = {name: stored[name] for name in stored.files}
-    except FormatError:
-        raise
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
         raise FormatError(path, None, f"unreadable arrays ({exc})") from exc
     sizes = {c.id: (c.height, c.width) for c in rig.cameras}

@@ -73,7 +73,11 @@ from eyeserver.service.events import EventBus
 from eyeserver.service.jobs import Jobs
 from eyeserver.service.metrics import ServiceMetrics
 from eyeserver.service.preview import height_map_png
-from eyeserver.service.reconstruction import ReconstructionOptions, reconstruct_bundle
+from eyeserver.service.reconstruction import (
+    ReconstructionOptions,
+    camera_carriers,
+    reconstruct_bundle,
+)
 from eyeserver.service.storage import CalibrationRecord, CaptureRecord, Store
 from eyeserver.service.uploads import UploadTooLargeError, unpack_calibration_zip
 from eyeserver.service.workers import BoundedWorker, RetryLoop, RetryWait, wait_on_event
@@ -589,10 +593,7 @@ class Service:
             return cached[1]
         carriers: dict[str, Carrier] | None = None
         try:
-            document = load_calibration(active.path, self.rig_spec())
-            section = document.get("phase_to_height") or {}
-            carriers = {camera_id: Carrier(tuple(entry["carrier_cycles_per_px"]))
-                        for camera_id, entry in section.get("cameras", {}).items()} or None
+            carriers = camera_carriers(load_calibration(active.path, self.rig_spec())) or None
         except EyeserverError as exc:  # the captures say it: no fringe_check in their bundle
             _log.warning("no fringe check: the active calibration cannot be read",
                          extra={"calibration_id": active.id, "reason": str(exc)})

@@ -95,12 +95,21 @@ class ReconstructionOptions:
                 "min_quality": self.min_quality}
 
 
+def camera_carriers(document: dict[str, Any]) -> dict[str, Carrier]:
+    """Each camera's fringe carrier in a loaded calibration (none before its phase-to-height
+    models)."""
+    section = document.get("phase_to_height") or {}
+    return {camera_id: Carrier(tuple(entry["carrier_cycles_per_px"]))
+            for camera_id, entry in section.get("cameras", {}).items()}
+
+
 def calibrated_cameras(document: dict[str, Any]) -> dict[str, CalibratedCamera]:
     """The pipeline's view of every camera of a loaded calibration."""
     section = document.get("phase_to_height")
     if not section:
         raise ReconstructionError("the calibration has no phase-to-height models yet "
                                   "(run 'eyeserver calibrate p2h')")
+    carrier_of = camera_carriers(document)
     cameras = {}
     for camera_id, cam in document["cameras"].items():
         p2h = section["cameras"][camera_id]
@@ -108,7 +117,7 @@ def calibrated_cameras(document: dict[str, Any]) -> dict[str, CalibratedCamera]:
         if reference is None:
             raise ReconstructionError(f"the calibration lacks camera {camera_id}'s reference "
                                       "phase (arrays.npz)")
-        carrier = Carrier(tuple(p2h["carrier_cycles_per_px"]))
+        carrier = carrier_of[camera_id]
         cameras[camera_id] = CalibratedCamera(
             camera_id=camera_id, K=cam["K"], dist=cam["dist"], R=cam["R"], T=cam["T"],
             model=PhaseHeightModel.from_dict(p2h["model"]), carrier=carrier,

@@ -462,13 +462,12 @@ class RigReconstructor:
     def __call__(self, frame_set: FrameSet) -> TrackedCloud:
         parts = []
         views: list[LimbusView] = []
-        pixels = 0
-        unit_pixels: dict[str, int] = {}
+        unit_pixels: dict[str, int] = {}  # the pixels each unit's points stand for
         for step in frame_set.steps:
             by_unit: dict[str, list[str]] = {}
             for camera_id in step.frames:
                 by_unit.setdefault(self._rig.unit_of_camera(camera_id).id, []).append(camera_id)
-            for camera_ids in by_unit.values():
+            for unit_id, camera_ids in by_unit.items():
                 if len(camera_ids) < 2:
                     raise ReconstructionError(f"camera {camera_ids[0]} has no partner in its "
                                               "unit to fix its fringe order")
@@ -501,11 +500,9 @@ class RigReconstructor:
                 for camera_id, cloud, factor in ((a, cloud_a, factor_a),
                                                  (b, cloud_b, factor_b)):
                     parts.append(Part(cloud.points, cloud.quality,
-                                      self._rig.camera_index(camera_id),
-                                      self._rig.unit_of_camera(camera_id).id))
-                    pixels += len(cloud.points) * factor**2
-                    unit = self._rig.unit_of_camera(camera_id).id
-                    unit_pixels[unit] = unit_pixels.get(unit, 0) + len(cloud.points) * factor**2
+                                      self._rig.camera_index(camera_id), unit_id))
+                    unit_pixels[unit_id] = (unit_pixels.get(unit_id, 0)
+                                            + len(cloud.points) * factor**2)
         # A unit that sees nothing: the pose would be the other unit's alone (issue 35).
         missing = unit_shortfalls({unit: {"points": n} for unit, n in unit_pixels.items()})
         if missing:
@@ -513,6 +510,7 @@ class RigReconstructor:
         fused = fuse(parts)
         whole = PointCloud(fused.points.astype(np.float32), fused.quality, fused.camera)
         counted = sum(len(part.points) for part in parts)
+        pixels = sum(unit_pixels.values())
         return TrackedCloud(whole.points, whole.quality, whole.camera, tuple(views),
                             pixels_per_point=pixels / counted if counted else 1.0)
 
@@ -1196,11 +1194,11 @@ class TrackingControl:
         """For the metrics: ``running``, ``beam_hold`` and the frame counts and stalls summed
         over every session so far (:data:`~eyeserver.service.metrics.TrackingFigures`)."""
         with self._lock:
-            session = self._session if self._hold is not None else None
+            running = self._hold is not None  # a session not yet summed into the totals
             totals = dict(self._totals)
         status = self.status()
-        if session is not None:
-            for name, value in _frame_counts(session.status()).items():
+        if running:
+            for name, value in _frame_counts(status).items():
                 totals[name] += value
         return {**totals, "running": float(status["running"]),
                 "beam_hold": float(status["beam_hold"])}

@@ -336,9 +336,8 @@ class PoseVerification:
             views = limbus_views(calibration.path, capture.path)
             pose = self.fit(cloud, model, views)
         except EyeserverError as exc:
-            service.audit.record(actor, action, patient.key, {
-                "patient_id": patient.patient_id, "fraction": fraction,
-                "capture_id": capture.id, "error": str(exc) or type(exc).__name__}, "error")
+            self._audit_failure(actor, action, patient, fraction, capture.id,
+                                str(exc) or type(exc).__name__)
             raise
         return _Observation(
             capture.id, patient.unit, str(summary["calibration_id"]),
@@ -347,6 +346,13 @@ class PoseVerification:
             int(summary["points"]),
             unit_contributions(summary, service.rig_spec(), service.unit_ids(patient.unit)),
             pose)
+
+    def _audit_failure(self, actor: str, action: str, patient: Patient, fraction: int,
+                       capture_id: str, error: str) -> None:
+        """An ``error`` audit line for a measurement that failed after its capture."""
+        self.service.audit.record(actor, action, patient.key, {
+            "patient_id": patient.patient_id, "fraction": fraction, "capture_id": capture_id,
+            "error": error}, "error")
 
     def measure(self, patient_id: str, fraction: int, *, actor: str) -> dict[str, Any]:
         """Measure the pose of a patient's eye and compare it with the fraction's reference.
@@ -426,9 +432,8 @@ class PoseVerification:
         missing = unit_shortfalls(seen.units)
         if missing:
             reason = "cannot take this capture as the reference: " + "; ".join(missing)
-            self.service.audit.record(actor, "set_reference_pose", patient.key, {
-                "patient_id": patient.patient_id, "fraction": fraction,
-                "capture_id": seen.capture_id, "error": reason}, "error")
+            self._audit_failure(actor, "set_reference_pose", patient, fraction,
+                                seen.capture_id, reason)
             raise PoseError(reason)
         pose = seen.pose
         return self.patients.set_reference(
