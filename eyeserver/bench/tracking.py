@@ -372,7 +372,7 @@ def _track(client: Any, seconds: float, saccade_s: float, lead_s: float, silent:
 def _holds_at_rest(before: list[dict[str, Any]]) -> dict[str, Any]:
     """The beam held while the eye rests in tolerance (before the saccade, from the first
     release of the beam on): the frames held, the times it rose, and why (the hold must follow
-    the eye, not the scheduler; issue 35's both-units run held 88 % of its frames)."""
+    the eye, not the scheduler: docs/notes/hardening.md)."""
     released = next((k for k, m in enumerate(before) if not m["beam_hold"]), None)
     rest = [] if released is None else before[released:]
     held = [m for m in rest if m["beam_hold"]]

@@ -435,8 +435,8 @@ nothing to judge its fringes on (the empty room: 0.6 DN)."""
 
 MIN_FRINGE_CONTRAST = 0.1
 """A lit frame whose fringes' modulation is below this share of the light they ride on shows
-no fringes: its projector lit nothing. Measured on the simulated room (reference plane,
-pyramid, sharp and patient eyes): 0.57–0.62 lit, 0.29–0.32 at 30 % drive, 0.01 dark."""
+no fringes: its projector lit nothing (a factor of 3 below a projector at 30 % drive on the
+simulated scenes, 10 above a dark one: docs/notes/hardening.md)."""
 
 
 @dataclass(frozen=True)

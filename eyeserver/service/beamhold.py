@@ -17,9 +17,9 @@ means frames went unprocessed (dropped for a newer one, or camera periods missed
 always counted (:attr:`BeamDecision.dropped_frames`, never skipped silently). A gap of up to
 ``max_gap_frames`` (default 2: 80 ms at 25 Hz, in which an eye at rest moves micrometres) keeps
 the flag as the frames say; a longer one, with ``hold_on_drop`` (default), is treated as
-unseen: the hold rises and the dwell starts again, since the eye could have moved meanwhile.
-Held on every gap, a both-units run held the beam on 88 % of the frames of an eye at rest (89
-flips in 25 s, issue 35). Silence without any frame is the caller's to notice (it has the
+unseen: the hold rises and the dwell starts again, since the eye could have moved meanwhile
+(held on every gap, the beam flipped with the scheduler: docs/notes/hardening.md). Silence
+without any frame is the caller's to notice (it has the
 clock): :meth:`BeamHold.interrupt` raises the hold and restarts the dwell. Nothing here reads a
 clock, so tests replay any sequence exactly.
 """

@@ -221,8 +221,8 @@ def shape_reason(model_sd_mm: float, tolerances: Tolerances) -> str | None:
 MIN_UNIT_POINTS = 500
 """Fewest reconstructed points an optical unit of the patient's set-up must give for its
 measurement to count: a unit whose projector is dark (or whose view is blocked) gives none,
-and a pose from the other unit alone passed with nothing in the record saying so (issue 35).
-An eye in view gives each unit thousands (the sclera alone 3,600–6,400 on the simulated room)."""
+and a pose from the other unit alone passed with nothing in the record saying so (issue 35);
+an eye in view gives each unit thousands."""
 
 
 def unit_contributions(summary: dict[str, Any], rig: RigSpec, unit_ids: Sequence[str]

@@ -47,8 +47,8 @@ class ScriptEvent(NumbersOnly):
 class MotionSpec(NumbersOnly):
     """How the simulated eye moves. All zero rates and no script: a still eye.
 
-    Every number is finite and bounded (an eye's rates and amplitudes, with room to spare): a
-    saccade rate of 1e5 Hz kept 184 MB of saccade times allocated, an infinite one broke every
+    Every number is finite and bounded (an eye's rates and amplitudes, with room to spare): an
+    unbounded saccade rate held memory for every saccade time, an infinite one broke every
     capture until the scene was replaced (issue 35).
     """
 
