@@ -76,6 +76,7 @@ def _serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from eyeserver.api import create_app
+    from eyeserver.api.wsprotocol import UVICORN_OPTIONS
     from eyeserver.config import Settings
     from eyeserver.log import configure_logging
     from eyeserver.tls import uvicorn_ssl_options
@@ -94,6 +95,7 @@ def _serve(args: argparse.Namespace) -> int:
         log_level=settings.log_level,
         # A client that never reads (an event stream) must not hold the shut-down up forever.
         timeout_graceful_shutdown=SHUTDOWN_GRACE_S,
+        **UVICORN_OPTIONS,
         **ssl_options,
     )
     return 0

@@ -139,6 +139,11 @@ class Settings(BaseSettings):
     ``event_queue_size``
         Events held for each client of the live event stream (``/api/v1/ws/events``) that
         reads too slowly; when full, its oldest event is dropped. Default ``256``.
+    ``ws_stall_s``
+        A client of ``/api/v1/ws/events`` or ``/api/v1/ws/pose`` whose socket accepted nothing
+        for this long (it stopped reading, its buffers are full) is sent a last ``dropped``
+        notice and closed with 4008. Default ``10`` seconds: well before the 40 s after which
+        the server's keep-alive would cut it off without a word.
     ``acquisition_queue``
         Hardware jobs (captures, device settings) that may wait while one runs; one more is
         refused with HTTP 503. Default ``8``.
@@ -237,6 +242,13 @@ class Settings(BaseSettings):
         ge=1,
         description="Events held for each slow client of the live event stream; when full, "
         "its oldest event is dropped.",
+    )
+    ws_stall_s: float = Field(
+        default=10.0,
+        ge=0.1,
+        le=30.0,
+        description="A stream client whose socket accepted nothing for this long (seconds) "
+        "gets a last dropped notice and is closed with 4008.",
     )
     acquisition_queue: int = Field(
         default=8,

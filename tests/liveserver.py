@@ -16,6 +16,8 @@ from contextlib import contextmanager
 import uvicorn
 from fastapi import FastAPI
 
+from eyeserver.api.wsprotocol import UVICORN_OPTIONS
+
 __all__ = ["live_server"]
 
 
@@ -40,7 +42,8 @@ def live_server(app: FastAPI, *, start_timeout_s: float = 60.0,
     listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     listener.bind(("127.0.0.1", 0))
     port = listener.getsockname()[1]
-    config = uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None, lifespan="on")
+    config = uvicorn.Config(app, host="127.0.0.1", port=port, log_config=None, lifespan="on",
+                            **UVICORN_OPTIONS)
     server = uvicorn.Server(config)
     # uvicorn installs signal handlers only on the main thread, so this thread leaves them alone.
     thread = threading.Thread(target=server.run, kwargs={"sockets": [listener]},

@@ -205,7 +205,9 @@ async def _subscribe(bus: EventBus, maxsize: int) -> None:
 @pytest.fixture(scope="module")
 def app(tmp_path_factory: pytest.TempPathFactory) -> FastAPI:
     data_dir = tmp_path_factory.mktemp("events") / "data"
-    return create_app(test_settings(data_dir, event_queue_size=QUEUE_SIZE))
+    # The silent client of the slow-client test reads again only after the others have had
+    # everything: it must not be taken for one that stopped reading meanwhile.
+    return create_app(test_settings(data_dir, event_queue_size=QUEUE_SIZE, ws_stall_s=30.0))
 
 
 @pytest.fixture(scope="module")
@@ -352,14 +354,10 @@ def test_a_client_that_never_reads_delays_no_one_and_loses_its_oldest_events(
     bus = service.events
     dropped_before = bus.dropped_total
 
-    # The silent client: a small receive buffer and queue, and it reads nothing (not even its
-    # hello) until every other client has everything.
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    # Before connecting: the window is agreed in the handshake (shrinking it later stalls TCP).
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-    sock.connect(("127.0.0.1", int(base_url.rsplit(":", 1)[1])))
+    # The silent client reads nothing (not even its hello) until every other client has
+    # everything.
     stack = ExitStack()  # websockets wants its connections used as context managers
-    silent = stack.enter_context(_connect(base_url, sock=sock, max_queue=1))
+    silent = _silent_client(base_url, stack)
 
     progress: list[int] = [0] * readers  # the last seq each reader has seen
     received: list[list[dict[str, Any]]] = [[] for _ in range(readers)]
@@ -441,6 +439,57 @@ def test_a_client_that_never_reads_delays_no_one_and_loses_its_oldest_events(
         previous, missing = message["seq"], 0
     assert late[-1]["seq"] == end
     assert [e["type"] for e in late[-QUEUE_SIZE // 2:]].count("dropped") == 0
+
+
+def _silent_client(base_url: str, stack: ExitStack) -> ClientConnection:
+    """A client with a small receive buffer and queue that reads nothing until told."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    # Before connecting: the window is agreed in the handshake (shrinking it later stalls TCP).
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    sock.connect(("127.0.0.1", int(base_url.rsplit(":", 1)[1])))
+    return stack.enter_context(_connect(base_url, sock=sock, max_queue=1))
+
+
+def test_a_client_that_stops_reading_gets_a_last_notice_then_4008(tmp_path: Path) -> None:
+    stall_s = 0.5
+    app = create_app(test_settings(tmp_path / "data", event_queue_size=QUEUE_SIZE,
+                                   ws_stall_s=stall_s))
+    padding = "x" * 6000  # a few hundred events fill the loopback socket's buffers
+    with live_server(app) as url, ExitStack() as stack:
+        bus = app.state.service.events
+        silent = _silent_client(url, stack)
+        assert bus.subscriber_count == 1
+        dropped_before = bus.dropped_total
+        # Publish until the daemon lets the client go (it stays subscribed while it accepts).
+        deadline = time.monotonic() + TIMEOUT_S
+        while bus.subscriber_count and time.monotonic() < deadline:
+            for i in range(32):
+                bus.publish("test.load", i=i, padding=padding)
+            time.sleep(0.01)
+        assert bus.subscriber_count == 0, "the daemon kept a client that read nothing"
+        last_offered = bus.last_seq
+        dropped = bus.dropped_total - dropped_before
+        # Now it reads: what it was sent, the last notice, the close.
+        received: list[dict[str, Any]] = []
+        with pytest.raises(ConnectionClosed) as closed:
+            while True:
+                received.append(_recv(silent))
+
+    assert closed.value.rcvd is not None
+    assert closed.value.rcvd.code == 4008
+    assert closed.value.rcvd.reason == "too slow: accepted nothing for 0.5 s"
+    hello, events, last = received[0], received[1:-1], received[-1]
+    assert hello["type"] == "hello"
+    assert last["type"] == "dropped" and last["count"] > 0
+    notices = [e["count"] for e in events if e["type"] == "dropped"] + [last["count"]]
+    # Every event it was offered either reached it or is counted in a notice, and the bus
+    # counted as dropped exactly what the notices say.
+    delivered = [e["seq"] for e in events if e["type"] != "dropped"]
+    assert delivered == sorted(delivered) and len(set(delivered)) == len(delivered)
+    assert delivered[0] == hello["last_seq"] + 1
+    assert len(delivered) + sum(notices) == delivered[-1] - hello["last_seq"] + last["count"]
+    assert delivered[-1] + last["count"] <= last_offered
+    assert sum(notices) == dropped
 
 
 def test_the_stream_unsubscribes_when_its_clients_leave(base_url: str, service: Service) -> None:

@@ -151,6 +151,22 @@ class Subscription:
                 return {"type": "dropped", "count": count}
             return self._queue.popleft() if self._queue else None
 
+    def abandon(self, unsent: int = 0, untold: int = 0) -> int:
+        """:meth:`close` for a client that is cut off: the events still queued, and ``unsent``
+        more read from it but not delivered, count as dropped. Returns every event the client
+        will never hear of: those, the drops not yet reported and ``untold`` (the count of a
+        drop notice read but not delivered). 0 once closed."""
+        with self._lock:
+            if self._closed:
+                return 0
+            dropped = len(self._queue) + unsent
+            lost = dropped + self._unreported + untold
+            self._dropped += dropped
+            self._unreported = 0
+        self._bus._count_dropped(dropped)
+        self.close()
+        return lost
+
     def close(self) -> None:
         """Leave the bus and wake a waiting :meth:`get` (which then raises). Idempotent."""
         with self._lock:
@@ -253,6 +269,10 @@ class EventBus:
             subscription.start_seq = self._seq
             self._subscriptions.append(subscription)
         return subscription
+
+    def _count_dropped(self, count: int) -> None:
+        with self._lock:
+            self._dropped_total += count
 
     def _forget(self, subscription: Subscription) -> None:
         with self._lock:

@@ -30,8 +30,10 @@ Every event carries ``type``, ``seq`` (increasing by one per event of the daemon
 A client that reads too slowly never holds the daemon or the other clients up: the daemon keeps
 at most ``event_queue_size`` events for it (setting, default 256) and drops the *oldest* when
 more arrive. Before the next event after such a loss it sends ``{"type": "dropped", "count":
-n}``; the ``seq`` of that next event has moved on by ``n + 1``. A client that needs the whole
-picture again reads ``GET /api/v1/status``.
+n}``; the ``seq`` of that next event has moved on by ``n + 1``. A client whose socket accepts
+nothing for ``ws_stall_s`` (default 10 s: it stopped reading) gets a last such notice, counting
+every event it will never get, and the close code 4008 with the reason; it finds them after what
+it was already sent. A client that needs the whole picture again reads ``GET /api/v1/status``.
 """
 
 from __future__ import annotations
@@ -62,7 +64,7 @@ async def stream_events(websocket: WebSocket) -> None:
     with service.events.subscribe(settings.event_queue_size) as subscription:
         await websocket.accept()
         hello = await run_in_threadpool(_hello, service, settings, subscription.start_seq)
-        await stream(websocket, subscription, first=[hello])
+        await stream(websocket, subscription, first=[hello], stall_s=settings.ws_stall_s)
 
 
 def _hello(service: Service, settings: Settings, last_seq: int) -> dict[str, Any]:

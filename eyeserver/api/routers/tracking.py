@@ -26,7 +26,8 @@ until ``dwell_frames`` good frames came again. ``{"type": "heartbeat", "time", "
 nothing for longer must take the link as dead and hold the beam. A client
 that reads too slowly loses its oldest messages (at most ``event_queue_size`` are kept for it)
 and gets ``{"type": "dropped", "count": n}`` before the next one, as on ``/ws/events``; it never
-slows the daemon or the other clients.
+slows the daemon or the other clients. One whose socket accepts nothing for ``ws_stall_s`` gets a
+last notice and the close code 4008, as there.
 """
 
 from __future__ import annotations
@@ -159,4 +160,4 @@ async def stream_pose(websocket: WebSocket) -> None:
     with tracking.messages.subscribe(settings.event_queue_size) as subscription:
         await websocket.accept()
         await stream(websocket, subscription, prepare=stamped,
-                     heartbeat=(HEARTBEAT_S, heartbeat))
+                     heartbeat=(HEARTBEAT_S, heartbeat), stall_s=settings.ws_stall_s)
