@@ -31,7 +31,7 @@ def test_models_fit_the_whole_range(calibrated: tuple[Path, Path]) -> None:
     section = document["phase_to_height"]
     for camera_id, cam in section["cameras"].items():
         quality = cam["quality"]
-        assert quality["median_abs_mm"] < 0.03, camera_id  # the goal of DESIGN §6
+        assert quality["median_abs_mm"] < 0.03, camera_id  # the goal of docs/design.md §6
         assert cam["z_range_mm"] == [-10.0, 25.0], camera_id  # all 35 mm, not just 15
         # Every plane fits, the extremes as well as the middle: no slip anywhere.
         assert max(z["median_abs_mm"] for z in quality["per_z"]) < 0.03, camera_id

@@ -8,7 +8,7 @@ To keep the module near two minutes, the stereo session takes the poses of the o
 calibration set in order only until the daemon answers ``ready`` (eight of the twelve), and the
 plate stack 2 mm steps from −8 to +10 mm (10 heights, covering the pyramid's −6…+6 mm)
 instead of 36 heights in 1 mm steps: 2 mm moves each pixel's phase by ≈ 2.4 rad, still below
-the π the unwrapping along Z allows (DESIGN §5).
+the π the unwrapping along Z allows (docs/design.md §5).
 """
 
 from __future__ import annotations

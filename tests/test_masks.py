@@ -1,4 +1,4 @@
-"""The fringe mask of one camera image (DESIGN §4 step 2) on synthetic fringes."""
+"""The fringe mask of one camera image (docs/design.md §4 step 2) on synthetic fringes."""
 
 from __future__ import annotations
 

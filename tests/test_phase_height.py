@@ -145,12 +145,12 @@ def test_noise_free_stack_is_fitted_to_micrometres(
 
 def test_model_is_exact_for_absolute_phase_on_undistorted_coordinates(
         stacks: dict[tuple[str, str, str], Stack]) -> None:
-    # Why the model has its form: for a pinhole camera and projector the *absolute* phase gives
-    # Z as exactly this rational function of undistorted (x, y); coordinates that still carry
-    # the lens distortion cost tens of micrometres (DESIGN: 0.015–0.046 mm; measured 0.018 and
-    # 0.050 mm here). Reference subtraction turns the identity into a micrometre approximation
-    # that hardly depends on the distortion (measured 0.2–1.9 µm either way), but undistorted
-    # coordinates stay the contract: step 6's rays and the inversion need them too.
+    # Why the model has its form: for a pinhole camera and projector the *absolute* phase gives Z as
+    # exactly this rational function of undistorted (x, y); coordinates that still carry the lens
+    # distortion cost tens of micrometres (docs/notes/design-measurements.md: 0.015–0.046 mm;
+    # measured 0.018 and 0.050 mm here). Reference subtraction turns the identity into a micrometre
+    # approximation that hardly depends on the distortion (measured 0.2–1.9 µm either way), but
+    # undistorted coordinates stay the contract: step 6's rays and the inversion need them too.
     for geometry in [("default", "S1", "P1"), ("other", "S1", "P1")]:
         stack = stacks[geometry]
         absolute = stack.dphi + stack.reference_phase
@@ -184,7 +184,8 @@ def test_phase_noise_gives_the_residual_noise_over_sensitivity_predicts(
 
 def test_default_rig_noise_meets_the_design_goal(
         stacks: dict[tuple[str, str, str], Stack]) -> None:
-    # DESIGN §6: phase-to-height residual median ≤ 0.03 mm. 0.05 rad at ≈ 1.2 rad/mm is ≈ 0.03.
+    # docs/design.md §6: phase-to-height residual median ≤ 0.03 mm. 0.05 rad at ≈ 1.2 rad/mm
+    # is ≈ 0.03.
     stack = stacks[("default", "S1", "P1")]
     assert 1.0 < float(np.median(np.abs(stack.sensitivity))) < 1.4
     noise = np.random.default_rng(3).normal(0.0, 0.05, stack.dphi.shape)
@@ -223,7 +224,7 @@ def test_one_plane_off_by_two_pi_ruins_the_fit(
 @pytest.mark.parametrize("slip_plane_mm", [20.0, -5.0])
 def test_a_fringe_slip_walking_out_from_the_reference_ruins_the_fit(
         slip_plane_mm: float, stacks: dict[tuple[str, str, str], Stack]) -> None:
-    # Unwrapping along Z walks out from the reference plane (DESIGN §5), so one slip offsets
+    # Unwrapping along Z walks out from the reference plane (docs/design.md §5), so one slip offsets
     # every plane beyond it by 2π. Measured: RMSE 1.2–1.7 mm.
     stack = stacks[("default", "S1", "P1")]
     dphi = stack.dphi.copy()
@@ -325,7 +326,8 @@ def test_normalisation_is_what_makes_the_problem_well_conditioned(
         stacks: dict[tuple[str, str, str], Stack],
         fits: dict[tuple[str, str, str], FitResult]) -> None:
     # Measured: ≈ 50 normalised; ≈ 5·10⁴ on raw normalised coordinates, rad and mm; ≈ 3·10⁵ on
-    # raw pixels (DESIGN measured 3·10⁶ against 5·10³ with another parametrisation).
+    # raw pixels (docs/notes/design-measurements.md: 3·10⁶ against 5·10³ with another
+    # parametrisation).
     stack, fit = stacks[("default", "S1", "P1")], fits[("default", "S1", "P1")]
     x, y, dphi, z = (a.ravel() for a in (stack.x, stack.y, stack.dphi, stack.z))
     raw = phase_height._linear_start(x, y, dphi, z)

@@ -66,8 +66,8 @@ def _measure(calibrated_rooms: Any, room: str, scene: str, tmp_path: Path,
 def test_scene_matches_its_exact_surface(calibrated_rooms: Any, room: str, scene: str,
                                          tmp_path: Path) -> None:
     score = _measure(calibrated_rooms, room, scene, tmp_path)
-    assert score["median_mm"] < 0.05, score  # goal of DESIGN §6: 0.15 mm
-    assert score["rmse_mm"] < 0.15, score  # the goal of DESIGN §6
+    assert score["median_mm"] < 0.05, score  # docs/design.md §6: goal 0.15 mm, next 0.05
+    assert score["rmse_mm"] < 0.15, score  # the goal of docs/design.md §6
     assert score["beyond_1mm"] < 0.001, score
     for camera_id, coverage in score["coverage"].items():
         assert coverage["share"] > 0.4, (camera_id, score)

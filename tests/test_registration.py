@@ -8,8 +8,8 @@ outliers or cut it; registration must give back ``(R, t)``. Two geometries:
   it, whose relief fixes all six degrees of freedom (with 0.02 mm noise and 5000 points the
   Cramér–Rao spread of each rotation is 0.003–0.006° and of each translation 0.0003–0.0014 mm);
 * ``eye``: a globe of radius 12 mm with a cornea of radius 7.8 mm on its axis, seen 9 mm around
-  the axis. It is symmetric about its axis, so torsion is invisible (DESIGN §4) and only the
-  gaze direction and the globe's centre are asserted.
+  the axis. It is symmetric about its axis, so torsion is invisible (docs/design.md §4 step 8)
+  and only the gaze direction and the globe's centre are asserted.
 """
 
 from __future__ import annotations

@@ -62,7 +62,7 @@ def test_the_default_room_is_the_documented_rig() -> None:
             (250.0, 25.0 * sign, 12.0)
         assert (lower.distance_mm, lower.azimuth_deg, lower.elevation_deg) == \
             (250.0, 28.0 * sign, -12.0)
-    for cam in room.cameras():  # the noise model of DESIGN §3
+    for cam in room.cameras():  # the noise model of docs/design.md §3
         assert (cam.width, cam.height, cam.focal_mm, cam.pixel_um) == (640, 512, 25.0, 10.6)
         assert cam.distortion == (-0.08, 0.0, 0.0, 0.0, 0.0)
         assert (cam.blur_px, cam.vignetting, cam.full_well_e, cam.read_noise_dn,

@@ -83,7 +83,8 @@ def _cast_image(room: SimRoom, spec: SceneSpec, camera_id: str) -> tuple[RayHits
 
 
 def _expected_vignetting(cam: CameraModel) -> npt.NDArray[np.float64]:
-    """DESIGN §3's fall-off: 1 on the principal point, 1 − v at the farthest corner, quadratic."""
+    """docs/design.md §3's fall-off: 1 on the principal point, 1 − v at the farthest corner,
+    quadratic."""
     h, w = cam.shape
     cx, cy = cam.K[0, 2], cam.K[1, 2]
     vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -511,7 +512,7 @@ def test_fringe_contrast_on_a_white_plate(room: SimRoom, projector_id: str,
 
 
 def test_fringe_contrast_on_the_sclera(room: SimRoom) -> None:
-    """Sclera-like tissue swings ≈ 25 DN where a plate at the origin swings 60 (DESIGN §3).
+    """Sclera-like tissue swings ≈ 25 DN where a plate at the origin swings 60 (docs/design.md §3).
 
     On the eye the sclera is curved: where it turns towards the projector (45° off the Z axis)
     it catches more light than the plate does, where it turns away less (Lambert). The test

@@ -390,7 +390,7 @@ def run(config: RoomConfig, *, quick: bool = False, seed: int = 0, out: Path | N
                            "median_mm": [r["median_mm"] for r in eye_rows]}
     report["eye_model_distance_mm"] = float(np.median([r["median_mm"] for r in eye_rows])) \
         if eye_rows else None
-    pending: dict[str, str] = {}  # DESIGN §8 keys not measured in this run, and why
+    pending: dict[str, str] = {}  # docs/design.md §8 keys not measured in this run, and why
     if not eye_rows:
         pending["eye_model_distance_mm"] = "no eye phantom among the phantoms measured"
     try:

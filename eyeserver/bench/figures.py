@@ -1,5 +1,5 @@
-"""The figures eyeserver is measured by: the paper's value and our goal (DESIGN §6), in one place
-for the command line, the benches and the documentation."""
+"""The figures eyeserver is measured by: the paper's value and our goal (docs/design.md §6), in
+one place for the command line, the benches and the documentation."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class Figure:
-    """One figure of DESIGN §6: what it is, its unit, the paper's value and eyeserver's goal."""
+    """One figure of docs/design.md §6: what it is, its unit, the paper's value and our goal."""
 
     label: str
     unit: str
@@ -38,4 +38,4 @@ FIGURES: dict[str, Figure] = {
     "ftm_phase_error_rad": Figure("single-shot phase vs 4-step phase, median", "rad",
                                   "not reported", 0.02),
 }
-"""By the JSON key the benches report them under (DESIGN §8 fixes the first of them)."""
+"""By the JSON key the benches report them under (docs/design.md §8 fixes the first of them)."""

@@ -3,24 +3,24 @@
 The set (``data/opencv-structured-light``, from OpenCV contrib, Apache-2.0; see its ``NOTICE``)
 shows the Stanford bunny in front of a plane, and the plane alone, each under four fringe
 patterns shifted by a quarter period. The four images give an accurate wrapped phase; our
-Fourier-transform demodulation (DESIGN §4 step 1) sees only the first image of each. Both are
-referred to the plane (object phase − reference phase, wrapped) and compared on the object:
-the figure ``ftm_phase_error_rad`` of DESIGN §6 and §8 is the median absolute difference.
+Fourier-transform demodulation (docs/design.md §4 step 1) sees only the first image of each.
+Both are referred to the plane (object phase − reference phase, wrapped) and compared on the
+object: the figure ``ftm_phase_error_rad`` of docs/design.md §6 and §8 is the median absolute
+difference.
 
 Where it is scored
 ------------------
 The object is every pixel where any of the four object images differs from the matching
-reference image by more than :data:`OBJECT_THRESHOLD_DN` (the images are rendered: on the plane
-they agree to the grey level, so this catches the whole silhouette, also where the object's
-phase happens to equal the plane's, which a threshold on the phase difference would miss),
-holes filled. Pixels less than one fringe period (rounded up) from the silhouette or from the
-image border are left out: the FTM band-limits the phase, so a phase step (the silhouette
-carries steps of up to ≈ 3 rad) or the border rings over about one period, and the pipeline
-itself distrusts that zone (DESIGN §4). Nothing else is removed: steep flanks, self-occlusion
-edges (ears, thigh) and low modulation inside the object all count, so the figure is what the
-pipeline would deliver on such a surface, not a best case. A constant offset (the median of the
-wrapped difference on the mask) is removed before scoring; it is an unknown of any
-reference-subtracted phase.
+reference image by more than :data:`OBJECT_THRESHOLD_DN` (the images are rendered: on the plane they
+agree to the grey level, so this catches the whole silhouette, also where the object's phase happens
+to equal the plane's, which a threshold on the phase difference would miss), holes filled. Pixels
+less than one fringe period (rounded up) from the silhouette or from the image border are left out:
+the FTM band-limits the phase, so a phase step (the silhouette carries steps of up to ≈ 3 rad) or
+the border rings over about one period, and the pipeline itself distrusts that zone (docs/design.md
+§4 step 1). Nothing else is removed: steep flanks, self-occlusion edges (ears, thigh) and low
+modulation inside the object all count, so the figure is what the pipeline would deliver on such a
+surface, not a best case. A constant offset (the median of the wrapped difference on the mask) is
+removed before scoring; it is an unknown of any reference-subtracted phase.
 
 What it shows (hf, 512×512 px, period 13.7 px; measured on this machine)
 ------------------------------------------------------------------------

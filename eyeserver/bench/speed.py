@@ -1,9 +1,8 @@
 """``eyeserver bench speed``: how fast things run on this machine.
 
-The simulated room, which the live daemon will drive at the camera rate while reconstruction
-shares the same cores: the time to render one frame-set of 2 cameras (one unit) and of 4 cameras
-(two units), for a moving patient eye (geometry re-cast every frame: the live case) and for a
-still scene (geometry cached, only the sensor is simulated per frame).
+The simulated room, which the live daemon drives at the camera rate on the same cores: the time
+to render a frame-set of 2 cameras (one unit) and of 4 (two units), for a moving patient eye
+(geometry re-cast every frame) and for a still scene (only the sensor simulated per frame).
 
 The reconstruction, on the fringe images of an eye phantom recorded in the simulated room and
 held in memory (no file I/O is timed), with OpenCV held to one thread of its own:
@@ -14,33 +13,31 @@ held in memory (no file I/O is timed), with OpenCV held to one thread of its own
 * **Stages**, each timed on its own per camera, repeated ``frames`` times on the same images
   and summed over the cameras of each frame-set. Their names against the issue's list:
 
-  ============================  =========================================================
+  ============================  ===================================================================
   issue                         stage(s) here
-  ============================  =========================================================
+  ============================  ===================================================================
   demodulation                  ``demodulation`` (:func:`demodulate`),
                                 ``reference_subtraction`` (:func:`phase_difference`)
   masks                         ``masks`` (the rest of :func:`camera_phase`)
   unwrapping, fringe order      multi-view path (one step does both): ``fringe_order_grid``
                                 (:func:`grid_order`), ``fringe_order_propagate``
-                                (:func:`propagate_order`); spatial path:
-                                ``spatial_unwrapping`` (scikit-image), ``spatial_region_order``
-                                (the rest of :func:`spatial_order`)
+                                (:func:`propagate_order`); spatial path: ``spatial_unwrapping``
+                                (scikit-image), ``spatial_region_order`` (:func:`spatial_order`)
   phase-to-height               ``phase_to_height`` (``PhaseHeightModel.height``)
   transversal mapping           ``transversal_mapping`` (:func:`intersect_plane_z`)
-  (checks in ``unit_clouds``)   ``order_check``, ``cloud_assembly``, ``cross_check``,
-                                ``despeckle``
+  (checks in ``unit_clouds``)   ``order_check``, ``cloud_assembly``, ``cross_check``, ``despeckle``
   fusion                        ``fusion`` (:func:`fuse`, per frame-set)
-  ============================  =========================================================
+  ============================  ===================================================================
 
 * **Peers** on the same images, as time ratios (peer ÷ ours, above 1 when ours is faster):
   scikit-image's ``unwrap_phase`` on the same masked wrapped phase against our multi-view fringe
   order; a plain FFT Fourier-transform method (``rfft2``, a fixed box around the carrier,
   inverse) and OpenCV contrib's ``structured_light`` FTP against :func:`demodulate`, with the
   phase agreement to ours. The contrib peer needs ``opencv-contrib-python-headless`` *instead
-  of* ``opencv-python-headless`` (a superset: the two share the ``cv2`` package and must never
-  be installed together); without it the peer is reported unavailable, with the reason.
-* **Memory**: the process's peak resident set and the Python-visible peak (tracemalloc: numpy
-  arrays, not OpenCV's or the FFT's internal buffers) of one frame-set.
+  of* ``opencv-python-headless`` (both are the ``cv2`` package: never install the two); without
+  it the peer is reported unavailable, with the reason.
+* **Memory**: the process's peak resident set and the Python-visible peak of one frame-set
+  (tracemalloc: numpy arrays, not OpenCV's or the FFT's internal buffers).
 """
 
 from __future__ import annotations
@@ -83,10 +80,10 @@ P = ParamSpec("P")
 T = TypeVar("T")
 
 TRACKING_GOAL_P99_MS = 40.0
-"""DESIGN §8 / issue 7: frame mid-exposure → pose message on the WebSocket, p99."""
+"""docs/design.md §6 / issue 7: frame mid-exposure → pose message on the WebSocket, p99."""
 
 GOALS_MS = {"frameset_2cam_ms": 10.0, "frameset_4cam_ms": 20.0}
-"""DESIGN §6: on 2 cores a 2-camera frame-set in ≤ 10 ms (4× the 25 Hz camera rate), a
+"""docs/design.md §6: on 2 cores a 2-camera frame-set in ≤ 10 ms (4× the 25 Hz camera rate), a
 4-camera one in ≤ 20 ms (2×)."""
 
 WORKERS = 2
@@ -734,9 +731,10 @@ def opencv_ftp() -> tuple[Callable[[npt.ArrayLike, Carrier], F32] | None, str]:
     """OpenCV contrib's ``structured_light`` FTP as a phase function with
     :func:`demodulate`'s conventions, or None and why it is unavailable.
 
-    Its traps (DESIGN §4): a single image crashes the process (so the same image goes in three
-    times), its phase is π/2 minus the fringe's, its filter is a fixed 42×42 box around the
-    spectral peak, and its unwrapper's mask follows the ``Params`` size (set to the image's).
+    Its traps (docs/notes/design-measurements.md): a single image crashes the process (so the
+    same image goes in three times), its phase is π/2 minus the fringe's, its filter is a fixed
+    42×42 box around the spectral peak, and its unwrapper's mask follows the ``Params`` size
+    (set to the image's).
     Only 8-bit images give the right phase: deeper ones are scaled to 8 bits first.
     """
     import cv2
@@ -1015,7 +1013,7 @@ def format_text(report: dict[str, Any]) -> str:
                          f"{value['wall_ms_per_frameset']:>10.1f}{'':>10}"
                          f"{value['framesets_per_s']:>8.1f}   (throughput, wall time ÷ n)")
     lines.append("goal: a 2-camera frame-set in ≤ 10 ms, a 4-camera one in ≤ 20 ms on 2 cores "
-                 "(DESIGN §6)")
+                 "(docs/design.md §6)")
     stage_report = report.get("stages")
     if stage_report:
         lines.append("")

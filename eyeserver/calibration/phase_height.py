@@ -1,4 +1,4 @@
-"""Phase-to-height calibration from the plate stack and the reference plane (DESIGN §5).
+"""Phase-to-height calibration from the plate stack and the reference plane (docs/design.md §5).
 
 Per camera: the carrier is measured on the reference image and kept; every plate image is
 demodulated and its phase taken relative to the reference. The 1 mm steps move each pixel's phase
@@ -11,7 +11,7 @@ calibration stops with that plane named rather than produce a wrong model.
 
 Each unit's fringe-order margin is computed too: how far (rad) the nearest wrong order's
 predicted phase in the unit's other camera lies from the right one's, over the calibrated
-volume; the multi-view fringe order needs a clear margin (DESIGN §4 step 4).
+volume; the multi-view fringe order needs a clear margin (docs/design.md §4 step 4).
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ coefficients, and it keeps a 36-plane stack at a few hundred thousand samples.""
 SLIP_MM = 1.0
 """A plane whose median |residual| exceeds this has slipped by 2π (one fringe is ≈ 5 mm)."""
 MARGIN_WARNING_RAD = 0.5
-"""Below this, noise can pick the wrong fringe order (DESIGN §4 step 4)."""
+"""Below this, noise can pick the wrong fringe order (docs/design.md §4 step 4)."""
 
 
 def _quiet(_: str) -> None:
@@ -172,8 +172,8 @@ def calibrate_phase_height(document: dict[str, Any], plate_path: str | Path,
                                    f"{len(stack)} heights; the fit needs at least 3")
         progress(f"camera {camera_id}: demodulating {len(stack)} plate heights")
         z_values, wrapped, valid = [], [], []
-        # The FTM corrupts about a fringe period at every image border (DESIGN §4; measured
-        # here: 3 % of samples off by 0.1–20 mm, nearly all within 70 px of an edge).
+        # The FTM corrupts about a fringe period at every image border (docs/design.md §4 step 1;
+        # measured here: 3 % of samples off by 0.1–20 mm, nearly all within 70 px of an edge).
         ref_valid = _valid(ref.modulation) & border_mask(ref_image.shape,
                                                          math.ceil(carrier.period_px))
         for z, index in stack:

@@ -1,4 +1,4 @@
-"""Stereo (geometric) calibration from chessboard bundles (DESIGN §5, FORMATS.md).
+"""Stereo (geometric) calibration from chessboard bundles (docs/design.md §5, FORMATS.md).
 
 Every camera's intrinsics and lens distortion come from all the boards it saw; its pose ``[R|T]``
 (WCS → camera) from the origin board, whose inner-corner grid defines the WCS (FORMATS.md). A board

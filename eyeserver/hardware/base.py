@@ -340,8 +340,8 @@ class Trigger(Device):
 class Stage(Device):
     """A motorised linear stage that carries the flat calibration plate along the WCS Z axis.
 
-    Phase-to-height calibration images the plate at known heights (DESIGN §5); a stage puts it
-    there instead of a person. Positions are the plate surface's Z in the WCS, millimetres;
+    Phase-to-height calibration images the plate at known heights (docs/design.md §5); a stage
+    puts it there instead of a person. Positions are the plate surface's Z in the WCS, millimetres;
     :meth:`move_to` returns once the stage has settled. Subclasses set ``travel_mm`` and
     implement :meth:`_move_to`.
     """

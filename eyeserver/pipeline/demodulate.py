@@ -1,83 +1,43 @@
-"""Fourier-transform (Takeda) demodulation of a single fringe image (DESIGN §4 step 1).
+"""Fourier-transform (Takeda) demodulation of a single fringe image (docs/design.md §4 step 1).
 
-A fringe image ``I(x) = A(x) + B(x)·cos(2π f·x + φ(x))`` carries the surface in the phase
-``φ``. Its spectrum holds the background ``A`` around DC and the fringe at ``±f``; keeping the
-band around ``+f`` and transforming back gives the analytic fringe ``B·exp(i(2π f·x + φ))``,
-whose angle is the wrapped phase and whose magnitude the fringe amplitude (the modulation, the
-pipeline's quality map).
+A fringe image ``I(x) = A(x) + B(x)·cos(2π f·x + φ(x))`` carries the surface in the phase ``φ``
+(rad). The band of its spectrum around ``+f``, transformed back, is the analytic fringe
+``B·exp(i(2π f·x + φ))``: its angle the wrapped phase, its magnitude the modulation ``B``.
 
-Conventions
------------
-* Pixel positions are ``x = (i, j)``, row then column, integers at pixel centres, origin at
-  pixel ``(0, 0)``.
-* A :class:`Carrier` is a spatial frequency ``(fy, fx)`` in cycles per pixel in the same
-  ``(row, column)`` order. Its sign is a choice (``cos`` is even); the phase increases along
-  the carrier vector: for ``I = A + B·cos(2π(fy·i + fx·j) + φ0)`` and the carrier ``(fy, fx)``,
-  ``wrapped_phase ≡ 2π(fy·i + fx·j) + φ0 (mod 2π)``, and with ``(−fy, −fx)`` it is the
-  negative. :func:`measure_carrier` returns the sign whose nearest frequency bin has
-  ``fx > 0``, or ``fx = 0`` and ``fy > 0``, so vertical fringes (a vertical Ronchi grating) give a
-  phase that grows with the column and horizontal fringes one that grows with the row.
+Conventions. Pixel positions are ``x = (i, j)``, row then column, integers at pixel centres. A
+:class:`Carrier` is a spatial frequency ``(fy, fx)`` in cycles per pixel, same order; the phase
+increases along it: for ``I = A + B·cos(2π(fy·i + fx·j) + φ0)`` and the carrier ``(fy, fx)``,
+``wrapped_phase ≡ 2π(fy·i + fx·j) + φ0 (mod 2π)``, and with ``(−fy, −fx)`` the negative.
+:func:`measure_carrier` returns the sign whose nearest bin has ``fx > 0``, or ``fx = 0`` and
+``fy > 0``: vertical fringes give a phase that grows with the column, horizontal ones with the row.
 
-How the borders are handled
----------------------------
-A discrete Fourier transform treats the image as periodic, so each border meets the opposite one
-and the jump rings over about a fringe period (measured 0.6–3 rad at the border of a tilted
-surface). Mirror padding does not cure it for fringes: a mirror across fringes turns them around
-(the phase jumps by twice its border value), and even a mirror of the baseband signal puts kinks
-into the background and conjugate terms whose leakage reaches the pass band (measured
-0.15–0.4 rad at the border). The image is therefore continued beyond each border along the
-carrier itself (cf. the fringe extrapolation of Roddier & Roddier), one axis after the other:
+The borders. A discrete Fourier transform treats the image as periodic, and the jump where
+opposite borders meet rings over about a fringe period. Mirror padding does not cure it for
+fringes (a mirror turns them around), so the image is continued along the carrier itself (cf.
+Roddier & Roddier), one axis after the other: along the axis the carrier runs along most, by
+whole carrier periods, ``2·T1 − T2`` (``T1``, ``T2`` the image one and two periods further in:
+the difference extrapolates phase and background linearly, cancelling to first order the step
+either copy alone would leave); along the other axis, along the fringes from the border line.
+Both are exact for straight fringes (copies interpolated with Keys' cubic); the continuations of
+opposite borders are cross-faded half way, in a padded length of whole carrier periods where a
+fast FFT length allows.
 
-* along the axis the carrier runs along most, by whole carrier periods ``1/|f_axis|`` (at most
-  √2 fringe periods): the pad is ``2·T1 − T2``, with ``T1`` and ``T2`` the image one and two
-  periods further in. Each copy alone continues the carrier exactly but carries the surface's
-  phase from a period further in, a step of (phase slope × period) at the border; their
-  difference extrapolates phase and background linearly and cancels that step to first order;
-* along the other axis, along the fringes from the border line: the pad pixel takes the value
-  of the border pixel on the same fringe (through the first axis' pad, which is periodic).
+The band. A disc (or ellipse, :data:`ELONGATION`) around the carrier, flat up to
+``(1 − taper)·bandwidth·|f|`` and falling to zero at ``bandwidth·|f|`` along a raised cosine, so
+the background (``|f|`` away) and the conjugate fringe (``2|f|``) are rejected in any direction. A
+flat top passes the local frequencies of a curved surface without weighting them (Gaussian or
+Hann windows are biased); the smooth edge keeps the impulse response short. Rows go through
+``rfft``; only the columns the band touches are transformed along the columns and back.
 
-Both continuations are exact for straight fringes (copies are interpolated with Keys' cubic);
-on a surface whose phase slopes at the border by 0.006–0.02 rad/px the outermost period stays
-within 0.02–0.05 rad of the truth, a phase curved strongly right at the border (the flank of
-a bump of several radians) still costs up to ≈ 0.2 rad there. The continuations of opposite
-borders meet half-way in the pad and are cross-faded with a raised cosine, and the padded
-length is chosen to hold a whole number of carrier periods where a fast FFT length allows,
-so the periodic transform sees no jump anywhere.
-
-How the band is cut
--------------------
-The pass band is a disc around the carrier, flat up to ``(1 − taper)·bandwidth·|f|`` and
-falling to zero at ``bandwidth·|f|`` along a raised cosine, so the background (at ``|f|`` from
-the carrier) and the conjugate fringe (at ``2|f|``) are rejected for a carrier in any
-direction. A flat top passes the local frequencies of a curved surface without weighting them,
-so the phase is not biased where the fringes bend as long as their local frequency stays on it
-(Gaussian or Hann windows are biased everywhere: DESIGN §4, measured; beyond the flat top, see
-below); the smooth edge keeps the impulse response short. The real image is transformed
-along the rows with ``rfft`` and only the columns that the band touches are transformed along
-the columns and back.
-
-How bent fringes are corrected
-------------------------------
-Where a surface bends the fringes, the local frequency ``k = ∇φ/2π`` moves off the flat top onto
-the band's tapered edge, where the band weights the frequencies around it unevenly. To second
-order, a band ``H`` passes a fringe ``B·exp(iφ)`` as ``exp(iφ)·(B·H(k) − i·∇B·∇H(k)/2π −
-i·B·Σ ∂ᵢ∂ⱼφ·∂ᵢ∂ⱼH(k)/8π²)``: its phase is biased by ``−(∇B/B)·∇H/(2π·H) −
-Σ ∂ᵢ∂ⱼφ·∂ᵢ∂ⱼH/(8π²·H)`` (``H``'s derivatives per cycle/px, the phase's curvature in rad/px²),
-zero on the flat top and growing with the bend and where the fringe fades. The bias is a
-sphere's: on the simulated eye the sclera's steep flanks came out 0.1–0.3 mm outside the globe
-and its middle 0.03 mm inside, so the globe's radius was 0.08 mm too large on 11-mm eyes (which
-bend the fringes most) and 0.04 mm too small on 13-mm ones. :func:`demodulate` measures the
-local frequency, the curvature and the amplitude's gradient (the modulation's, less the band's
-own gain) from what it found, averaged over :data:`BEND_SMOOTHING_PERIODS` of a period on a
-coarser grid, into :attr:`Demodulated.bend_bias`; :meth:`Demodulated.surface_phase` is the phase
-less it, while :attr:`Demodulated.wrapped_phase` stays the band's own (the fringe it passed,
-which the limbus search takes out of the image). Within :data:`BEND_EDGE_PERIODS` of where the
-fringe field ends (an outline, the dark cornea, a shadow) the expansion does not hold and the
-averages reach across the edge: no bias is taken there. Measured on a bump that shifts the
-local frequency by 40 % of the carrier: interior RMS error 0.015–0.031 → 0.005–0.013 rad; on
-the simulated eye at rest, the sclera's median distance from the truth 0.061 → 0.057 mm (with
-no bias taken within one period of the edge instead of one and a half, 0.081 mm: the sclera
-beside the limbus came out 0.04 mm further outside).
+Bent fringes. Where a surface bends the fringes, the local frequency ``k = ∇φ/2π`` moves onto the
+band's tapered edge, which biases the phase, to second order, by ``−(∇B/B)·∇H/(2π·H) −
+Σ ∂ᵢ∂ⱼφ·∂ᵢ∂ⱼH/(8π²·H)`` (``H``'s derivatives per cycle/px, the phase's curvature in rad/px²): on
+the eye, a sphere's worth of bias in the globe's radius. :func:`demodulate` measures ``k``, the
+curvature and the amplitude's gradient (the modulation's, less the band's own gain) from what it
+found, over :data:`BEND_SMOOTHING_PERIODS` of a period, into :attr:`Demodulated.bend_bias`,
+except within :data:`BEND_EDGE_PERIODS` of where the fringe field ends;
+:meth:`Demodulated.surface_phase` is the phase less it, while :attr:`Demodulated.wrapped_phase`
+stays the band's own. Measured: docs/notes/demodulation.md.
 """
 
 from __future__ import annotations
@@ -567,11 +527,9 @@ def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = BAN
 
     With the defaults the band closes at 0.9·|f| along the carrier and twice as far across it
     (an ellipse: a curved surface bends the fringes, which moves their local frequency across
-    the carrier more than along it), with a long raised-cosine edge (flat out to 0.18·|f|).
-    Measured on the simulated room against the former disc (0.8·|f|, flat to 0.48·|f|): the
-    phase error on a plate fell from 0.017 to 0.006 rad median (p90 0.10 to 0.055), on an eye
-    phantom's globe from 0.16 to 0.09 rad; reconstructions from 0.016 to 0.007 mm median. White
-    noise of σ DN gives a phase noise of ``σ·sqrt(2·∫|H|² df)/B``.
+    the carrier more than along it), with a long raised-cosine edge (flat out to 0.18·|f|); it
+    halved the phase error of the former disc (docs/notes/demodulation.md). White noise of
+    σ DN gives a phase noise of ``σ·sqrt(2·∫|H|² df)/B``.
 
     Parameters
     ----------
@@ -834,7 +792,7 @@ def phase_difference(wrapped_object: npt.ArrayLike, wrapped_reference: npt.Array
     -------
     ndarray of float32
         ``wrapped_object − wrapped_reference`` wrapped into ``(−π, π]``: the carrier cancels and
-        what remains is the phase the surface adds (DESIGN §4 step 3).
+        what remains is the phase the surface adds (docs/design.md §4 step 3).
 
     Raises
     ------
@@ -872,7 +830,7 @@ def phase_difference(wrapped_object: npt.ArrayLike, wrapped_reference: npt.Array
 
 def border_mask(shape: tuple[int, ...], margin: int) -> npt.NDArray[np.bool_]:
     """True except within ``margin`` pixels of the image border, where the FTM's phase is least
-    trustworthy (about a fringe period, DESIGN §4)."""
+    trustworthy (about a fringe period, docs/design.md §4 step 1)."""
     if margin < 0:
         raise ValueError(f"margin must not be negative, not {margin}")
     mask = np.zeros(shape[:2], dtype=bool)

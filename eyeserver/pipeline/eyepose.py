@@ -1,52 +1,36 @@
-"""The eye's pose from a reconstructed surface: globe centre, limbus centre and gaze.
+"""The eye's pose from a reconstructed surface: globe centre, limbus centre and gaze (WCS, mm).
 
 The fused cloud holds the skin around the orbit, the lids (or retractors), the sclera seen
 through the palpebral opening and, where it carries fringe signal, the cornea. The globe is the
 one convex sphere of radius ≈ 12 mm bulging towards the cameras (+Z) *behind* everything else
 that is spherical: the lids are shells in front of it. So:
 
-1. **Segmentation by shells about a common centre.** Voxel means (0.5 mm) cut noise and work;
-   the face's plane is removed by MSAC (a plane must hold a quarter of the whole cloud). Each
-   voxel's normal (PCA of its 1.6 mm neighbourhood) votes for centres at globe-sized distances
-   behind it; sclera, lids and retractors are near-concentric, so the votes agree (1 mm
-   accumulator, then mean shift). Around that centre the radial histogram shows the sclera and,
-   ≈ 1 mm outside, the lids: the innermost shell of a globe's size is the sclera, the
-   strongest one 0.6–3 mm outside it the lids. Where no centre is voted, sequential LO-MSAC
-   sphere search is the fallback.
-2. **Globe.** ``scipy.optimize.least_squares`` on the geometric residual ``|p − c| − R`` of the
-   sclera, jointly with a concentric lid shell ``|q − c| − R_lid`` (R_lid free), soft-L1 loss,
-   quality weights, bands shrinking 0.45 → 0.2 mm. The sclera alone (two small caps beside the
-   cornea) trades depth for radius; the lids pin the depth. Known limit: this leans on the lids
-   resting concentrically on the globe (exact in the simulated room). Radius free unless the
-   model fixes it. Covariance from the Jacobian and a robust residual scale (1.4826·MAD).
-3. **Limbus and gaze.** The sclera ends at the limbus (the cornea carries little or no fringe
-   signal): seen from the globe centre the sclera points ring a hole. Per 10° sector around the
-   current axis the innermost points are the boundary; a circle on the sphere (a cone
-   ``u·g = cos β`` about the centre) is fitted to them robustly, and the axis re-centred on it a
-   few times. Gaze = the unit vector from the globe centre through the limbus centre (+Z when the
-   eye looks at the beam source, DESIGN §2). The boundary of the valid fringe region lies about
-   a period outside the true limbus, so the boundary's radius is not the limbus's: the limbus
-   centre reported lies on the fitted axis at the model's limbus depth √(R² − (D/2)²).
-   Measured on rendered eyes, though, the hole reaches up to 25° beyond the limbus,
-   lopsided (the cornea's shadow, fringe erosion, the lids), so the edge circle strays (7.7°
-   median, 43° p95 on 24 poses); the gaze is taken instead as the axis of the widest cone that
-   the sclera and lid shell leave empty (4.8° median, 12.7° p95): a rough gaze, for step 4.
-   Where a corneal cap is reconstructed (a sphere of radius 6–10 mm in front of the globe,
-   within the hole), the axis through the two centres is a second gaze cue, combined with the
-   limbus by inverse variance.
-4. **The limbus in the images** (when the fit is given the fringe images, ``views``): found
-   by :mod:`eyeserver.pipeline.limbus` from the rough pose of steps 2–3, it sets the gaze and
-   the limbus centre, and the globe is the sphere through it that the sclera lies on
-   (:func:`pose_on_limbus`), the sclera measured again from its own fringes, the limbus found
-   again with the fringe divided out and the globe fitted with it
-   (:mod:`eyeserver.pipeline.sclera`), the edges in the cornea's shadow left out. Measured on
-   600 rendered poses: gaze 0.061° median (p95 0.15°), limbus centre 0.007 mm, globe centre
-   0.033 mm median (p95 0.074 mm; each globe size within 0.078 mm, 0.088 mm on another draw).
-   Without images, or where no limbus is found, the cloud-only pose of steps 2–3 stands
-   (``gaze_source`` says which; with images that showed no limbus, at a confidence scaled by
-   :data:`UNSEEN_LIMBUS`).
+1. **Segmentation by shells about a common centre.** Voxel means (0.5 mm); the face's plane
+   removed by MSAC; each voxel's normal votes for centres at globe-sized distances behind it
+   (sclera, lids and retractors are near-concentric, so the votes agree), then mean shift.
+   Around that centre the radial histogram shows the sclera (the innermost shell of a globe's
+   size) and, 0.6–3 mm outside, the lids. Sequential LO-MSAC sphere search is the fallback.
+2. **Globe.** Robust least squares of the sclera's geometric residual ``|p − c| − R`` jointly
+   with a concentric lid shell (``R_lid`` free): the sclera alone (two small caps beside the
+   cornea) trades depth for radius, the lids pin the depth (exact in the simulated room; a
+   known limit). Radius free unless the model fixes it; covariance from the Jacobian.
+3. **Rough gaze.** The sclera ends at the limbus, but the hole it leaves is lopsided and reaches
+   well beyond it (the cornea's shadow, fringe erosion, the lids), so the circle fitted to the
+   hole's edge gives the gaze only where it has the limbus's size, else the axis of the widest
+   cone the sclera and lid shell leave empty does; a reconstructed corneal cap's axis is
+   combined with it by inverse variance. The limbus centre lies on that axis at the model's
+   limbus depth √(R² − (D/2)²). Gaze is +Z when the eye looks at the beam source
+   (docs/design.md §2).
+4. **The limbus in the images** (``views``): found by :mod:`eyeserver.pipeline.limbus` from the
+   rough pose, it sets the gaze and the limbus centre; the globe is the sphere through it that
+   the sclera lies on (:func:`pose_on_limbus`), the sclera measured again from its own fringes
+   and the globe fitted with the limbus (:mod:`eyeserver.pipeline.sclera`). Its accuracy:
+   docs/benchmarks.md ("Eye pose"). Without images, or where no limbus is found, the pose of
+   steps 2–3 stands (``gaze_source`` says which; with images that showed no limbus, at a
+   confidence scaled by :data:`UNSEEN_LIMBUS`).
 
-Torsion is invisible to the surface of a sphere with a round limbus (DESIGN §4): reported as None.
+Torsion is invisible to the surface of a sphere with a round limbus (docs/design.md §4 step 8):
+reported as None. The cloud-only gaze's measured error: docs/notes/limbus.md.
 
 References
 ----------
@@ -151,7 +135,7 @@ class EyeModel:
     def ellipsoid_frame(self) -> tuple[F64, int]:
         """The ellipsoid's semi-axes' directions in the WCS (the columns of ``orientation``;
         the identity without one) and which of them is axial: the one nearest +Z (the eye
-        looks towards the beam source at the planned pose, DESIGN §2)."""
+        looks towards the beam source at the planned pose, docs/design.md §2)."""
         frame = (np.eye(3) if self.orientation is None
                  else np.asarray(self.orientation, dtype=np.float64))
         return frame, int(np.argmax(np.abs(frame[2])))

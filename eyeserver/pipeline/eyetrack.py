@@ -15,15 +15,13 @@ normals, the Hough vote, the shell search) is not needed again:
    pose (:func:`~eyeserver.pipeline.limbus.find_limbus`) and the sphere of the held radius
    through it that fits the sclera (:func:`~eyeserver.pipeline.limbus.globe_on_limbus`): the
    global fit's own steps with images, only the search for a first globe skipped, so the
-   tracked pose is the one a reference captured with the global fit is compared with (gaze
-   within 0.1–0.4°, centre within 0.05 mm of it at rest on the simulated eye, measured).
+   tracked pose is the one a reference captured with the global fit is compared with.
    Where the limbus is not found and the lids cover the front of the last globe
    (:func:`lids_closed`), the frame is a blink: the last globe and gaze are kept with the gaze
    source ``"none"`` (the beam is held; the next frame looks for the limbus from the last
-   gaze again). Steps 3 and 4 are what is left when the limbus is not found otherwise: the
-   closed lids lie on a shell concentric with the globe about a millimetre outside it, which
-   step 3 took for the sclera (the globe 1.3 mm off, the gaze 40° off, confidence up to 0.97,
-   measured on a blinking rendered eye) and the global fit after it too, 0.6 s a frame.
+   gaze again), because closed lids, a shell concentric with the globe about a millimetre
+   outside it, are what step 3 and the global fit take for the sclera. Steps 3 and 4 are what
+   is left when the limbus is not found otherwise.
 3. **The globe** from the cloud alone: the points near the last sphere; the lid shell found
    about a millimetre outside it (the radial histogram around the last centre); a robust
    geometric fit of the sclera jointly with the concentric lid shell, the radius held at the
@@ -34,9 +32,8 @@ normals, the Hough vote, the shell search) is not needed again:
 4. **The gaze** from the cloud alone: as :func:`~eyeserver.pipeline.eyepose.fit_eye` finds
    it (the edge circle, the widest empty cone, a corneal cap), from the same start (the mean
    direction of what lies around the globe), not from the last gaze: the empty cone's score
-   has optima ≈ 25° apart on the simulated eye, and a search from the last gaze settled on
-   another one than the global fit's (≈ 14° from it at rest, measured on ``eyeserver bench
-   tracking``). The cone search (40–100 ms) is this path's largest cost.
+   has several optima, and a search from the last gaze settled on another one than the global
+   fit's. The cone search is this path's largest cost. Measured: docs/notes/tracking.md.
 
 A cloud that leaves too few points near the last sphere raises
 :class:`~eyeserver.pipeline.eyepose.PoseError`: the caller falls back on the global fit.

@@ -1,78 +1,43 @@
 """Fiducial dots: find them in fringe images, pair them across cameras, triangulate them, and read
-the fringe reconstruction's 3-D position at them (DESIGN §6, "3-D accuracy at fiducials").
+the fringe reconstruction's 3-D position at them (docs/design.md §6, "3-D accuracy at fiducials").
 
 The paper validated its surfaces at small dark dots painted on the phantoms: each dot is located
-in both cameras of a unit, triangulated stereo-wise, and compared with the position the fringe
-reconstruction gives at the same dot. This module holds the four pure steps:
+in both cameras of a unit, triangulated, and compared with the position the fringe
+reconstruction gives at the same dot. The four pure steps:
 
 * :func:`detect_fiducials`: sub-pixel centres of dark round dots in one fringe image;
-* :func:`match_stereo`: which dot of camera A is which dot of camera B, by the epipolar
-  constraint of the calibrated pair;
+* :func:`match_stereo`: which dot of camera A is which of camera B (epipolar constraint);
 * :func:`triangulate`: the WCS position of matched dots (``cv2.triangulatePoints``);
-* :func:`surface_position`: where the camera's ray through a dot meets the surface that the
-  fringe reconstruction measured around the dot (on the dot itself the fringe is too dark).
+* :func:`surface_position`: where the camera's ray through a dot meets the surface the fringe
+  reconstruction measured around it (on the dot itself the fringe is too dark).
 
-Finding a dot on top of fringes
--------------------------------
-A dot of albedo ``a`` on a surface lit by fringes shows ``a·I0(x)``, where ``I0`` is the image
-the unmarked surface would give. Its darkness is only symmetric about its centre once divided by
-``I0``: the raw darkness ``(1 − a)·I0`` is the dot's footprint times the fringe, whose slope
-across the dot pulls a plain centroid towards the bright side (0.3–1 px measured on the
-simulated phantoms, the dot being ≈ 0.4 of a fringe period wide). Low-pass filtering does not
-help: a symmetric filter leaves a centroid where it is. So ``I0`` is estimated twice:
+A dot on fringes. A dot of albedo ``a`` shows ``a·I0(x)``, ``I0`` the image of the unmarked
+surface; only its darkness relative to ``I0`` is symmetric about its centre (the raw darkness,
+footprint times fringe, pulls a centroid towards the fringe's bright side), so ``I0`` is
+estimated twice. For detection, a morphological closing with a line segment longer than a dot, in
+twelve orientations, the smallest kept: every closing fills a dot, the orientation along a fringe
+leaves it, and dark regions larger than a dot in some direction (an iris, shadows, edges) stay
+dark. For the centre, the fringe is inpainted across the dot from both sides along its own path,
+``I0(x) = ½·(I(x + L·t + b·n) + I(x − L·t + b·n))`` (``t`` the fringe's direction, ``n`` its normal,
+``L`` just over the dot's diameter, ``b`` the bend of a curved fringe), which cancels a linear
+change of brightness or phase along the path; ``t`` and ``b`` are fitted to a ring around the dot.
+The centre is the centroid of ``1 − I/I0`` above 0.25 over the dot's core and a 2-px rim. A dot
+is dropped rather than mislocated when the path predicts its ring poorly, its rim is dark too, the
+fringe is not seen on both sides, its shape is wrong, or it does not stand out of the noise.
+Measured accuracy: docs/notes/fiducials.md.
 
-* for detection, everywhere: a morphological closing of the image with a line segment longer
-  than a dot, in twelve orientations, keeping the smallest. A dot is too small to hold the
-  segment in any orientation, so every closing fills it; a fringe is constant along its own
-  direction, so the orientation nearest to it leaves it as it is. Dark regions larger than a dot
-  in some direction (the painted iris, shadows, the dark room behind an object, a straight edge)
-  hold a segment and are left dark too. ``image / I0`` is then ≈ 1 on any lit surface and ≈ the
-  albedo ratio on a dot (≈ 0.08 for the simulated paint), whatever the fringe phase;
-* for the sub-pixel centre, per dot and more exactly: the closing's maximum follows noise and,
-  where the fringe is not aligned with one of the twelve segments, a brighter part of the
-  fringe (a centre biased by tenths of a pixel). Instead the fringe is inpainted across the
-  dot from both sides along its own path, ``I0(x) = ½·(I(x + L·t + b·n) + I(x − L·t + b·n))``,
-  with ``t`` the local fringe direction, ``n`` its normal, ``L`` just over the dot's diameter
-  and ``b`` the bend of a curved fringe (the points of a fringe of curvature κ at ``±L`` along
-  its tangent both lie ``κ·L²/2`` off it on the same side). The symmetric pair cancels a linear
-  change of brightness or phase along the path. ``t`` starts from the structure tensor of a
-  narrow ring around the dot; ``t`` and ``b`` are then chosen to predict that ring best.
-
-The centre is the centroid of the darkness ``1 − I/I0`` above a floor of 0.25 (noise, the faint
-rim) over the dot's dark core and a 2 px rim. A dot is dropped rather than reported with a
-doubtful centre when the path predicts its ring poorly (more than 20 % RMS: a silhouette, a
-shadow boundary or another painted feature beside it, a fringe too curved for the path), when
-its rim is dark too (part of a larger dark feature), when the fringe cannot be seen on both of
-its sides within the image, when its darkness has the wrong size or elongation, or when it
-does not stand out of the noise (its summed deficit against the inpainted fringe below eight
-standard deviations of the ring's misfit to the same path).
-
-On the simulated rooms this leaves a median error of 0.05–0.1 px against the projected true
-centres and at most ≈ 0.3 px, on surfaces seen up to ≈ 70° from their normal, against up to
-1.2 px for a plain centroid of the darkness (``tests/test_fiducials.py``). What is left is
-mostly noise and the camera blur, which mixes the dot's edge with the fringe's slope (up to
-0.1 px on noise-free synthetic fringes); undoing it would need a model fit of the blurred dot.
-
-Conventions
------------
-Pixel positions are ``(u, v) = (column, row)`` with integer values at pixel centres, as OpenCV
-wants them. Cameras follow FORMATS.md and DESIGN §2: ``x_cam = R·X_wcs + T``, intrinsics ``K``,
-OpenCV distortion ``(k1, k2, p1, p2, k3)`` (or any length OpenCV accepts); millimetres in the
-WCS.
+Conventions: pixels ``(u, v) = (column, row)``, integers at pixel centres, as OpenCV wants them;
+cameras as in FORMATS.md and docs/design.md §2 (``x_cam = R·X_wcs + T``, ``K``, OpenCV distortion);
+millimetres in the WCS.
 
 References
 ----------
-.. [1] Via et al., Phys. Imaging Radiat. Oncol. (2023), doi:10.1016/j.phro.2023.100517
-   (3-D accuracy validated at painted fiducials against stereo triangulation).
+.. [1] Via et al., Phys. Imaging Radiat. Oncol. (2023), doi:10.1016/j.phro.2023.100517.
 .. [2] R. Hartley and A. Zisserman, *Multiple View Geometry in Computer Vision*, 2nd ed.,
-   Cambridge University Press (2004): §9.2 (the fundamental matrix of two calibrated cameras),
-   §12.2 (linear triangulation).
-.. [3] P. Soille, *Morphological Image Analysis: Principles and Applications*, 2nd ed.,
-   Springer (2003) (closings by line segments in several orientations remove the dark features
-   shorter than the segment in every direction).
-.. [4] M. A. Fischler and R. C. Bolles, "Random sample consensus: a paradigm for model fitting
-   with applications to image analysis and automated cartography", Commun. ACM 24(6),
-   381–395 (1981). doi:10.1145/358669.358692
+   Cambridge University Press (2004): §9.2 (fundamental matrix), §12.2 (linear triangulation).
+.. [3] P. Soille, *Morphological Image Analysis*, 2nd ed., Springer (2003) (closings by lines).
+.. [4] M. A. Fischler and R. C. Bolles, "Random sample consensus", Commun. ACM 24(6), 381–395
+   (1981). doi:10.1145/358669.358692
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Fusion of the cameras' point clouds into one (DESIGN §4 step 7), and a region of interest.
+"""Fusion of the cameras' point clouds into one (docs/design.md §4 step 7), and a region of
+interest.
 
 Every camera's cloud is in the WCS already, so fusion is a union that keeps, per point, its
 quality and the camera it came from. Two things need care:

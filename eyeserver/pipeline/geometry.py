@@ -1,7 +1,8 @@
 """Camera geometry of the pipeline: undistorted pixel coordinates and the transversal mapping.
 
-DESIGN §4 step 6: the calibrated pinhole model (lens distortion removed) gives the ray from the
-camera centre ``C = −Rᵀ T`` through pixel (i, j); where it meets the plane Z gives X and Y.
+docs/design.md §4 step 6: the calibrated pinhole model (lens distortion removed) gives the ray
+from the camera centre ``C = −Rᵀ T`` through pixel (i, j); where it meets the plane Z gives X and
+Y.
 """
 
 from __future__ import annotations

@@ -1,160 +1,43 @@
-"""The limbus found in the fringe images, and the globe that carries it (DESIGN §4 step 8).
+"""The limbus found in the fringe images, and the globe that carries it (docs/design.md §4 step 8).
 
 The cornea returns almost no projector light (transparent: what comes back is the dark iris
 behind it) while the sclera around it is bright, so in each camera the limbus is the sharpest
 dark-inside, bright-outside edge of the fringe-free intensity. A circle in space (centre ``L``,
-unit normal ``g``, radius ``r``) is fitted to those edges in every camera at once by its
-reprojection error; its normal is the gaze and its centre the limbus centre. The one-shot fit
-(``find_limbus(oval=True)``) fits an oval instead, its height ratio free: a patient's visible
-limbus is ≈ 0.9 as high as wide, and the globe's depth needs the horizontal half-width (the
-corneoscleral junction), not a radius between the two (docs/notes/patient-eye.md). Measured on
-rendered eyes this gives the gaze to ≈ 0.2° and the limbus centre to ≈ 0.02 mm, where the
-cloud-only estimate (the axis of the hole the sclera leaves, :mod:`eyeserver.pipeline.eyepose`)
-strays by 5–13°: the cloud's sclera ends a fringe period outside the limbus, lopsided.
+unit normal ``g``, radius ``r``; WCS, mm) is fitted to those edges in every camera at once by its
+reprojection error (pixels); its normal is the gaze and its centre the limbus centre. The
+one-shot fit (``find_limbus(oval=True)``) fits an oval instead, its height ratio free: a
+patient's visible limbus is ≈ 0.9 as high as wide, and the globe's depth needs the horizontal
+half-width (the corneoscleral junction), not a radius between the two
+(docs/notes/patient-eye.md). The cloud alone cannot give the limbus: its sclera ends about a
+fringe period outside it, lopsided.
 
-1. **Fringe-free intensity.** ``I − B·cos φ`` with ``B`` and ``φ`` from the FTM demodulation
-   (:func:`~eyeserver.pipeline.demodulate.demodulate`) keeps the full resolution at the edge,
-   where a box filter over a period would blur it by a period. Computed only in a window around
-   the prior eye's projection.
-2. **Start.** The cloud fit's gaze can be 10–25° off, and on some rigs the cloud fit takes the
-   wrong shell altogether; limbus circles tilted 0–30° about it are scored by the mean outward
-   intensity step along their projections, and so are circles about the cornea's dark disc
-   (the dark region with the largest inscribed circle, triangulated from the cameras) looking
-   towards them; the best one starts. Live tracking starts from the last frame's limbus: the
-   last round of step 4 alone from there, and the scoring (of circles tilted up to 12°) only
-   when that fits poorly or turns the gaze by more than a degree (a saccade).
-3. **Edges.** Along the outward normal of the projected circle (120 samples per camera), the
-   *innermost* rising edge at least 40 % as strong as the strongest one on that profile, with
-   sub-pixel position from a parabola through the derivative. Innermost, because outside the
-   limbus lie other rising edges (a projector shadow's end, the lids' margins) but inside it only
-   the cornea.
-4. **Circle.** Robust least squares (Levenberg–Marquardt) of the edge points' distances to
-   the projected circle's tangent (pixels), Cauchy loss (lid margins crossing the cornea and
-   shadow edges are outliers; seen from several cameras they cannot all agree with one
-   circle), three rounds with
-   the search window shrinking 20 → 8 → 4 px. Uncertainties from the Jacobian and a robust
-   residual scale, each camera's edges counted once per fringe period of its projected circle
-   (the fringe left in the intensity and the band's blur are shared within a period; counted
-   per sample, the 120 edges a camera said 0.07° for gazes 0.17° off, median, and 0.004 mm
-   for limbus centres 0.013 mm off).
-5. **Globe.** The limbus lies on the globe: its centre is ``C = L − h·g`` with
-   ``R = √(h² + r²)``, so one number ``h`` is left, which every sclera point of the cloud
-   gives in closed form (:func:`globe_on_limbus`: votes, the innermost shell, weighted mean
-   shift, then a robust least-squares fit of the shell). The reconstructed sclera is pulled
-   towards the lids within a fringe period of their margins and towards the cornea at the
-   limbus (the band-limited FTM blends the surfaces across depth steps), so points near either
-   are left out; what remains is a narrow band whose systematic error (≈ 0.02 mm from pose to
-   pose, amplified 3–8 times) limits ``h``, and so the centre's depth, to ≈ 0.1–0.2 mm, where
-   the limbus centre is good to ≈ 0.02 mm; the depth's stated uncertainty carries it.
-6. **Again.** A pose measurement then measures that sclera again from its own fringes, up to
-   where they end, finds the limbus again (:func:`refined`) in the images with the sclera's
-   illumination divided out instead of the band's fringe subtracted, and fits the globe with
-   the limbus's tilt and centre free within their uncertainties
-   (:mod:`eyeserver.pipeline.sclera`); live tracking, whose radius is held, keeps step 5's
-   globe. Found again, the limbus leaves out the edges where the cornea keeps the camera's
-   projector's light off the sclera just beyond it (:func:`in_cornea_shadow`; the light's
-   direction from the calibration,
-   :meth:`~eyeserver.pipeline.reconstruct.CalibratedCamera.light_direction`; the cornea the eye
-   model's; "The cornea's shadow" below).
+1. **Fringe-free intensity** ``I − B·cos φ`` from the FTM: sharp at the edge, where a box filter
+   over a period would blur it.
+2. **Start.** Circles tilted 0–30° about the rough gaze (the cloud fit's can be 10–25° off), and
+   about the cornea's dark disc, scored by the mean outward intensity step along their
+   projections; the best one starts. Live tracking starts from the last frame's limbus and
+   scores tilted circles only when that fits poorly or turns the gaze by more than
+   :data:`FOLLOWED_TURN_DEG` (a saccade).
+3. **Edges.** Along the projected circle's outward normals (:data:`SAMPLES` per camera), the
+   *innermost* rising edge at least :data:`EDGE_SHARE` as strong as the profile's strongest,
+   sub-pixel from a parabola: outside the limbus lie other rising edges (a shadow's end, the
+   lids' margins), inside it only the cornea.
+4. **Circle.** Robust least squares (Cauchy loss: lid margins and shadow edges are outliers) of
+   the edges' distances to the projected circle's tangents, the reach shrinking round by round
+   (:data:`REACHES_PX`). Uncertainties from the Jacobian and a robust residual scale, each
+   camera's edges counted once per fringe period (errors within a period are shared).
+5. **Globe.** ``C = L − h·g``, ``R = √(h² + r²)``: one number ``h``, which the cloud's sclera
+   gives (:func:`globe_on_limbus`), clear of the lids and the limbus (the band blends surfaces
+   across depth steps). Its systematic error, amplified 3–8 times into ``h``, sets the depth's
+   stated uncertainty (:data:`SCLERA_BIAS_MM`).
+6. **Again.** A pose measurement measures the sclera again from its own fringes and finds the
+   limbus again (:func:`refined`) with the sclera's illumination divided out
+   (:mod:`eyeserver.pipeline.sclera`), leaving out the edges where the cornea keeps the
+   camera's projector's light off the sclera just beyond the limbus (:func:`in_cornea_shadow`:
+   the edge found there moves outwards). Live tracking, its radius held, keeps step 5's globe.
 
-What limits it. Found again about the true globe from the true circle (30 rendered 13-mm eyes, the
-cornea's shadow not yet left out), the limbus lies 0.006 ± 0.006 mm in front along the gaze and is
-0.004 ± 0.003 mm small. A sphere through it carries its depth 2–5 times into the globe's radius (for
-sclera 50–40° from the gaze of a 13-mm globe; :mod:`~eyeserver.pipeline.sclera`). Not the
-calibration: over the eye's volume its projections lie within 0.013 px (mean) and 0.02 px (sd) of
-the renderer's cameras, and with the renderer's own cameras the depth spreads as much (sd 0.0044
-against 0.0043 mm). Not the sensor's noise: found in the mean of 16 exposures (20 eyes) the limbus
-lies 0.009 ± 0.005 mm in front, and the mean of 4 left the globe centre as it was (40 eyes: p95
-0.083 against 0.078 mm). Renders without noise mislead here: rounded to whole DN without the noise's
-dither (the sclera beyond the limbus gives 13–60 DN), their limbus lies 0.004 mm further back than
-the 16 exposures' on the same eyes, the far side's edges (as a camera sees the limbus) 0.03–0.05 px
-further in. In the mean image the edges found on the near side and across lie 0.02–0.05 px inwards,
-those on the far side within 0.02 px (mean profiles over 10 eyes): the depth follows that
-difference. Where the cornea shadows the sclera just beyond the limbus from the projector (10–16 %
-of a camera's edges) little of the albedo's step is lit; leaving those edges out (known from the
-renderer) widened the spread of the depth found about the truth (sd 0.006 → 0.007 mm), and with the
-first-order shift below taken off the edges the pipeline's limbus depth spread to 0.012 mm (in the
-whole fit, though, leaving them out is what helps: "The cornea's shadow" below). Tried: the edge
-fitted as a blurred step to the sharpened image, the strongest point of the first strong run instead
-of its first peak, 240 or 480 samples, profiles averaged along the edge over 2–8 px, edges in the
-fringe's troughs left out, smoothing of σ 1.5 px, the sharpened image's illumination smoothed (σ 2
-px) or fitted 2 px clear of the edge moved the depth's bias and spread by 0.0006 mm or less, or made
-them worse; smoothing of σ 0.6 px instead of 1 moved the limbus 0.003 mm back, yet on 120 other
-13-mm eyes the globe centre's p95 went 0.080 → 0.084 mm (0.8 px: 0.082 mm), and with none the
-noise's own peaks are taken.
-
-The blur's part, not yet taken out. Dividing the image by the light after the optics' blur, as the
-sharpened image does (:func:`~eyeserver.pipeline.sclera.sharpened`), leaves each edge ≈ σ²·∂ln F/∂n
-off (first order; σ² the blur's variance, F the light, n the edge's normal). Taking that shift off
-the edges found, with σ² = 0.57 px², gained nothing with the sensor's noise (120 13-mm eyes: centre
-p95 0.080 → 0.088 mm). Placing each edge instead by a model of the raw image across it (a blurred
-step from a constant to the fitted light times a linear shading, by least squares) took ``eyeserver
-bench pose`` on 200 poses from 0.089 to 0.072 mm centre p95 (``--seed 1``: 0.078 → 0.072 mm; 13-mm
-globes 0.102 → 0.084 and 0.099 → 0.093 mm), its fits taking 0.76 s (median, two benches sharing two
-cores), given the simulated cameras' own blur (σ² = 0.57 px²: 0.7 px and the pixel's width). That is
-the renderer's setting, which the pipeline cannot know, and that model's step, summed on a 0.05-px
-grid from its first point in full, lay 0.025 px outwards of where it meant to; the two offset each
-other. Summed by the trapezoid rule, with the blur that each camera's edges fit best (0.49–0.67 px²
-once the bilinear interpolation's own blur along each profile sample is modelled, the optics' own;
-0.6–0.8 px² without it), the model finds the limbus where it is in the mean of 16 exposures (20
-eyes: 0.005 mm in front against 0.009 mm, its radius 0.001 mm off; the globe's radius 0.002 ± 0.028
-mm off, centre p95 0.067 mm), but in single exposures the same eyes' radius came out 0.014 mm small
-(p95 0.072 mm; 40 others 0.018 mm small, p95 0.076 against 0.078 mm; 30 others 0.021 mm small, 0.096
-against 0.093 mm), where the edge locator in use is not moved by the noise. It is the fit's own
-response to the noise in the profiles: with only those profiles taken from the 16 exposures' mean
-(all else from the single one) the radius came out right (0.001 mm), whereas weighting each sample
-by the sensor's noise (shot and read, the renderer's) or summing four neighbouring edges' fits left
-it 0.012–0.016 mm small. One fit over five profiles 1 px apart along the edge, sharing the step and
-the levels, took the radius's bias away on those 20 eyes (0.002 mm; centre p95 0.066 against 0.083
-mm with the edges in use) and gained on 70 others (p95 0.069 against 0.078, 0.085 against 0.093 mm),
-but not on 120 others (two sets of 60: 0.088 and 0.095 against 0.080 and 0.081 mm, the radius's sd
-0.037 and 0.035 against 0.034 and 0.032 mm), and on the bench's second draw (600 poses, ``--seed
-1``) it did worse: centre p95 0.087 against 0.080 mm, 13-mm globes 0.108 against 0.100 mm, 2.3 s a
-fit. Not used.
-
-The cornea's shadow, left out. On the default rig each projector lights the eye from 45° off the
-beam axis. Where a projector lies more than 41° off the gaze (90° less the 48.6° at which a 7.8-mm
-cornea meets a 5.85-mm limbus), the corneal cap keeps its light off a band of sclera just beyond the
-limbus on the side away from it, the far side for that unit's cameras: up to 4 px wide, in some
-sectors of most eyes. A real cornea does the same (light entering it goes into the eye, not onto the
-sclera behind the limbus). The sclera there is lit at grazing incidence anyway (renders with and
-without the shadow differ by 6 DN at most), but right at the edge, and the edge found moves outwards
-with it. The same 24 13-mm eyes rendered with and without the cornea's shadow (a diagnostic change
-to the renderer, the same noise): the limbus found lies 0.0075 ± 0.0051 mm in front against 0.0022 ±
-0.0040 mm, the globe's radius is 0.022 ± 0.028 against 0.010 ± 0.027 mm small, the centre's p95 is
-0.095 against 0.072 mm. Moving those edges inwards by the band's width (the renderer's geometry)
-overshoots (the limbus then lies 0.020 mm behind): the edge found is not where the band ends.
-Leaving them out works: with the renderer's geometry, the limbus lies 0.0049 mm in front and the p95
-is 0.076 mm; with the pipeline's own (:func:`in_cornea_shadow`: the light's direction from the
-calibration, the globe fitted, the eye model's cornea), 0.0057 mm and 0.076 mm. On 120 other 13-mm
-eyes the centre's p95 went 0.080 → 0.073 mm (median 0.034 → 0.033 mm), on 120 11- and 12-mm eyes
-0.074 → 0.067 mm (median 0.032 → 0.033 mm). On ``eyeserver bench pose`` (600 poses, two draws) the
-centre's p95 went 0.083 → 0.074 and 0.080 → 0.073 mm, the 13-mm globes' 0.087 → 0.077 and 0.100 →
-0.088 mm, the gaze's 0.151° → 0.147° and 0.151° → 0.139°. The sclera is tested
-:data:`SHADOW_PROBE_MM` beyond the limbus, so bands narrower than that (light up to ≈ 44° off the
-gaze) keep their edges. The cornea is the eye model's: a patient's cornea flatter or steeper than
-the model's casts its shadow elsewhere.
-
-A model of the raw pixels, fitted with the circle. The circle fitted to every pixel within 3 px of
-its projection in all cameras at once, the image modelled as the blur (one per camera) of a step
-from the cornea's light to the sclera's fitted light, with the light's gradient across the edge to
-first order and the sectors that fit worst left out, has thousands of pixels for ten parameters, so
-no noise bias: on 120 rendered 13-mm eyes its radius is 0.001 ± 0.002 mm small (the edges in use:
-0.004 ± 0.003 mm), its depth spreads less (sd 0.004 against 0.005 mm) and so does the globe's radius
-(sd 0.025 against 0.033 mm); the blur it fits is the optics' (0.48–0.62 px²; the renderer's 0.57).
-But its limbus lies further in front (0.010 against 0.007 mm), no longer offset by a small radius:
-the globe's radius comes out 0.034 mm small and the centre's p95 is 0.100 against 0.080 mm. Without
-the cornea's shadow (the 24 eyes above) its limbus lies 0.004 ± 0.002 mm in front and the globe's
-radius 0.029 ± 0.019 mm small (p95 0.075 against 0.072 mm). Per sector about the true circle, its
-edges on the near side still lie 0.025 px inwards, and the edges' offsets follow the light's
-gradient across them (−0.18 px per unit of ∂ln F/∂n), which the gradient term should have taken out:
-not yet understood. The cornea's own light inside (its phase on the model's cornea) moved the depth
-by 0.0006 mm. Not used; the experiment is kept outside the repository.
-
-Not modelled: a pupil or iris pattern inside the limbus (rising edges inside the cornea would
-be taken for the limbus; a real eye's pupil edge is weaker than the limbus in near infrared but
-should be checked on real images) and corneal refraction of the limbus (small at the limbus
-itself).
+Not modelled: a pupil or iris pattern inside the limbus (its edges would be taken for the limbus)
+and corneal refraction. Measured, and the variants not used: docs/notes/limbus.md.
 """
 
 from __future__ import annotations
@@ -621,17 +504,13 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
     holds within a round, and the circle moves by a pixel or less in the normals' directions
     within one (the round's search reach), which turns them by a fraction of a degree. The
     Jacobian is a forward difference taken in one batched projection per camera (the circle
-    and its six nudged copies): SciPy's own differencing projects once per parameter, which
-    cost 70 % of the fit (measured in live tracking: 19 of 37 ms per frame); projecting the
-    circle points alone, not their normals too, halved the rest (9.5 → 5 ms a tracked frame).
+    and its six nudged copies; SciPy's own differencing projects once per parameter).
 
     The minimisation is Levenberg–Marquardt on iteratively reweighted least squares, written
-    here rather than ``scipy.optimize.least_squares`` (trust-region reflective), whose
-    bookkeeping around six parameters and a few hundred residuals cost more than the
-    projections: each iteration evaluates the circle and its Jacobian in one batched
-    projection (SciPy evaluated residuals and Jacobian separately, ≈ 10 projections a fit).
-    Measured in live tracking: ≈ 30 % less a fit (4.4 against 6.2 ms, 5 projections against
-    10), the same circles within 1e-4 of their parameters' scales (tests: against SciPy's).
+    here rather than ``scipy.optimize.least_squares``, whose bookkeeping around six parameters
+    and a few hundred residuals cost more than the projections: each iteration evaluates the
+    circle and its Jacobian in one batched projection. It finds SciPy's circles (tested); the
+    timings: docs/notes/limbus.md.
     """
     rows = _circle_residuals(images, edges, centre, normal, radius, ratio)
     size = 7 if fit_ratio else 6
@@ -885,7 +764,7 @@ def in_cornea_shadow(centre: F64, normal: F64, radius: float, angles: F64, shade
     Light entering a real cornea goes into the eye, not onto the sclera behind the limbus, so
     wherever the light comes from further off the gaze than the cornea's rim faces (90° less
     ``asin(radius / cornea radius)``: 41° for 5.85 and 7.8 mm) a band of sclera on the far side
-    from it is dark, and the edge found there is where that band ends."""
+    from it is dark, and the edge found there moves outwards with it (docs/notes/limbus.md)."""
     if shade.cornea_radius <= radius:
         return np.zeros(len(angles), dtype=bool)
     rim, _ = _circles(centre[None], normal[None], radius, angles)
@@ -988,38 +867,24 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
     than :data:`LIMBUS_CLEARANCE_MM` from the limbus) votes for one ``h``, weighted by its
     squared depth behind the plane (the vote's error shrinks with it). The sclera votes sharply
     for its own ``h``; the lids, outside it and on no sphere through the limbus, vote for
-    larger, scattered values — often many more of them (on the `wide` rig 150 sclera votes
-    against 20 000 of the lids) — so the innermost shell is taken (:func:`_innermost_depth`)
-    and refined by weighted mean shift; then again without the points within
-    :data:`LID_CLEARANCE_MM` of the lids, which the band-limited FTM pulls towards them.
-    (Measured on 24 rendered poses, this beat a geometric least-squares fit of the whole
-    cloud's sclera, 0.11 against 0.13 mm median centre error, which followed the pulled points
-    outward.) Last, ``h`` is fitted by robust least squares to the shell's points clear of the
-    lids (:func:`_fitted_depth`): a vote's own noise is wider than the mean shift's last
-    window, whose mode strays with it (measured on 200 rendered poses: globe centre 0.091 →
-    0.077 mm median, 0.23 → 0.23 mm p95; on two other draws of 90 and 60, 0.103 → 0.083 mm).
-    A ``fixed_radius`` (the patient's model) sets ``h`` outright; the
-    sclera then only measures how well the model fits, and a limbus with too little sclera
-    beside it (one unit seeing the eye turned away) still places the globe, its surface
-    distance that of what lies behind the limbus (lids), so that its confidence drops.
+    larger, scattered values — often many more of them — so the innermost shell is taken
+    (:func:`_innermost_depth`) and refined by weighted mean shift; then again without the points
+    within :data:`LID_CLEARANCE_MM` of the lids, which the band-limited FTM pulls towards them (a
+    least-squares fit of the whole cloud's sclera followed those points outwards). Last, ``h`` is
+    fitted by robust least squares to the shell's points clear of the lids (:func:`_fitted_depth`):
+    a vote's own noise is wider than the mean shift's last window, whose mode strays with it. A
+    ``fixed_radius`` (the patient's model) sets ``h`` outright; the sclera then only measures how
+    well the model fits, and a limbus with too little sclera beside it (one unit seeing the eye
+    turned away) still places the globe, its surface distance that of what lies behind the limbus
+    (lids), so that its confidence drops.
 
     The depth is ill-conditioned: a sclera point at polar angle θ from the gaze moves off the
     sphere by only (cos θ − cos θ_limbus) ≈ −0.2 per millimetre of ``h`` over the visible
     band (θ ≈ 40–65°), so a radial bias of the reconstructed sclera is amplified about four
-    times into the radius, and about five times into the centre along the gaze. Measured on
-    60 rendered poses: sclera within 1 mm of the lids lies 0.1–0.25 mm outside the true
-    sphere, elsewhere within 0.03 mm; the radius came out 0.12 mm too large for 11 mm globes
-    (steeper sclera) and 0.06 mm too small for 13 mm ones, most of it the FTM band's bias on
-    bent fringes, which the reconstruction now takes out
-    (:attr:`~eyeserver.pipeline.demodulate.Demodulated.bend_bias`: on 200 poses the radius's
-    mean error −0.04, −0.02 and −0.03 mm for 11, 12 and 13 mm). Wider lid clearances (1.5,
-    2 mm) or dropping steep points (surface tilted more than 40–50° from +Z) made the centre
-    worse (noise), not better. What is left is a per-pose bias (0.02 mm, sd over poses, of the
-    sclera's weighted mean offset), with no trend in the globe's size, position or gaze; it
-    sets the depth's stated uncertainty (:data:`SCLERA_BIAS_MM`). Fitting the gaze's tilt to
-    the sclera too would pin it were the sclera exact (0.03 mm median centre error, measured
-    with the true surface), but the real one pulls it 0.45° off (median): the limbus's tilt is
-    kept.
+    times into the radius, and about five times into the centre along the gaze. What is left
+    of that bias, per pose, sets the depth's stated uncertainty (:data:`SCLERA_BIAS_MM`). The
+    gaze's tilt is the limbus's, not fitted to the sclera, whose own bias would pull it further
+    off than the limbus is. Measured: docs/notes/limbus.md.
     """
     cloud = np.asarray(points, dtype=np.float64)
     L, g, r = limbus.centre, limbus.normal, limbus.radius

@@ -1,6 +1,6 @@
 """Phase to height: the Du & Wang (2007) rational model for reference-subtracted phase.
 
-DESIGN §4 step 5. Per camera, the height of the surface seen through undistorted normalised
+docs/design.md §4 step 5. Per camera, the height of the surface seen through undistorted normalised
 coordinates ``(x, y)`` with phase ``Δφ`` (radians, relative to the reference plane) is
 
     Z = (c0 + c1·Δφ + (c2 + c3·Δφ)·i + (c4 + c5·Δφ)·j)
@@ -9,7 +9,7 @@ coordinates ``(x, y)`` with phase ``Δφ`` (radians, relative to the reference p
 with ``i ↔ y`` and ``j ↔ x``: eleven coefficients, a free numerator constant and ``d0 = 1``.
 Du & Wang fix the numerator's constant instead, which suits absolute (carrier-inclusive) phase
 but cannot express Z = 0 at Δφ = 0; with reference-subtracted phase the free ``c0`` is the
-well-posed choice (DESIGN measured 0.036 mm against 4.3 mm RMSE).
+well-posed choice (0.036 mm against 4.3 mm RMSE: docs/notes/design-measurements.md).
 
 Why the form holds. A pinhole camera's ray through ``(x, y)`` meets the plane Z at a point whose
 homogeneous coordinates are affine in ``(x, y)`` and in Z; a pinhole projector's straight fringes
@@ -31,7 +31,7 @@ and gives an excellent start, then polishes the true height residual with Levenb
 
 The model is linear in Δφ for fixed (x, y, Z), so :meth:`PhaseHeightModel.phase` inverts it in
 closed form: the phase a camera should see for a given 3-D point (what multi-view fringe-order
-selection needs, DESIGN §4 step 4).
+selection needs, docs/design.md §4 step 4).
 """
 
 from __future__ import annotations
@@ -264,7 +264,8 @@ class FitResult:
     rmse_mm : float
         Root mean square of ``residual_mm``.
     median_abs_mm, iqr_mm : float
-        Median and interquartile range of ``|residual_mm|`` (the paper's and DESIGN §6's figures).
+        Median and interquartile range of ``|residual_mm|`` (the paper's and docs/design.md
+        §6's figures).
     condition_number : float
         2-norm condition number of the Jacobian of the normalised height residual at the solution
         (over the fitted subsample): how well the data pin the eleven coefficients down.
@@ -298,7 +299,8 @@ def _linear_start(xn: F64, yn: F64, pn: F64, zn: F64) -> F64:
 
     This algebraic residual weights each point by its denominator, so it is not the height
     residual, but with the denominator close to 1 over the calibrated volume it lands within
-    a few LM steps of it (DESIGN: cold starts take 10× longer or find a wrong minimum).
+    a few LM steps of it (cold starts take 10× longer or find a wrong minimum:
+    docs/notes/design-measurements.md).
     """
     basis = _numerator_basis(xn, yn, pn)
     design = np.concatenate([basis, -zn[:, None] * basis[:, 1:]], axis=1)

@@ -1,19 +1,18 @@
-"""From one unit's fringe images to a calibrated point cloud (DESIGN §4 steps 2–7).
+"""From one unit's fringe images to a calibrated point cloud (docs/design.md §4 steps 2–7).
 
 Per camera A of a unit: demodulate against the stored reference phase and mask what carries no
-fringe (:func:`camera_phase`), fix the absolute fringe order of every pixel, then Z from A's
-phase-to-height model and X, Y from A's ray (steps 5–6).
+fringe (:func:`camera_phase`), fix the absolute fringe order of every pixel, then Z (WCS, mm) from
+A's phase-to-height model and X, Y from A's ray (steps 5–6).
 
 The fringe order comes by one of two paths, and the result says which (``CameraCloud.method``):
 
-``"multi-view"`` (the fast path, DESIGN §4 step 4)
+``"multi-view"`` (the fast path, docs/design.md §4 step 4)
     Every candidate order k of a pixel's phase gives, through A's model and ray, a 3-D point in
     the calibrated volume; the unit's other camera B, its model inverted at that point, predicts
     the phase B must see there; the candidate whose prediction matches B's measured phase wins.
-    The candidates are evaluated for all pixels at once on a grid of every third pixel (no
-    Python loop over pixels), ambiguous picks are dropped, a median vote cleans the rest, and
-    each full-resolution pixel takes the order that brings its phase nearest to the interpolated
-    absolute phase of its grid neighbours. Every pixel's final order is then checked against B.
+    Evaluated for all pixels at once on a grid of every third pixel, ambiguous picks dropped and
+    the rest cleaned by a median vote; each pixel takes the order that brings its phase nearest
+    the interpolated absolute phase of its grid neighbours, then checked against B.
 ``"spatial"`` (the robust path)
     Quality-guided spatial unwrapping (Herráez et al. 2002, scikit-image) leaves one unknown
     order per connected region; the multi-view picks inside a region vote for it. A region B
@@ -21,9 +20,8 @@ The fringe order comes by one of two paths, and the result says which (``CameraC
     ``depth_prior_mm``), and says so. Slower (the unwrapping alone takes ≈ 0.1 s per frame), but
     it keeps surfaces the other camera sees only in parts.
 
-A camera with no partner in its unit can only use the depth prior, pixel by pixel
-(``"depth prior"``): correct only for surfaces within half a fringe's depth (≈ ±2.5 mm on the
-default rig) of the prior.
+A camera with no partner in its unit can only use the depth prior, pixel by pixel (``"depth
+prior"``): right only within half a fringe's depth (≈ ±2.5 mm on the default rig) of the prior.
 
 Finally each camera's points are kept only where the other camera's own reconstruction does not
 contradict them (:func:`unit_clouds`), and only in patches of continuous depth large enough not
@@ -31,13 +29,13 @@ to be a wrong order's island: :data:`SPECKLE_PX` pixels, or down to :data:`MIN_P
 the other camera confirms the patch's order as a whole and no other order continues the points
 around it better (:func:`_patch_confirmed`). The eye's visible sclera, a few hundred pixels
 between the lids and the limbus and more than a millimetre below the lids, lives on the second
-rule (measured: from ≈ 200 points 0.5 mm off to 3000–5000 points per frame set).
+rule (measured with ``scripts/eye_coverage.py``: from ≈ 200 points 0.5 mm off to 3000–5000).
 
 References
 ----------
-Herráez, M. A., Burton, D. R., Lalor, M. J., Gdeisat, M. A. (2002). Fast two-dimensional phase-
-unwrapping algorithm based on sorting by reliability following a noncontinuous path. Applied
-Optics 41(35), 7437–7444.
+Herráez, M. A., Burton, D. R., Lalor, M. J., Gdeisat, M. A. (2002). Fast two-dimensional
+phase-unwrapping algorithm based on sorting by reliability following a noncontinuous path.
+Applied Optics 41(35), 7437–7444.
 Tao, T. et al. (2016). Real-time 3-D shape measurement with composite phase-shifting fringes and
 multi-view system. Optics Express 24(18), 20253–20269.
 """
@@ -135,7 +133,7 @@ wrong-order island on a tilted plate measured 0.19–0.25 rad."""
 PATCH_ORDERS = (-2, -1, 1, 2)
 """The neighbouring orders a small patch's own order must beat at the other camera. Orders
 further out are not asked: where the cameras' sensitivities nearly repeat (about three orders
-away on the default rig, DESIGN §4 step 4) the other camera matches them almost as well, or
+away on the default rig, docs/design.md §4 step 4) the other camera matches them almost as well, or
 their points leave its view."""
 PATCH_FAR_ORDERS = tuple(k for k in range(-8, 9) if k)
 """Orders a small patch is tested against for continuity with the points around it (all a
@@ -752,8 +750,9 @@ def spatial_order(cam_a: CalibratedCamera, phase_a: Phase, grid: GridOrder | Non
     if count == 0:
         return np.zeros(0, np.intp), np.zeros(0, np.int64), np.zeros(0, bool)
     sizes = np.bincount(labels.ravel(), minlength=count + 1)
-    # scikit-image's Herráez unwrapper (what DESIGN measured at ≈ 100 ms per frame) unwraps each
-    # 4-connected region of the unmasked pixels on its own, as ndimage.label counts them.
+    # scikit-image's Herráez unwrapper (≈ 100 ms per frame: docs/notes/design-measurements.md)
+    # unwraps each 4-connected region of the unmasked pixels on its own, as ndimage.label counts
+    # them.
     masked = np.ma.masked_array(phase_a.dphi.astype(np.float64), mask=~valid)
     unwrapped = unwrap_phase(masked)  # type: ignore[no-untyped-call]
     pixels = np.flatnonzero(valid)

@@ -1,4 +1,4 @@
-"""Rigid registration of a measured surface onto a reference surface (DESIGN §4, §6).
+"""Rigid registration of a measured surface onto a reference surface (docs/design.md §4, §6).
 
 The paper scores a measured eye-phantom surface by its "ICP RMSE after rigid registration"
 against the phantom's reference surface; the eye pose work registers surfaces the same way.
@@ -13,16 +13,16 @@ This module holds the three pieces:
 
 Why point-to-plane
 ------------------
-An eye is nearly a sphere. Point-to-point ICP pulls every source point towards one discrete
-target point, so on a smooth, weakly featured surface the pairs resist sliding along it and the
-solution stalls with degree-level rotation errors (≈ 2° measured, DESIGN §4). The point-to-plane
-error only penalises the offset along the target's normal: the surface may slide over itself,
-the small shape features that fix the pose decide it, and the residual falls to ≈ 0.01°. No
-surface method sees a rotation about a sphere's centre, nor the torsion of an eye symmetric
-about its axis: exactly unobservable motions are left out of each step, but noise in the
-estimated normals makes them look faintly observable and they drift by tenths of a degree from
-iteration to iteration. Only the observable part of such a result (the globe's centre, the
-direction of the eye's axis) means anything.
+An eye is nearly a sphere. Point-to-point ICP pulls every source point towards one discrete target
+point, so on a smooth, weakly featured surface the pairs resist sliding along it and the solution
+stalls with degree-level rotation errors (≈ 2° measured, docs/notes/design-measurements.md). The
+point-to-plane error only penalises the offset along the target's normal: the surface may slide over
+itself, the small shape features that fix the pose decide it, and the residual falls to ≈ 0.01°. No
+surface method sees a rotation about a sphere's centre, nor the torsion of an eye symmetric about
+its axis: exactly unobservable motions are left out of each step, but noise in the estimated normals
+makes them look faintly observable and they drift by tenths of a degree from iteration to iteration.
+Only the observable part of such a result (the globe's centre, the direction of the eye's axis)
+means anything.
 
 Conventions
 -----------

@@ -1,92 +1,43 @@
 """The sclera measured again from its own fringes, and the globe and gaze it carries with the
-limbus (DESIGN §4 step 8).
+limbus (docs/design.md §4 step 8).
 
 Why. The globe's depth behind the limbus is ill-conditioned: a radial error of the sclera is
 amplified 3–8 times into the centre (:func:`~eyeserver.pipeline.limbus.globe_on_limbus`). The
 band-limited Fourier demodulation blends each pixel's phase with its neighbours' over about a
 fringe period, and the visible sclera is a band only a few periods wide between the dark
-cornea and the lids: most of it lies within a period of where its fringe field ends. Measured
-on rendered eyes, the reconstructed sclera of one camera lies 0.02–0.12 rad (0.02–0.1 mm)
-off the true globe, a different offset in each camera and pose. The fringes themselves are
-not: fitted with a smooth background and amplitude, the pixel values of the same sclera agree
-with the true phase to 0.01 rad. Calibration is not the cause either (two calibrations from
-different renders give the same offsets; the phase-to-height model is exact to 0.01 rad there).
+cornea and the lids, most of it within a period of where its fringe field ends: the
+reconstructed sclera lies off the globe by a different offset in each camera and pose. The
+fringes themselves are not off: fitted locally, with a smooth background and amplitude, they
+give the true phase.
 
 What. :func:`remeasured` takes, in every camera, the pixels that see a globe hypothesis (a
-sphere) where the cloud's sclera lies, predicts their phase from the sphere through the
-calibration (:meth:`~eyeserver.pipeline.phase_height.PhaseHeightModel.phase` plus the
-reference phase), and fits ``I = a + p·cos ψ + q·sin ψ`` over :data:`WINDOW_PX` squares of those
-pixels only, never across the field's edge: ``δ = atan2(−q, p)`` is how far the pixel's phase
-lies from the sphere's, ``Z`` follows from the phase ``Δφ̂ + δ``, and the point from the pixel's
-ray at that height. The fit needs no band: a window is the only filter, and it holds nothing
-but sclera. Left out: pixels whose ray meets a point of the cloud well before the sphere (a lid
-in front of it from this camera, :data:`IN_FRONT_MM`), windows whose phase is unsure (faint
-fringes, :data:`MAX_PHASE_SD_RAD`) and pixels that end more than :data:`MAX_OFFSET_RAD` off;
-the fit is made again about the first one's phase (:data:`ROUNDS`); last, the pixels whose
-fringe is fainter than most of the sclera's (:data:`MIN_AMPLITUDE`: light at grazing incidence,
-the edges of shadows), whose windows read a biased phase.
+sphere; WCS, mm) where the cloud's sclera lies, predicts their phase from the sphere through the
+calibration (:meth:`~eyeserver.pipeline.phase_height.PhaseHeightModel.phase` plus the reference
+phase), and fits ``I = a + p·cos ψ + q·sin ψ`` over :data:`WINDOW_PX` squares of those pixels
+only, never across the field's edge: ``δ = atan2(−q, p)`` (rad) is how far the pixel's phase lies
+from the sphere's, ``Z`` follows from the phase ``Δφ̂ + δ``, and the point from the pixel's ray at
+that height. A window is the only filter, and it holds nothing but sclera. Left out: pixels with
+a lid in front of the sphere (:data:`IN_FRONT_MM`), unsure windows (:data:`MAX_PHASE_SD_RAD`),
+pixels more than :data:`MAX_OFFSET_RAD` off, and, after :data:`ROUNDS` fits, pixels whose fringe
+is fainter than most of the sclera's (:data:`MIN_AMPLITUDE`), whose windows read a biased phase.
 
-The limbus found again. The limbus's edges (:mod:`~eyeserver.pipeline.limbus`) are found in the
-band's fringe-free intensity ``I − B·cos φ``, whose ``B`` and ``φ`` the band blends across the
-limbus just as it blends the sclera's phase: fringe is left on the sclera beside the edge and
-put onto the cornea, and each edge moves with the fringe's phase there. :func:`sharpened`
-divides each camera's image by the illumination ``a + p·cos ψ + q·sin ψ``: ``ψ`` the phase the
-globe hypothesis predicts, ``a, p, q`` fitted over :data:`WINDOW_PX` squares of the sclera beyond
-the limbus (from :data:`LIMBUS_MARGIN_MM` behind the limbus's plane on, clear of the edge's
-blur), each pixel up to the limbus and inside it taking the nearest window's. What is left is the
-albedo's step, whatever the fringe's phase at the edge; the limbus's last round of edges and
-circle runs again in that image. Dividing needs no position of the edge, where subtracting a
-fringe cut off at the edge would. The window and the margin were chosen on 36 poses (not those
-of the bench): 15-px windows from 0.25 mm left the edges on the far side of the limbus (as a
-camera sees it) 0.1–0.2 px outwards, the shading towards the limbus not followed (globe centre
-0.046 mm median, 0.13 mm p95); 9-px windows from 0.05 mm 0.034 and 0.093 mm; from 0.02 mm, with
-the edge's blur in the fit, 0.037 and 0.11 mm.
+The limbus found again. The band's fringe-free intensity ``I − B·cos φ`` blends ``B`` and ``φ``
+across the limbus too, so each edge found in it moves with the fringe's phase there.
+:func:`sharpened` divides each camera's image by the illumination ``a + p·cos ψ + q·sin ψ``,
+``ψ`` the phase the globe hypothesis predicts, ``a, p, q`` fitted over :data:`WINDOW_PX` squares
+of the sclera beyond the limbus (from :data:`LIMBUS_MARGIN_MM` behind its plane on, clear of the
+edge's blur), each pixel up to and inside the limbus taking the nearest window's. What is left
+is the albedo's step, whatever the fringe's phase at the edge; the limbus's last round runs again
+in that image. Dividing needs no position of the edge, where subtracting a fringe cut off at the
+edge would.
 
 :func:`globe_and_gaze` then fits the globe to the remeasured points together with the limbus:
 centre ``L' − h·g'`` with ``g'`` the limbus normal tilted and ``L'`` its centre shifted, each held
 to the limbus's measurement within its uncertainty. The sclera counts as a whole, good to
-:data:`SCLERA_BIAS_MM` (what does not average away over its points), so it moves the gaze only
-where it says so more precisely than the limbus does. :func:`refit` runs :data:`PASSES` passes
-of the three, each about the last one's globe.
-
-Measured with ``eyeserver bench pose`` (200 rendered poses, the population model with the radius
-fitted), before any of this → with the sclera remeasured → with the limbus found again too: globe
-centre 0.077 → 0.053 → 0.033 mm median, 0.23 → 0.15 → 0.098 mm p95, 13-mm globes 0.107 → 0.070 →
-0.035 mm; gaze 0.17° → 0.12° → 0.065°, p95 0.41° → 0.26° → 0.15°; limbus centre 0.013 → 0.007 mm; on
-another draw (``--seed 1``) centre 0.088 → 0.050 → 0.030 mm median, 0.21 → 0.13 → 0.084 mm p95, gaze
-0.17° → 0.11° → 0.054°. With the sclera remeasured within :data:`NEAR_MM` = 0.5 mm of the cloud's
-instead of 0.2 mm: centre 0.033 mm median, 0.088 mm p95 (13-mm globes 0.114 → 0.103 mm p95;
-``--seed 1``: 0.034 and 0.077 mm, 13-mm globes 0.110 → 0.099 mm). With the faint fringes left out
-(:data:`MIN_AMPLITUDE`): 0.030 and 0.089 mm, 13-mm globes 0.102 mm (``--seed 1``: 0.033 and 0.078
-mm, 13-mm globes 0.099 mm), where 120 other 13-mm eyes went 0.086 → 0.080 mm. It costs ≈ 0.3 s a
-fit; live tracking (radius held) leaves it out. On the sclera of a rendered 13-mm eye turned away,
-each camera's points lay 0.02–0.03 mm inside the globe before and within 0.003 mm after, measured
-about a sphere 0.2 mm off, and the limbus found again tilts 0.09° from the true gaze where the
-band's tilted 0.28° (``tests/test_sclera.py``). What is left: the limbus found lies in front of the
-true one along the gaze on 34 of 36 poses, by 0.006 mm on average (sd 0.004 mm), which the globe's
-depth amplifies (the five poses furthest off, 0.07–0.12 mm, are off along the gaze). The edges on
-the far side of the limbus, as a camera sees it, lie outwards of those on the near side (noise-free
-renders: by 0.03–0.1 px); not from the calibration (see :mod:`~eyeserver.pipeline.limbus`). Against
-the true globe, the remeasured sclera lies 0.01–0.02 mm outside it within ≈ 1 mm of the limbus and
-0.01–0.02 mm inside it towards the lids (medians over 40 rendered 13-mm eyes, each camera alike); on
-120 such eyes, leaving out the band 0.4–1.2 mm from the limbus, the 3 pixels next to where a lid
-hides the sphere, a robust scale of 0.02 mm, windows of 11 pixels or fitting a radial offset per
-camera left the centre's p95 within 0.003 mm of 0.086 mm (or worse; 7-pixel windows 0.108 mm). That
-pattern is the shading across a window (measured about the true globe: with the light's true
-incidence in the fit's amplitude, flat within 3 µm from 30° to 55° off the gaze), but taking it out
-did not help the globe: the incidence estimated from the windows' amplitudes corrected a part and
-made the centre's p95 0.110 mm, the renderer's true projector 0.093 mm (the radius 0.02 mm small). A
-background varying linearly in the window (0.144 mm), weights from each pixel's phase sd
-(0.104–0.113 mm) did worse. Noise is not what limits it: noise-free renders of 30 eyes gave the same
-radius spread (sd 0.039 mm). The limbus is: fitted to the sclera remeasured about the true globe (30
-noise-free 13-mm eyes), the radius through the true limbus circle has an sd of 12 µm with the faint
-fringes left out, through the limbus found 32 µm; its depth along the gaze (in front by 0.008 ±
-0.005 mm) and its radius (0.004 ± 0.003 mm small) each account for part of that. With the true
-limbus circle put in place of the one found (120 rendered 13-mm eyes, the rest of the fit as it is)
-the centre's p95 is 0.046 mm against 0.080 mm; with only the circle's depth, tilt or radius made
-true, 0.085, 0.089 and 0.104 mm (their errors offset each other). The limbus's whole covariance as
-:func:`globe_and_gaze`'s prior, its radius free too, gave 0.081 mm. What moves the limbus:
-:mod:`~eyeserver.pipeline.limbus`.
+:data:`SCLERA_BIAS_MM`, so it moves the gaze only where it says so more precisely than the limbus
+does. :func:`refit` runs :data:`PASSES` passes of the three, each about the last one's globe. It
+costs ≈ 0.3 s a fit; live tracking (radius held) leaves it out. What each step gained, how the
+windows and margins were chosen, and what is left: docs/notes/sclera.md.
 """
 
 from __future__ import annotations
@@ -137,24 +88,13 @@ MIN_AMPLITUDE = 0.8
 """Pixels whose fringe amplitude (their window's, fitted over the pixels kept) is below this
 share of the camera's median over the sclera are left out: light at grazing incidence and the
 edges of the shadows that the lids and the cornea cast, where a window's phase is biased (the
-light changes steeply across it, or ends inside it). Measured about the true globe on 30
-noise-free renders of 13-mm eyes, beyond 42° from the gaze: where the light meets the sclera at
-more than 63° from its normal, −54 to +99 µm (medians per band of incidence), within 2 px of a
-shadow's edge −94 µm, within 3 µm elsewhere; the globe's radius, fitted to them through the
-true limbus, 19 → 12 µm sd (a floor of 0.7). In the whole pose fit (120 rendered 13-mm eyes, not
-the bench's) the centre's p95 went 0.086 → 0.080 mm, on 120 11- and 12-mm eyes 0.077 → 0.074 mm;
-0.7 and 0.9 gave 0.083 and 0.082 mm on the 13-mm eyes, the last round's amplitudes instead of
-a fit over the pixels kept 0.085 mm."""
+light changes steeply across it, or ends inside it; measured: docs/notes/sclera.md)."""
 
 NEAR_MM = 0.5
 """A pixel sees the sclera where its ray meets the sphere this close to a sclera point of the
-cloud (any camera's). Where the visible sclera is a narrow band, the cloud's is patchy (in one
-camera of a rendered 13-mm eye, about half of what the camera saw between the lids and the
-limbus), and a globe's depth rests on how far out the sclera is seen. On 120 rendered 13-mm
-eyes (not the bench's), 0.2 mm left the globe centre 0.110 mm off at p95 (radius error sd
-0.046 mm), 0.5 mm 0.086 mm (sd 0.035 mm), 0.4–1.2 mm 0.087–0.089 mm; on 120 11- and 12-mm
-eyes, 0.2 → 0.5 mm took the p95 from 0.079 to 0.077 mm and the median from 0.031 to
-0.034 mm. Pixels that see a lid, not the sphere, are still left out by their phase
+cloud (any camera's). Where the visible sclera is a narrow band, the cloud's is patchy, and a
+globe's depth rests on how far out the sclera is seen (0.2 mm did worse: docs/notes/sclera.md).
+Pixels that see a lid, not the sphere, are still left out by their phase
 (:data:`MAX_OFFSET_RAD`)."""
 
 ROUNDS = 2
@@ -162,10 +102,8 @@ ROUNDS = 2
 
 SCLERA_BIAS_MM = 0.01
 """The remeasured sclera's systematic radial error in one capture (mm): what the sclera as a
-whole is trusted to. Chosen on 36 rendered poses (apart from the bench's): 0.008 mm gave
-centre errors within one and two stated sds on 69 % and 96 % of the axes, 0.015 mm 85 % and
-99 %, the errors themselves alike (0.058 against 0.056 mm median); 0.025 mm let the limbus hold
-the gaze too firmly (0.068 mm)."""
+whole is trusted to. Chosen on 36 rendered poses so that the stated sds cover the errors without
+letting the limbus hold the gaze too firmly (docs/notes/sclera.md)."""
 
 MIN_POINTS = 30
 """Fewest remeasured points a globe is fitted to."""

@@ -11,9 +11,8 @@ metric                                         type     labels / meaning
 ``eyeserver_frames_acquired_total``            counter  ``camera``: frames read in captures and
                                                         calibration sessions
 ``eyeserver_frames_dropped_total``             counter  ``camera``: exposures the camera lost
-                                                        (since it was last opened: a reopen after
-                                                        a fault resets it, which Prometheus reads
-                                                        as a counter reset)
+                                                        since it was last opened (a reopen after
+                                                        a fault: a counter reset to Prometheus)
 ``eyeserver_captures_total``                   counter  ``unit``: captures stored
 ``eyeserver_reconstruction_seconds``           histo.   time of one reconstruction (worker only,
                                                         not the wait in its queue)
@@ -22,8 +21,8 @@ metric                                         type     labels / meaning
 ``eyeserver_queue_capacity``                   gauge    ``queue``: jobs that may wait
 ``eyeserver_events_dropped_total``             counter  events lost by slow stream clients
 ``eyeserver_tracking_running``                 gauge    1 while live tracking runs
-``eyeserver_tracking_beam_hold``               gauge    1 while the beam is held (also when no
-                                                        tracking runs: nothing watches the eye)
+``eyeserver_tracking_beam_hold``               gauge    1 while the beam is held (also with no
+                                                        tracking: nothing watches the eye)
 ``eyeserver_tracking_frames_total``            counter  ``outcome``: acquired, processed,
                                                         dropped, missed, held (over all sessions)
 ``eyeserver_tracking_stalls_total``            counter  times no processed frame came within

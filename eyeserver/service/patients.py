@@ -62,7 +62,8 @@ Eye = Literal["right", "left"]
 Vec3 = tuple[float, float, float]
 
 DEFAULT_TOLERANCE_MM = 0.2
-"""Largest accepted length of the translation vector, mm (the clip-based practice, DESIGN §6)."""
+"""Largest accepted length of the translation vector, mm (the clip-based practice,
+docs/design.md §6)."""
 
 DEFAULT_TOLERANCE_GAZE_DEG = 1.0
 """Largest accepted angle between measured and reference gaze, degrees."""

@@ -37,7 +37,8 @@ Vec3 = tuple[float, float, float]
 STAGE_TRAVEL_MM: Final = SIM_STAGE_TRAVEL_MM
 """Travel of the simulated motorised stage that carries the flat plate along Z, mm (inclusive).
 
-It covers the phase-to-height calibration's −10…+25 mm (DESIGN §5) with 5 mm to spare each way.
+It covers the phase-to-height calibration's −10…+25 mm (docs/design.md §5) with 5 mm to spare
+each way.
 """
 
 PRERENDER_MAX_S: Final = 120.0

@@ -11,59 +11,33 @@
                                                    worker process: reconstruct,
                                                    follow or fit the eye
 
-One :class:`TrackingSession` follows one patient and fraction: the rig streams frame sets of the
-patient's unit (:attr:`~eyeserver.service.patients.Patient.unit`, the unit on the treated eye's
-side) at the camera rate, paced on an injectable :class:`~eyeserver.core.clock.Clock`. The
-acquisition thread puts each frame set into a one-place slot where the newest wins: a frame set
-that is replaced before the processing thread took it is *dropped*, and counted. Camera slots the
-rig could not serve in time (an acquisition longer than a frame period) are counted as *missed*.
-Both show as gaps in the frame numbers :class:`~eyeserver.service.beamhold.BeamHold` sees, so
-neither is ever skipped silently.
+One :class:`TrackingSession` follows one patient and fraction. The rig streams frame sets of the
+patient's unit at the camera rate, paced on an injectable :class:`~eyeserver.core.clock.Clock`,
+into a one-place slot where the newest wins: a frame set replaced before the processing thread
+took it is *dropped*, a camera slot the rig could not serve in time is *missed*; both are counted
+and show as gaps in the frame numbers :class:`~eyeserver.service.beamhold.BeamHold` sees.
 
-The processing thread has each frame set it takes reconstructed with the active calibration
-(loaded once per session) and the patient's eye model fitted to it — in a worker process of its
-own (:class:`~eyeserver.service.tracking_worker.PoseWorker`), so this work neither holds the
-GIL against acquisition and the event loop nor shares their core (with several workers, a
-processing thread each takes the newest frame when its worker is free — the first worker
-whenever it is, the next ones only while those before them are busy (:meth:`LatestFrame.take`'s
-``rank``: measured in ``eyeserver bench tracking``, a lone worker's frames took 27–28 ms, two
-taking turns 31–32 ms, their caches cold and their work overlapping) — and a pose that comes
-after a newer frame's was published is dropped and counted, so frames are judged in order) —
-compares the pose with the fraction's reference
-(:func:`~eyeserver.service.verification.deviation`, :func:`~eyeserver.service.verification.judge`),
-feeds :class:`BeamHold` and publishes one message per processed frame on
-:attr:`TrackingControl.messages`::
-
-    {"t": s, "t_ns": ns, "frame": n, "pose": {"centre_mm", "limbus_centre_mm", "gaze"} | null,
-     "deviation": {"delta_mm", "length_mm", "gaze_deg"} | null, "in_tolerance": bool,
-     "beam_hold": bool, "latency_ms": ms, "confidence": 0…1, "eye": "visible"|"blink"|"lost",
-     "reasons": [...], "dropped_frames": n, "missed_frames": n, "delivery_ms": ms | null,
-     "processing_ms": ms}
-
-``t`` is the frame set's mid-exposure time on the rig's monotonic clock (the mean of its
-cameras'), ``latency_ms`` the time from it to the message's send: the publisher stamps it when it
-publishes, and the WebSocket stamps it again right before sending. Of that, ``delivery_ms`` is
-the time from ``t`` until the frame set was in the daemon's hands (half the exposure, the
-transfer, and any lateness of the rig) and ``processing_ms`` the reconstruction, fit and
-judgement; the rest is the wait for a free worker. A fit that fails (no eye, the
-eye lost) or a pose whose gaze cannot be found (lids closed: a blink) gives ``pose`` null and
+A processing thread has each frame set reconstructed and the patient's eye model fitted in a
+worker process (:class:`~eyeserver.service.tracking_worker.PoseWorker`: off the GIL and the core
+of acquisition and the event loop). With several workers the first takes every frame it is free
+for, the next only those it is busy through (:meth:`LatestFrame.take`'s ``rank``); a pose that
+comes after a newer frame's was published is dropped, so frames are judged in order. The pose is
+compared with the fraction's reference, fed to :class:`BeamHold` and published, one message per
+processed frame (fields: README, "Live tracking"; ``latency_ms`` runs from the frame set's
+mid-exposure on the rig's clock to the send). No eye, a lost eye or a blink: ``pose`` null and
 ``beam_hold`` true.
 
-Once a frame gave a pose, the next ones are followed from it (the eye moves little in 40 ms):
-the reconstruction covers only a window around the eye in each camera
-(:meth:`RigReconstructor.focus`, :func:`~eyeserver.pipeline.eyetrack.pose_window`) and the
-globe is refitted from the last pose (:func:`~eyeserver.pipeline.eyetrack.track_eye`) instead
-of searched for; the global fit (:func:`~eyeserver.pipeline.eyepose.fit_eye`) of the whole
-images comes back when the warm fit fails or does not find the limbus in the images
-(:class:`PoseFinder`). A frame after one that lost the eye is followed from the last pose found
-if that frame is at most :data:`FOLLOW_LOST_S` older (measured on rendered frames of the
-drifting eye: 17–18 ms a frame against the global fit's 0.42–0.47 s, during which the frames
-that come are dropped); after that, the global fit. A blink keeps the last globe.
+Once a frame gave a pose, the next ones are followed from it (the eye moves little in 40 ms): only
+a window around the eye is reconstructed (:meth:`RigReconstructor.focus`) and the globe refitted
+from the last pose (:func:`~eyeserver.pipeline.eyetrack.track_eye`); the global fit
+(:func:`~eyeserver.pipeline.eyepose.fit_eye`) of the whole images comes back when the warm fit
+fails or finds no limbus (:class:`PoseFinder`). A frame after one that lost the eye is still
+followed from a last pose at most :data:`FOLLOW_LOST_S` old (the global fit takes ten frame
+periods or more); a blink keeps the last globe. Measured: docs/notes/tracking.md.
 
-The clock, the frame source and the pose finder (:class:`FindPose`: :class:`PoseFinder` runs
-the reconstruction and fits in this process) are injected, so tests replay any
-sequence exactly (:meth:`TrackingSession.acquire_once`, :meth:`TrackingSession.process_once`).
-While a session runs the daemon is in state ``tracking`` (captures get 409).
+Clock, frame source and pose finder (:class:`FindPose`) are injected, so tests replay any
+sequence exactly (:meth:`TrackingSession.process_once`). While a session runs the daemon is in
+state ``tracking`` (captures get 409).
 """
 
 from __future__ import annotations

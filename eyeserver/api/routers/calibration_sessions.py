@@ -102,7 +102,7 @@ class ReferenceRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     z_mm: float = Field(10.0, ge=-100, le=100, description="Nominal Z of the reference plane, "
-                        "mm (DESIGN §5: +10 mm).")
+                        "mm (docs/design.md §5: +10 mm).")
 
 
 @router.post("", status_code=201, summary="Open a guided calibration session")

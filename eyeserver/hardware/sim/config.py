@@ -10,12 +10,12 @@ stands at ``look_at + d·(sin a cos e, sin e, cos a cos e)`` and looks at ``look
 rows running downwards (−Y) unless ``roll_deg`` turns it about its optical axis. ``position_mm``
 overrides the spherical placement.
 
-Default geometry (DESIGN §3): projectors at 200 mm, ±45° azimuth, in the X–Z plane; cameras at
-250 mm, ±12° elevation, at azimuths 25° and 28°. The two cameras of a unit sit at *different*
+Default geometry (docs/design.md §3): projectors at 200 mm, ±45° azimuth, in the X–Z plane; cameras
+at 250 mm, ±12° elevation, at azimuths 25° and 28°. The two cameras of a unit sit at *different*
 azimuths because the multi-view fringe order discriminates only through the ratio of their depth
 sensitivities s(a) = π·sin(45° − a)/cos(a) rad/mm (1.19 and 1.04 rad/mm here, ratio 0.877): a wrong
-order k shifts the predicted phase by 2πk·0.877, at least 0.77 rad for every k up to 7, which
-covers the 35 mm calibrated depth (6.6 fringes at 1.19 rad/mm). Equal azimuths would make it blind.
+order k shifts the predicted phase by 2πk·0.877, at least 0.77 rad for every k up to 7, which covers
+the 35 mm calibrated depth (6.6 fringes at 1.19 rad/mm). Equal azimuths would make it blind.
 """
 
 from __future__ import annotations

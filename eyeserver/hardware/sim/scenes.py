@@ -7,7 +7,7 @@ z = 0, facing +z, i.e. towards the cameras) and placed by ``position_mm`` and ``
 (``Rz·Ry·Rx``, local → world).
 
 Reflectances are relative to the white calibration plate (albedo 1), whose fringe contrast the
-room file sets; sclera-like surfaces are 0.42 of it (≈ 25 DN of fringe, DESIGN §3).
+room file sets; sclera-like surfaces are 0.42 of it (≈ 25 DN of fringe, docs/design.md §3).
 """
 
 from __future__ import annotations

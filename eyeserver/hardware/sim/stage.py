@@ -11,7 +11,7 @@ __all__ = ["SIM_STAGE_TRAVEL_MM", "SceneHolder", "SimStage"]
 
 SIM_STAGE_TRAVEL_MM = (-15.0, 30.0)
 """Travel of the simulated stage, mm (inclusive): the phase-to-height calibration's −10…+25 mm
-(DESIGN §5) with 5 mm to spare each way."""
+(docs/design.md §5) with 5 mm to spare each way."""
 
 
 class SceneHolder(Protocol):
