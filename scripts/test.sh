@@ -1,8 +1,16 @@
 #!/usr/bin/env bash
 # Set up if needed, then run every check: ruff, mypy, import-linter and the test suite.
-# Extra arguments go to pytest (`bash scripts/test.sh -k health`).
+# --fast (first argument): the fast tier, every test but those marked slow (each over about a
+# second), for the loop of a change; the full run is CI's. Further arguments go to pytest
+# (`bash scripts/test.sh -k health`, `bash scripts/test.sh --fast -x`).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
+
+tier=()
+if [[ "${1:-}" == "--fast" ]]; then
+    tier=(-m "not slow")
+    shift
+fi
 
 bash scripts/setup.sh
 
@@ -16,4 +24,4 @@ step "import-linter (layers)"
 .venv/bin/lint-imports
 step "pytest"
 # Any non-zero status fails the run, including 5 (no tests collected).
-.venv/bin/pytest -q "$@"
+.venv/bin/pytest -q "${tier[@]}" "$@"

@@ -26,6 +26,8 @@ from eyeserver.api import create_app
 from tests.apiclient import API, OPERATOR_TOKEN, PHYSICIST_TOKEN, test_settings
 from tests.liveserver import live_server
 
+pytestmark = pytest.mark.slow  # every test here takes over a second
+
 EXAMPLES = 6
 LEFT_OUT = ("/sim/eye/prerender", "/tracking/start")
 

@@ -71,6 +71,7 @@ def service(app: FastAPI, client: Client) -> Service:
     return running
 
 
+@pytest.mark.slow
 def test_import_activation_and_deletion_are_audited_with_the_callers_name(
         client: Client, service: Service, tmp_path: Path) -> None:
     audit_file = tmp_path / "data" / AUDIT_FILE

@@ -52,6 +52,7 @@ def _json(capsys: pytest.CaptureFixture[str], args: list[str]) -> dict[str, Any]
     return report
 
 
+@pytest.mark.slow
 def test_accuracy_bench_reports_the_papers_figures(calibrated_rooms: Any,
                                                    capsys: pytest.CaptureFixture[str]) -> None:
     _, caldir = calibrated_rooms("default")
@@ -85,6 +86,7 @@ def test_accuracy_bench_refuses_an_unknown_phantom(capsys: pytest.CaptureFixture
     assert "teapot" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_speed_bench_times_the_pipeline(calibrated_rooms: Any,
                                         capsys: pytest.CaptureFixture[str]) -> None:
     _, caldir = calibrated_rooms("default")
@@ -237,6 +239,7 @@ def _check_pose_report(report: dict[str, Any]) -> None:
     assert "- confident wrong poses (off by > 0.2 mm" in section
 
 
+@pytest.mark.slow
 def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
                                       capsys: pytest.CaptureFixture[str]) -> None:
     """Patient eyes with the radius fitted (figures not checked: two poses say nothing of
@@ -475,6 +478,7 @@ def test_pose_bench_refuses_eyes_it_cannot_draw(capsys: pytest.CaptureFixture[st
         pose_bench.run(load_room(None), eyes="painted")
 
 
+@pytest.mark.slow
 def test_tracking_bench_measures_live_tracking(calibrated_rooms: Any,
                                               capsys: pytest.CaptureFixture[str]) -> None:
     """A short run through a daemon on loopback, its room rendered ahead (the figures are the
@@ -560,6 +564,7 @@ def test_the_tracking_bench_takes_the_sharp_or_a_patients_eye(
     assert "invalid choice: 'painted'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_replay_bench_counts_every_frame_it_hands_the_tracking_worker(
         calibrated_rooms: Any) -> None:
     """Two seconds replayed: every frame is processed or dropped (counted), every processed

@@ -25,6 +25,7 @@ def calibrated(request: pytest.FixtureRequest, calibrated_rooms) -> tuple[Path, 
     return result
 
 
+@pytest.mark.slow
 def test_models_fit_the_whole_range(calibrated: tuple[Path, Path]) -> None:
     _, caldir = calibrated
     document = load_calibration(caldir)
@@ -42,6 +43,7 @@ def test_models_fit_the_whole_range(calibrated: tuple[Path, Path]) -> None:
     assert len(document["inputs"]["phase_to_height"]) == 2
 
 
+@pytest.mark.slow
 def test_a_mislabelled_plane_is_named(calibrated: tuple[Path, Path], tmp_path: Path) -> None:
     calset, caldir = calibrated
     bad = tmp_path / "plate"

@@ -19,6 +19,8 @@ from eyeserver.hardware.sim.scenes import SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession, calibration_poses
 from eyeserver.io import read_rig
 
+pytestmark = pytest.mark.slow  # every test here takes over a second
+
 ROOT = Path(__file__).resolve().parents[1]
 ROOMS = {"default": None, "wide": ROOT / "examples" / "rooms" / "wide.toml"}
 

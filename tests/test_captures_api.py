@@ -92,6 +92,7 @@ def _stored_files(directory: Path) -> dict[str, bytes]:
 # --- the bundle as a zip, single images -----------------------------------------------------
 
 
+@pytest.mark.slow
 def test_the_bundle_zip_holds_the_bundle_byte_for_byte(client: Client, service: Service,
                                                        tmp_path: Path) -> None:
     capture_id = _capture(client)["id"]
@@ -116,6 +117,7 @@ def test_the_bundle_zip_holds_the_bundle_byte_for_byte(client: Client, service: 
     assert len(unpacked.frames) == 2 and unpacked.kind == "measurement"
 
 
+@pytest.mark.slow
 def test_the_bundle_zip_leaves_out_the_cloud_and_its_summary(
         client: Client, reconstructed: dict[str, Any]) -> None:
     capture_id = reconstructed["id"]
@@ -246,6 +248,7 @@ def test_the_summary_is_kept_and_read_back(client: Client, service: Service,
     assert on_disk["points"] == summary["points"]
 
 
+@pytest.mark.slow
 def test_options_are_used_and_recorded(client: Client, service: Service,
                                        reconstructed: dict[str, Any], tmp_path: Path) -> None:
     capture_id, full = reconstructed["id"], reconstructed["summary"]

@@ -182,6 +182,7 @@ def left_eye(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return bundle
 
 
+@pytest.mark.slow
 def test_a_held_globe_radius_reaches_the_fit_of_a_rendered_eye(
         calibrated_rooms: Callable[[str], tuple[Path, Path]], left_eye: Path,
         capsys: pytest.CaptureFixture[str]) -> None:

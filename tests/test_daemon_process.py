@@ -9,11 +9,14 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import pytest
 
 from eyeserver.bench.daemon import DaemonProcess, zip_directory
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.scoring import score_cloud
 from eyeserver.io import read_bundle, read_ply
+
+pytestmark = pytest.mark.slow  # every test here takes over a second
 
 API = "/api/v1"
 

@@ -284,6 +284,7 @@ def test_hello_describes_the_daemon_then_a_capture_streams_in_order(
     assert all(TIME.match(e["time"]) for e in events)
 
 
+@pytest.mark.slow
 def test_a_device_fault_and_its_recovery_are_streamed(base_url: str, service: Service) -> None:
     camera = service.rig.camera("S3")
     assert isinstance(camera, SimCamera)
@@ -344,6 +345,7 @@ def test_a_missing_or_wrong_token_closes_the_socket_with_1008(
                                         "Bearer)")
 
 
+@pytest.mark.slow
 def test_a_client_that_never_reads_delays_no_one_and_loses_its_oldest_events(
     base_url: str, service: Service
 ) -> None:

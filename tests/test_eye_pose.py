@@ -96,6 +96,7 @@ def test_no_eye_is_a_pose_error() -> None:
         fit_eye(SimpleNamespace(points=np.zeros((5, 3)), quality=None), EyeModel.population())
 
 
+@pytest.mark.slow
 def test_pose_command_prints_json(calibrated_rooms, tmp_path: Path,  # type: ignore[no-untyped-def]
                                   capsys: pytest.CaptureFixture[str]) -> None:
     _, caldir = calibrated_rooms("default")
@@ -111,6 +112,7 @@ def test_pose_command_prints_json(calibrated_rooms, tmp_path: Path,  # type: ign
     assert math.degrees(math.acos(min(1.0, float(np.dot(pose["gaze"], truth["gaze"]))))) < 0.5
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", [20, 29])
 def test_a_held_radius_finds_the_eye_at_rest_in_one_unit(calibrated_rooms,  # type: ignore[no-untyped-def]
                                                          seed: int) -> None:
@@ -128,6 +130,7 @@ def test_a_held_radius_finds_the_eye_at_rest_in_one_unit(calibrated_rooms,  # ty
     assert np.linalg.norm(np.subtract(pose.centre_mm, truth["centre_mm"])) < 0.2
 
 
+@pytest.mark.slow
 def test_pose_command_on_flat_plate_fails_clearly(calibrated_rooms, tmp_path: Path,  # type: ignore[no-untyped-def]
                                                   capsys: pytest.CaptureFixture[str]) -> None:
     _, caldir = calibrated_rooms("default")

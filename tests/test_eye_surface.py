@@ -23,6 +23,8 @@ from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.io import PointCloud
 from eyeserver.service.reconstruction import reconstruct_bundle
 
+pytestmark = pytest.mark.slow  # every test here takes over a second
+
 EYES = {
     "rest": SceneSpec(kind="eye"),
     "gaze": SceneSpec(kind="eye", eye=EyeSpec(gaze_deg=(10.0, 5.0))),

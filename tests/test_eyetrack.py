@@ -151,6 +151,7 @@ def simulated_eye(calibrated_rooms: Any) -> tuple[dict[str, Any], dict[str, Any]
     return calibrated_cameras(document), frames, z_range(document), full_scale
 
 
+@pytest.mark.slow
 def test_a_window_of_the_images_reconstructs_the_same_points(
         simulated_eye: tuple[dict[str, Any], dict[str, Any], tuple[float, float], float],
         ) -> None:

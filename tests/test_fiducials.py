@@ -201,6 +201,7 @@ def scenes(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped
 # --- detection in the simulated room ------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("room", "scene"), CASES, ids=CASE_IDS)
 def test_every_detection_is_a_dot_at_its_true_centre(scenes: Any, room: str,
                                                      scene: str) -> None:
@@ -474,6 +475,7 @@ def test_dark_features_that_are_no_dots_are_not_reported() -> None:
     assert detect_fiducials(_synthetic([]), 22.0).shape == (0, 2)
 
 
+@pytest.mark.slow
 def test_noise_makes_no_dots() -> None:
     # σ = 5 DN on fringes of 10–70 DN (the simulated camera: ≈ 1.3–2 DN): clusters of dark
     # noise pass the closings but not the significance test; the dot still does.

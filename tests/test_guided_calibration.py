@@ -150,6 +150,7 @@ def test_unknown_jobs_answer_404(client: Client) -> None:
     assert client.post(f"{API}/jobs/job-000000000000/cancel").status_code == 404
 
 
+@pytest.mark.slow
 def test_guided_calibration_end_to_end(client: Client, tmp_path: Path) -> None:
     started = time.monotonic()
     # --- stereo ---
@@ -270,6 +271,7 @@ def _ok_bytes(client: Client, path: str) -> bytes:
     return bytes(response.content)
 
 
+@pytest.mark.slow
 def test_a_closed_session_releases_the_daemon_and_a_view_refuses_a_second_origin(
         client: Client) -> None:
     session = _ok(client.post(f"{API}/calibration-sessions", json={"kind": "stereo"}), 201)

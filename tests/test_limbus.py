@@ -53,6 +53,7 @@ def _fit(caldir: Path, bundle: Path) -> EyePose:
     return fit_eye(cloud, EyeModel.population(), limbus_views(caldir, bundle))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("room", ["default", "wide", "horizontal"])
 def test_gaze_and_limbus_from_the_images(calibrated_rooms: Any, room: str, tmp_path: Path
                                          ) -> None:
@@ -83,6 +84,7 @@ INVISIBLE = SceneSpec(kind="eye", position_mm=(1.5, -1.0, -11.0), eye=EyeSpec(
     limbus_width_mm=1.0, iris_albedo=0.4, sclera_albedo=0.4, tear_reflectance=0.02))
 
 
+@pytest.mark.slow
 def test_an_invisible_limbus_gives_no_confident_pose(calibrated_rooms: Any, tmp_path: Path
                                                     ) -> None:
     """A light iris as bright as the sclera in near-infrared behind a soft limbus leaves no
@@ -104,6 +106,7 @@ ELLIPSOIDAL = SceneSpec(kind="eye", position_mm=(1.5, -1.0, -11.0), eye=EyeSpec(
 patient's eye as sharp as the painted one's: clear cornea, iris behind it."""
 
 
+@pytest.mark.slow
 def test_the_physicists_ellipsoid_places_the_globe(calibrated_rooms: Any, tmp_path: Path
                                                   ) -> None:
     """The MRI's ellipsoid places the globe's centre on the limbus at the ellipsoid's own depth
@@ -125,6 +128,7 @@ def test_the_physicists_ellipsoid_places_the_globe(calibrated_rooms: Any, tmp_pa
     assert np.linalg.norm(np.subtract(mean.centre_mm, truth["centre_mm"])) > 0.15
 
 
+@pytest.mark.slow
 def test_an_unknown_ellipsoid_is_refused_against_a_planned_pose(calibrated_rooms: Any,
                                                                 tmp_path: Path) -> None:
     """With population defaults the sphere puts the ellipsoidal globe's centre ≈ 0.9 mm off
@@ -155,6 +159,7 @@ OVAL = SceneSpec(kind="eye", position_mm=(1.5, -1.0, -11.0), eye=EyeSpec(
 above and below) with a 0.2-mm transition, behind a clear, wet cornea."""
 
 
+@pytest.mark.slow
 def test_an_oval_limbus_is_found_with_its_junctions_radius(calibrated_rooms: Any,
                                                            tmp_path: Path) -> None:
     """The one-shot fit finds the visible oval and reports the horizontal half-width (the
@@ -174,6 +179,7 @@ def test_an_oval_limbus_is_found_with_its_junctions_radius(calibrated_rooms: Any
     assert np.linalg.norm(found.centre - truth["limbus_centre_mm"]) < 0.15
 
 
+@pytest.mark.slow
 def test_a_wrong_start_is_recovered(calibrated_rooms: Any, tmp_path: Path) -> None:
     """The cloud fit's gaze can be 25° off: the start search finds the limbus anyway."""
     _, caldir = calibrated_rooms("default")
@@ -189,6 +195,7 @@ def test_a_wrong_start_is_recovered(calibrated_rooms: Any, tmp_path: Path) -> No
     assert np.linalg.norm(limbus.centre - truth["limbus_centre_mm"]) < 0.05
 
 
+@pytest.mark.slow
 def test_the_circle_fit_is_scipys_robust_least_squares(calibrated_rooms: Any, tmp_path: Path
                                                        ) -> None:
     """The hand-written Levenberg–Marquardt fit of the limbus circle (written for speed) finds
@@ -220,6 +227,7 @@ def test_the_circle_fit_is_scipys_robust_least_squares(calibrated_rooms: Any, tm
     assert ours.x[6] == pytest.approx(1.0, abs=0.01)  # this limbus is round
 
 
+@pytest.mark.slow
 def test_following_the_eye_takes_one_round_where_the_last_gaze_still_fits(
         calibrated_rooms: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Live tracking (no search) from the last frame's gaze: the last search round alone finds
@@ -241,6 +249,7 @@ def test_following_the_eye_takes_one_round_where_the_last_gaze_still_fits(
         assert np.linalg.norm(found.centre - truth["limbus_centre_mm"]) < 0.05
 
 
+@pytest.mark.slow
 def test_closed_lids_have_no_limbus(calibrated_rooms: Any, tmp_path: Path) -> None:
     """Lids closed (an opening too small to show the cornea): no limbus is made up."""
     _, caldir = calibrated_rooms("default")
@@ -252,6 +261,7 @@ def test_closed_lids_have_no_limbus(calibrated_rooms: Any, tmp_path: Path) -> No
         find_limbus(views, truth["centre_mm"], truth["gaze"], truth["globe_radius_mm"], 11.7 / 2)
 
 
+@pytest.mark.slow
 def test_two_cameras_are_needed(calibrated_rooms: Any, tmp_path: Path) -> None:
     _, caldir = calibrated_rooms("default")
     truth = _record("default", LOOKING, tmp_path / "eye")
@@ -268,6 +278,7 @@ def _record_one_unit(spec: SceneSpec, out: Path) -> dict[str, Any]:
     return truth
 
 
+@pytest.mark.slow
 def test_one_unit_finds_the_limbus_about_the_cameras_when_the_cloud_gaze_is_far_off(
         calibrated_rooms: Any, tmp_path: Path) -> None:
     # One unit's cloud alone can put the gaze 40° off (measured on a rendered pose of eyeserver
@@ -287,6 +298,7 @@ def test_one_unit_finds_the_limbus_about_the_cameras_when_the_cloud_gaze_is_far_
     assert np.linalg.norm(limbus.centre - truth["limbus_centre_mm"]) < 0.05
 
 
+@pytest.mark.slow
 def test_a_held_radius_places_the_globe_on_a_limbus_seen_with_hardly_any_sclera(
         calibrated_rooms: Any, tmp_path: Path) -> None:
     # Turned away from the one unit that sees it, the eye shows its limbus whole and hardly
@@ -310,6 +322,7 @@ def test_a_held_radius_places_the_globe_on_a_limbus_seen_with_hardly_any_sclera(
     assert pose.sclera_points < 300 and pose.confidence < 0.6
 
 
+@pytest.mark.slow
 def test_one_unit_tries_the_dark_disc_too_when_a_fit_from_the_cloud_looks_good(
         calibrated_rooms: Any, tmp_path: Path) -> None:
     # The fourth pose of `eyeserver bench pose --unit left --held-radius` (its random draws
@@ -420,6 +433,7 @@ def test_the_cornea_shadows_the_sclera_beyond_the_limbus_from_light_past_its_rim
     assert not shadowed(55.0, cornea_mm=radius).any()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("room", ["default", "wide", "horizontal"])
 def test_each_camera_knows_where_its_projector_lights_the_eye_from(
         calibrated_rooms: Any, room: str, tmp_path: Path) -> None:

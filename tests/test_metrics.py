@@ -78,6 +78,7 @@ def test_a_fresh_daemon_lists_every_device_camera_and_queue(client: Client,
     assert samples[("eyeserver_tracking_latency_seconds_count", ())] == 0
 
 
+@pytest.mark.slow
 def test_a_calibration_sessions_frames_are_counted(client: Client, service: Service) -> None:
     service.hold_session("s-metrics")
     try:
@@ -92,6 +93,7 @@ def test_a_calibration_sessions_frames_are_counted(client: Client, service: Serv
         assert samples[("eyeserver_frames_acquired_total", (("camera", camera.id),))] == 2
 
 
+@pytest.mark.slow
 def test_captures_reconstructions_and_faults_are_counted(client: Client,
                                                          service: Service) -> None:
     unit = service.rig.units[0]

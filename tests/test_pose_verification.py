@@ -222,6 +222,7 @@ def test_unknown_patients_and_missing_references_are_404(client: Client, patient
     assert bad.status_code == 422
 
 
+@pytest.mark.slow
 def test_a_pose_at_the_reference_passes_with_its_evidence(
         client: Client, patient: str, fake_fit: FakeFit, calibration_id: str,
         data_dir: Path) -> None:
@@ -258,6 +259,7 @@ def test_a_pose_at_the_reference_passes_with_its_evidence(
     assert client.get(f"{API}/captures/{evidence['capture_id']}").status_code == 200
 
 
+@pytest.mark.slow
 def test_a_1_mm_shift_gaze_shift_or_poor_fit_fails(
         client: Client, patient: str, fake_fit: FakeFit, calibration_id: str) -> None:
     model = client.post(f"{API}/patients/{patient}/eye-models",
@@ -299,6 +301,7 @@ def test_a_failed_fit_is_422_with_its_reason_and_audited(
     assert "P-100" not in (data_dir / "audit.jsonl").read_text()
 
 
+@pytest.mark.slow  # it lists the measurements of the tests above, slow ones among them
 def test_measurements_are_found_by_patient_fraction_and_id(
         client: Client, patient: str, calibration_id: str) -> None:
     listed = client.get(f"{API}/pose/measurements", params={"patient_id": patient},
@@ -472,6 +475,7 @@ def test_sim_eye_on_another_scene_and_on_real_hardware(client: Client,
 # --- end to end through the real fit --------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_end_to_end_a_captured_reference_then_a_1_mm_shift(
         app: FastAPI, client: Client, calibration_id: str) -> None:
     verification = app.state.verification

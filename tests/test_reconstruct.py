@@ -61,6 +61,7 @@ def _measure(calibrated_rooms: Any, room: str, scene: str, tmp_path: Path,
     return score_cloud(truth, read_ply(cloud_path), config)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("room", "scene"), CASES,
                          ids=[f"{c.values[0]}-{c.values[1]}" for c in CASES])
 def test_scene_matches_its_exact_surface(calibrated_rooms: Any, room: str, scene: str,
@@ -73,6 +74,7 @@ def test_scene_matches_its_exact_surface(calibrated_rooms: Any, room: str, scene
         assert coverage["share"] > 0.4, (camera_id, score)
 
 
+@pytest.mark.slow
 def test_extremes_of_the_range_are_as_good_as_the_middle(calibrated_rooms: Any,
                                                           tmp_path: Path) -> None:
     middle = _measure(calibrated_rooms, "default", "plate_0", tmp_path)
@@ -82,6 +84,7 @@ def test_extremes_of_the_range_are_as_good_as_the_middle(calibrated_rooms: Any,
         assert extreme["rmse_mm"] < 0.1, (scene, extreme)
 
 
+@pytest.mark.slow
 def test_two_views_reconstruct_too(calibrated_rooms: Any, tmp_path: Path) -> None:
     score = _measure(calibrated_rooms, "default", "pyramid", tmp_path, cameras="S1,S2")
     assert set(score["coverage"]) == {"S1", "S2"}
@@ -113,6 +116,7 @@ def test_bad_requests_are_explained(calibrated_rooms: Any, tmp_path: Path,
 SPATIAL = {"pyramid": (0.001, 0.05), "eye_phantom_1": (0.012, -0.02)}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene", list(SPATIAL))
 def test_spatial_path_matches_and_covers_more(calibrated_rooms: Any, scene: str,
                                               tmp_path: Path) -> None:
@@ -126,6 +130,7 @@ def test_spatial_path_matches_and_covers_more(calibrated_rooms: Any, scene: str,
         assert coverage["share"] > fast["coverage"][camera_id]["share"] + gain, (fast, robust)
 
 
+@pytest.mark.slow
 def test_one_camera_alone_needs_and_uses_a_depth_prior(calibrated_rooms: Any, tmp_path: Path,
                                                        capsys: pytest.CaptureFixture[str],
                                                        ) -> None:
@@ -146,6 +151,7 @@ def test_one_camera_alone_needs_and_uses_a_depth_prior(calibrated_rooms: Any, tm
     assert wrong["median_mm"] > 3, wrong
 
 
+@pytest.mark.slow
 def test_region_of_interest_and_quality_crop(calibrated_rooms: Any, tmp_path: Path) -> None:
     whole = _measure(calibrated_rooms, "default", "pyramid", tmp_path)
     cropped = _measure(calibrated_rooms, "default", "pyramid", tmp_path,

@@ -39,6 +39,7 @@ def _ids(service: Service) -> set[str]:
     return {r.id for r in service.store.list_captures(limit=1000)[0]}
 
 
+@pytest.mark.slow
 def test_old_measurements_are_deleted_and_audited_as_retention(service: Service,
                                                                tmp_path: Path) -> None:
     old = [service.capture("all").id for _ in range(2)]
@@ -70,6 +71,7 @@ def test_old_measurements_are_deleted_and_audited_as_retention(service: Service,
     assert purge_expired(service, 30, clock=cutoff_clock) == []  # nothing twice
 
 
+@pytest.mark.slow
 def test_a_stored_results_evidence_is_kept(service: Service) -> None:
     evidence, plain = (service.capture("all").id for _ in range(2))
     service.keep_as_evidence(lambda: {evidence: "the evidence of pose measurement pose-1"})
@@ -79,6 +81,7 @@ def test_a_stored_results_evidence_is_kept(service: Service) -> None:
     assert _ids(service) == {evidence}
 
 
+@pytest.mark.slow
 def test_the_periodic_task_applies_the_rule_again_and_again(service: Service) -> None:
     first = service.capture("all").id
     now = [datetime.now(UTC)]

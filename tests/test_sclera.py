@@ -189,6 +189,7 @@ def _reconstructed(turned: tuple[Path, Path]) -> _Turned:
                    offset, on_globe)
 
 
+@pytest.mark.slow
 def test_the_remeasured_sclera_lies_on_the_globe_not_on_the_sphere_it_was_measured_about(
         turned: tuple[Path, Path]) -> None:
     eye = _reconstructed(turned)
@@ -233,6 +234,7 @@ def test_the_remeasure_fills_the_gaps_of_a_patchy_cloud_sclera(turned: tuple[Pat
     assert off_globe(patchy) == pytest.approx(off_globe(whole), abs=0.003)
 
 
+@pytest.mark.slow
 def test_the_limbus_found_again_with_the_fringe_divided_out_is_sharper(
         turned: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch) -> None:
     # The band's fringe-free intensity leaves fringe at the limbus, where the field ends; the
@@ -284,6 +286,7 @@ def test_where_no_limbus_is_found_again_the_first_one_stands(turned: tuple[Path,
     assert sclera.sharpened(dark, limbus, centre, float(truth["globe_radius_mm"])) is limbus
 
 
+@pytest.mark.slow
 def test_a_remeasured_globe_of_no_eyes_size_is_not_trusted(
         calibrated_rooms: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # One unit's sclera with the radius free gave globes of 17.8 and 18.3 mm, 5–7 mm off, with

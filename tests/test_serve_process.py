@@ -14,6 +14,8 @@ from pathlib import Path
 import httpx
 import pytest
 
+pytestmark = pytest.mark.slow  # every test here takes over a second
+
 STARTUP_DEADLINE_S = 30.0
 SHUTDOWN_TIMEOUT_S = 10.0
 

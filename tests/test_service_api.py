@@ -162,6 +162,7 @@ def test_a_busy_daemon_answers_409_naming_its_state(client: Client,
     assert client.get(f"{API}/status").json()["state"] == "idle"
 
 
+@pytest.mark.slow
 def test_a_capture_in_progress_blocks_another(client: Client, service: Service) -> None:
     # A lost transfer makes S1's read wait out its time-out (2 s): the capture stays running.
     # A second capture asked for meanwhile is not refused: it waits its turn on the
@@ -326,6 +327,7 @@ def test_a_failed_device_recovers_in_the_background_with_back_off(
     assert schedule == [1.0, 2.0, 4.0, 8.0, 16.0, 30.0, 30.0, 1.0]
 
 
+@pytest.mark.slow
 def test_a_capture_is_found_again_after_a_restart(tmp_path: Path) -> None:
     settings = test_settings(tmp_path / "data")
     with serving(create_app(settings)) as first:

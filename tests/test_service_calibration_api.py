@@ -73,6 +73,7 @@ def active_id(client: Client, imported_id: str) -> str:
     return imported_id
 
 
+@pytest.mark.slow
 def test_reconstruction_without_an_active_calibration_is_409_with_the_reason(
         client: Client, capture_id: str) -> None:
     assert client.get(f"{API}/status").json()["active_calibration_id"] is None

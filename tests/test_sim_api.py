@@ -183,6 +183,7 @@ def test_an_unplugged_camera_faults_its_unit_until_replugged(client: Client) -> 
     assert all(d["health"] == "ok" for d in after["devices"])
 
 
+@pytest.mark.slow
 def test_an_unplugged_projector_fails_the_capture_and_recovers_on_replug_alone(
         client: Client) -> None:
     # Issue 35: a dark projector used to give 201 "ok" with fringe-less images.

@@ -40,6 +40,7 @@ def _skin_patch(labels: np.ndarray, skin: int, image: np.ndarray) -> tuple[int, 
     return where
 
 
+@pytest.mark.slow
 def test_eye_render_is_four_fringe_images_interleaved(eye_bundle: Path) -> None:
     bundle = read_bundle(eye_bundle)
     assert bundle.kind == "measurement"
@@ -107,6 +108,7 @@ def test_eye_render_carrier_and_contrast_match_the_geometry(eye_bundle: Path) ->
         assert amplitude == pytest.approx(expected, rel=0.15), camera_id
 
 
+@pytest.mark.slow
 def test_calibration_set_layout(tmp_path: Path) -> None:
     out = tmp_path / "calset"
     room = tmp_path / "coarse.toml"  # layout only: coarse pixel integration keeps it quick
@@ -131,6 +133,7 @@ def test_calibration_set_layout(tmp_path: Path) -> None:
     assert {f.z_mm for f in reference.frames} == {10.0}
 
 
+@pytest.mark.slow
 def test_render_refuses_to_overwrite_and_names_bad_options(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "plate"

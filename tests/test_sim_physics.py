@@ -337,6 +337,7 @@ def _marched_shadow(points_local: F64, light_local: F64, step: float = 0.02) -> 
     return shadow
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rotation", [(0.0, 0.0, 90.0), (10.0, -15.0, 60.0)])
 def test_wedge_shadow_falls_where_geometry_says(flood_room: SimRoom,
                                                 rotation: tuple[float, float, float]) -> None:
@@ -665,6 +666,7 @@ def test_the_closing_lids_bound_holds_the_whole_cap_and_no_more(radius: float, h
     assert reach - 0.1 < distance.max() <= reach
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("t_s", [0.0, 0.33, 0.47, 0.52, 0.6, 0.9])
 def test_a_moving_eye_renders_as_the_whole_scene_cast_afresh(room: SimRoom, odd_room: SimRoom,
                                                              t_s: float) -> None:
@@ -681,6 +683,7 @@ def test_a_moving_eye_renders_as_the_whole_scene_cast_afresh(room: SimRoom, odd_
     _renders_as_cast_afresh(spec, t_s, (room, odd_room))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("t_s", [0.33, 0.52, 0.9])
 def test_a_moving_patient_eye_renders_as_the_whole_scene_cast_afresh(room: SimRoom,
                                                                      t_s: float) -> None:
@@ -699,6 +702,7 @@ def test_a_moving_patient_eye_renders_as_the_whole_scene_cast_afresh(room: SimRo
     _renders_as_cast_afresh(SceneSpec(kind="eye", eye=eye), t_s, (room,))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("t_s", [0.47, 0.52])
 @pytest.mark.parametrize("eye", [
     {"aperture_mm": (12.8, 8.0)},  # the lids' outer edge behind the face: the face in front
@@ -727,6 +731,7 @@ def _renders_as_cast_afresh(spec: SceneSpec, t_s: float, rooms: tuple[SimRoom, .
                 assert np.abs(whole.fringe[pid]).max() > 1.0  # the fringes are there
 
 
+@pytest.mark.slow
 def test_preparing_a_camera_casts_a_moving_eyes_static_part_before_its_first_frame() -> None:
     # The first render of a moving scene casts its static part whole (≈ 1 s a camera); a
     # stream's cameras are prepared before the stream so that its first frames come on time.
@@ -749,6 +754,7 @@ def test_preparing_a_camera_casts_a_moving_eyes_static_part_before_its_first_fra
                                   .fringe["P1"])
 
 
+@pytest.mark.slow
 def test_a_blink_renders_with_the_static_part_prepared_for_the_open_eye() -> None:
     # The lids stay in the static part with the opening wide; only the part that closes over
     # the opening moves. A blink's frames need no static part of their own (cast whole at the
@@ -869,6 +875,7 @@ def test_frames_rendered_ahead_are_what_the_room_renders_at_their_time() -> None
         assert not sim.restart_scene(spec.model_copy(), epoch_ns)
 
 
+@pytest.mark.slow
 def test_a_wet_patient_eye_mirrors_each_projector_as_a_saturated_glint(room: SimRoom) -> None:
     # The tear film mirrors the projector's pupil (R·(d₀/r)² ≈ 32 times the white plate's light
     # for R = 0.02 and a 10-mm pupil at 200 mm): a few pixels far beyond the 8-bit range, where

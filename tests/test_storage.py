@@ -358,6 +358,7 @@ _WRITER = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_acknowledged_captures_survive_sigkill(tmp_path: Path) -> None:
     big = dict(RIG_DOCUMENT)
     big["cameras"] = [{"id": cam, "width": 640, "height": 480} for cam in ("S1", "S2")]

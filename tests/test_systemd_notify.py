@@ -110,6 +110,7 @@ def test_heartbeat_stops_while_a_job_holds_the_worker() -> None:
         worker.stop()
 
 
+@pytest.mark.slow
 def test_a_real_daemon_notifies_ready_watchdog_and_stopping(
         listener: tuple[str, Listener], tmp_path: Path) -> None:
     path, receiver = listener

@@ -160,6 +160,7 @@ def https_daemon(pki: Pki, tmp_path: Path) -> Iterator[DaemonProcess]:
         yield daemon
 
 
+@pytest.mark.slow
 def test_https_with_the_room_ca_works_and_plain_http_does_not(https_daemon: DaemonProcess,
                                                               pki: Pki) -> None:
     assert https_daemon.url.startswith("https://127.0.0.1:")
@@ -174,6 +175,7 @@ def test_https_with_the_room_ca_works_and_plain_http_does_not(https_daemon: Daem
         httpx.get(f"{https_daemon.url}/api/v1/health", timeout=5.0)
 
 
+@pytest.mark.slow
 def test_required_client_certificates_refuse_clients_without_one(pki: Pki,
                                                                  tmp_path: Path) -> None:
     console = (pki.client_cert, pki.client_key)

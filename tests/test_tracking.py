@@ -757,6 +757,7 @@ def _wait_state(base_url: str, state: str) -> None:
         time.sleep(0.01)
 
 
+@pytest.mark.slow
 def test_tracking_starts_streams_and_stops_through_the_api(
     base_url: str, tracking: TrackingControl, app: FastAPI
 ) -> None:
@@ -808,6 +809,7 @@ def test_tracking_starts_streams_and_stops_through_the_api(
     assert samples[("eyeserver_tracking_running", ())] == 0
 
 
+@pytest.mark.slow
 def test_the_pose_stream_beats_when_there_is_nothing_to_send_and_status_shows_the_hold(
     base_url: str, tracking: TrackingControl
 ) -> None:
@@ -878,6 +880,7 @@ def test_the_pose_stream_closes_with_1008_without_a_valid_token(
     assert closed.value.rcvd is not None and closed.value.rcvd.code == 1008
 
 
+@pytest.mark.slow
 def test_twenty_clients_one_never_reading_all_others_get_every_message(
     base_url: str, tracking: TrackingControl
 ) -> None:

@@ -95,6 +95,7 @@ def worker(calibrated_rooms: Any, frames: tuple[RigSpec, list[FrameSet]]
     started.close()
 
 
+@pytest.mark.slow
 def test_the_worker_finds_the_poses_this_process_finds(
         calibrated_rooms: Any, frames: tuple[RigSpec, list[FrameSet]],
         worker: PoseWorker) -> None:
@@ -113,6 +114,7 @@ def test_the_worker_finds_the_poses_this_process_finds(
     assert 3.0 < np.degrees(np.arccos(np.dot(first.gaze, followed.gaze))) < 5.0
 
 
+@pytest.mark.slow
 def test_a_warmed_finder_keeps_the_expected_eyes_window_and_finds_the_same_pose(
         calibrated_rooms: Any, frames: tuple[RigSpec, list[FrameSet]],
         worker: PoseWorker) -> None:
@@ -192,6 +194,7 @@ def test_a_frame_without_an_eye_is_a_pose_error_and_the_worker_goes_on(
     assert worker(rest, None).gaze_source == "limbus (images)"
 
 
+@pytest.mark.slow
 def test_a_frame_set_with_a_dark_unit_is_lost_with_the_reason(calibrated_rooms: Any) -> None:
     # Issue 35: one unit's projector dark, the pose came from the other unit alone.
     _, caldir = calibrated_rooms("default")
@@ -257,6 +260,7 @@ def test_a_worker_that_died_is_reported_and_closing_stays_safe(
     assert not process.is_alive()
 
 
+@pytest.mark.slow
 def test_a_frame_that_takes_too_long_stops_the_worker(
         calibrated_rooms: Any, frames: tuple[RigSpec, list[FrameSet]]) -> None:
     rig, (rest, _, _) = frames
@@ -298,6 +302,7 @@ def test_windows_take_the_whole_images_fringe_strength_measured_once_per_camera(
     assert len(measured) == 2
 
 
+@pytest.mark.slow
 def test_an_eye_away_from_the_reference_is_found_where_it_is(calibrated_rooms: Any) -> None:
     """The first frame is followed from the reference's pose; an eye 4 mm away is not locked on
     to near the reference by the cloud-only warm fit, it gets the global fit."""
@@ -400,6 +405,7 @@ print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
 """
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="Linux's page-fault counts")
 def test_a_worker_keeps_its_memory_so_new_windows_cost_no_page_faults() -> None:
     """The arrays of a window the worker has not seen yet come from memory it already holds
