@@ -4,7 +4,9 @@
 # 600 patient eyes with the radius fitted, each captured again moved (--displacement: what a
 # check against a reference captured at set-up sees), ≈ 2 hours (a patient eye takes two to
 # three times the sharp eye's time to render), 200 with their biometry given, ≈ 20 minutes, and the
-# old sharp-limbus eye on 600, ≈ 25 minutes) and render their JSON.
+# old sharp-limbus eye on 600, ≈ 25 minutes), the reliability bench (kill -9, unplugged devices,
+# a full disk, load and fuzz through daemons on loopback, a few minutes; its full-disk part needs
+# root for its tmpfs and says skipped otherwise) and render their JSON.
 # Figures and PNGs are kept in build/benchmarks/.
 # Usage: bash scripts/benchmarks.sh [--quick]
 set -euo pipefail
@@ -22,6 +24,13 @@ if [[ "${1:-}" == "--quick" ]]; then quick=(--quick); fi
     --calibration "$out/accuracy/calibration" > "$out/pose_biometry.json"
 .venv/bin/eyeserver bench pose --json --eyes sharp --poses 600 \
     --calibration "$out/accuracy/calibration" > "$out/pose_sharp.json"
+# The load's status readers are wrk (a client in C) when it is installed: a Python client on the
+# same two cores measures mostly its own saturation.
+if ! command -v wrk > /dev/null && [[ $(id -u) == 0 ]] && command -v apt-get > /dev/null; then
+    apt-get install -y -q wrk > /dev/null || echo "wrk not installed: Python status readers" >&2
+fi
+.venv/bin/eyeserver bench reliability --json > "$out/reliability.json"
 .venv/bin/python -m eyeserver.bench.report "$out/accuracy.json" "$out/speed.json" \
-    "$out/pose.json" "$out/pose_biometry.json" "$out/pose_sharp.json" > docs/benchmarks.md
+    "$out/pose.json" "$out/pose_biometry.json" "$out/pose_sharp.json" \
+    --reliability "$out/reliability.json" > docs/benchmarks.md
 echo "docs/benchmarks.md regenerated (figures in $out/accuracy/)"

@@ -1,8 +1,8 @@
 """``docs/benchmarks.md`` from the benches' JSON documents (``scripts/benchmarks.sh`` runs both
 benches and this module; the page is never edited by hand).
 
-Usage: ``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json] >
-docs/benchmarks.md``
+Usage: ``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...]
+[--reliability RELIABILITY.json] > docs/benchmarks.md``
 """
 
 from __future__ import annotations
@@ -23,10 +23,12 @@ def _value(value: Any, digits: int = 3) -> str:
     return str(value)
 
 
-def render(accuracy: dict[str, Any], speed: dict[str, Any], *poses: dict[str, Any]) -> str:
+def render(accuracy: dict[str, Any], speed: dict[str, Any], *poses: dict[str, Any],
+           reliability: dict[str, Any] | None = None) -> str:
     """The Markdown page, with the eye pose runs side by side and a section for each of
     ``poses`` (runs of ``eyeserver bench pose``: patient eyes with the radius fitted and with
-    their biometry, the old sharp eye)."""
+    their biometry, the old sharp eye), then ``reliability`` (``eyeserver bench reliability``)
+    when given."""
     machine = accuracy["machine"]
     noise = accuracy["noise_model"]
     lines = [
@@ -96,7 +98,10 @@ def render(accuracy: dict[str, Any], speed: dict[str, Any], *poses: dict[str, An
     page = "\n".join(lines) + "\n" + render_speed(speed)
     if poses:
         page += "\n".join(render_pose_overview(poses)) + "\n"
-    return page + "\n".join("\n".join(render_pose(pose)) for pose in poses)
+    page += "\n".join("\n".join(render_pose(pose)) for pose in poses)
+    if reliability is not None:
+        page += ("\n" if poses else "") + render_reliability(reliability)
+    return page
 
 
 def render_speed(speed: dict[str, Any]) -> str:
@@ -106,7 +111,7 @@ def render_speed(speed: dict[str, Any]) -> str:
                 "frameset_4cam_ms", "frameset_4cam_2threads_ms"):
         if key in speed:
             lines.append(f"| `{key}` | {_value(speed[key], 1)} |")
-    lines += ["", "Goals (DESIGN §6): a 2-camera frame-set in ≤ 10 ms, a 4-camera one in "
+    lines += ["", "Goals (docs/design.md §6): a 2-camera frame-set in ≤ 10 ms, a 4-camera one in "
               "≤ 20 ms, on 2 cores.", ""]
     for name, value in speed.get("reconstruction", {}).items():
         lines.append(f"- reconstruction {name.replace('_', ' ')}: median "
@@ -425,22 +430,160 @@ def render_pose(pose: dict[str, Any]) -> list[str]:
     return [*lines, ""]
 
 
+def _counts_text(counts: dict[str, int]) -> str:
+    """Answers by status, ``201 × 48, no answer × 1`` (``none`` when empty)."""
+    return ", ".join(f"{status} × {n}" for status, n in counts.items()) or "none"
+
+
+def _seconds_text(value: float | None, seen: bool) -> str:
+    return "NO" if not seen else "–" if value is None else f"{value:.2f}"
+
+
+def _store_line(store: dict[str, Any]) -> str:
+    return (f"{store['acknowledged']} acknowledged, {store['lost']} lost, "
+            f"{store['corrupted']} corrupted")
+
+
+def render_reliability(report: dict[str, Any]) -> str:
+    """The reliability section of the page (a report of ``eyeserver bench reliability``)."""
+    options, machine = report["options"], report["machine"]
+    lines = ["## Reliability", "",
+             f"`eyeserver bench reliability` (seed {report['seed']}; {machine['platform']}, "
+             f"{machine['cpu_count']} CPUs): what a client sees when the daemon is killed, a "
+             "device is unplugged, the disk fills up, many clients call at once, and requests "
+             "are fuzzed; every part through a real daemon on loopback (issue 35). The run "
+             f"took {report.get('duration_s')} s.", ""]
+    kill = report["kill"]
+    lines += ["### kill -9 during captures", ""]
+    if "skipped" in kill:
+        lines += [f"Skipped ({kill['skipped']}).", ""]
+    else:
+        lines += [f"{kill['cycles']} cycles: a client posts captures back to back and the "
+                  f"daemon is SIGKILLed at a random delay of up to {kill['max_delay_s']:g} s "
+                  "after the cycle's first acknowledged capture, then restarted on the same "
+                  "data directory; afterwards every listed capture's bundle is fetched and "
+                  "read back.", "",
+                  "| acknowledged (201) | lost | corrupted | in flight, no answer | of them "
+                  "stored | interrupted writes quarantined | state after restart |",
+                  "|---|---|---|---|---|---|---|",
+                  f"| {kill['acknowledged']} | {kill['lost']} | {kill['corrupted']} | "
+                  f"{kill['no_answer']} | {kill['stored_without_answer']} | "
+                  f"{kill['quarantined']} | {kill['state_after_restart']} |", ""]
+    unplug = report["unplug"]
+    lines += ["### Devices unplugged and replugged during captures", ""]
+    if "skipped" in unplug:
+        lines += [f"Skipped ({unplug['skipped']}).", ""]
+    else:
+        lines += [f"Each device unplugged (`PUT /api/v1/sim/devices/{{id}}`) while its unit's "
+                  f"captures are posted, left unplugged {_value(options['unplugged_s'], 1)} s "
+                  "after its fault was seen, then plugged back with the captures stopped: the "
+                  "daemon must recover by itself. Seconds from the unplug (fault) and from the "
+                  "replug (recovery), as `/api/v1/status` and `/api/v1/ws/events` showed them; "
+                  "NO where it never did.", "",
+                  "| device | kind | fault in /status (s) | `device.fault` (s) | recovered in "
+                  "/status (s) | `device.recovered` (s) | captures while unplugged | capture "
+                  "after recovery |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for d in unplug["devices"]:
+            lines.append(f"| {d['device']} | {d['kind']} | "
+                         f"{_seconds_text(d['detect_s'], d['detected'])} | "
+                         f"{_seconds_text(d['fault_event_s'], d['fault_event'])} | "
+                         f"{_seconds_text(d['recover_s'], d['recovered'])} | "
+                         f"{_seconds_text(d['recovered_event_s'], d['recovered_event'])} | "
+                         f"{_counts_text(d['captures_while_unplugged'])} | "
+                         f"{d['capture_after_recovery']} |")
+        lines.append("")
+    disk = report["disk_full"]
+    lines += ["### Disk full and freed", ""]
+    if "skipped" in disk:
+        lines += [f"Skipped ({disk['skipped']}).", ""]
+    else:
+        full, freed = disk["while_full"], disk["after_freeing"]
+        verdict = ("every failure 507 with a JSON reason" if full["all_failures_507_with_reason"]
+                   else "NOT every failure 507 with a JSON reason")
+        lines += [f"The data directory on a {disk['tmpfs_mib']} MiB tmpfs, filled with a "
+                  f"ballast file: {full['captures']} captures answered "
+                  f"{_counts_text(full['statuses'])} ({verdict}, e.g. “{full['reason']}”); "
+                  "stored meanwhile: "
+                  f"{_store_line(disk['store_while_full'])}. Ballast deleted: captures "
+                  f"answered {_counts_text(freed['statuses'])}; after a restart "
+                  f"{_store_line(disk['store_after_restart'])}.", ""]
+    load = report["load"]
+    lines += ["### Load", ""]
+    if "skipped" in load:
+        lines += [f"Skipped ({load['skipped']}).", ""]
+    else:
+        idle, busy = load["status_idle"], load["status_under_load"]
+        captures, events, cpu = load["captures"], load["events"], load["cpu_s"]
+        lines += [f"{load['status_clients']} connections reading `GET /api/v1/status` "
+                  f"({load.get('status_client', 'python threads')}) and "
+                  f"{load['capture_clients']} threads posting captures, back to back for "
+                  f"{load['seconds']} s, with one `/api/v1/ws/events` client; idle: "
+                  f"{idle['requests']} requests one after the other before. The clients run on "
+                  "the daemon's cores and their time is in the figures.", "",
+                  "| `GET /api/v1/status` | idle | under load | goal |", "|---|---|---|---|",
+                  f"| p50 (ms) | {_value(idle['p50_ms'], 1)} | {_value(busy['p50_ms'], 1)} | |",
+                  f"| p99 (ms) | {_value(idle['p99_ms'], 1)} | {_value(busy['p99_ms'], 1)} | "
+                  f"≤ {load['status_p99_goal_ms']:g} |",
+                  f"| max (ms) | {_value(idle['max_ms'], 1)} | {_value(busy['max_ms'], 1)} | |",
+                  "",
+                  f"Captures under load: {_value(captures['per_s'], 1)}/s over the "
+                  f"{load['elapsed_s']} s until the last answer ({captures['acknowledged']} "
+                  f"acknowledged of {captures['posted']} posted; "
+                  f"{_counts_text(captures['statuses'])}). Event stream: "
+                  f"{events['messages']} messages, {events['lost']} lost, "
+                  f"{events['capture_stored_missing']} acknowledged captures without their "
+                  f"`capture.stored`. CPU time meanwhile: the daemon {_value(cpu['daemon'], 1)} "
+                  f"s, the bench's clients {_value(cpu['client'], 1)} s, other processes "
+                  f"{_value(cpu['other'], 1)} s, of {cpu['cores']} cores × "
+                  f"{load['elapsed_s']} s.", ""]
+    fuzz = report["fuzz"]
+    lines += ["### Fuzz", ""]
+    if "skipped" in fuzz:
+        lines += [f"Skipped ({fuzz['skipped']}).", ""]
+    else:
+        lines += [f"schemathesis over {fuzz['operations']} operations of the daemon's OpenAPI "
+                  f"document (all but {', '.join(f'`{p}`' for p in fuzz['left_out'])}) with "
+                  f"both roles' tokens, at most {fuzz['examples_per_operation']} cases each, "
+                  f"seed {fuzz['seed']}: {fuzz['requests']} requests, "
+                  f"{fuzz['server_errors']} 5xx answers other than 503, 504 and 507, "
+                  f"{fuzz['undocumented_status']} undocumented status codes, "
+                  f"{fuzz['schema_mismatches']} answers that break their schema"
+                  + (f", other failed checks: {_counts_text(fuzz['other_failures'])}"
+                     if fuzz["other_failures"] else "")
+                  + (f"; {len(fuzz['errors'])} runs broke off" if fuzz["errors"] else "")
+                  + ".", ""]
+    found = report["findings"]
+    lines += ["Findings: none.", ""] if not found else \
+        ["Findings (to fix in the daemon):", "", *(f"- {f}" for f in found), ""]
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...]``: the page
-    on stdout."""
-    args = sys.argv[1:] if argv is None else argv
+    """``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...]
+    [--reliability RELIABILITY.json]``: the page on stdout."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    reliability_path = None
+    if "--reliability" in args:
+        at = args.index("--reliability")
+        if at + 1 >= len(args):
+            args = []  # the usage below
+        else:
+            reliability_path = args[at + 1]
+            del args[at:at + 2]
     if len(args) < 2:
         print("usage: python -m eyeserver.bench.report ACCURACY.json SPEED.json "
-              "[POSE.json ...]", file=sys.stderr)
+              "[POSE.json ...] [--reliability RELIABILITY.json]", file=sys.stderr)
         return 2
     documents = []
-    for path in args:
+    for path in [*args, *([reliability_path] if reliability_path else [])]:
         try:
             documents.append(json.loads(Path(path).read_text()))
         except (OSError, ValueError) as exc:
             print(f"eyeserver.bench.report: error: {path}: {exc}", file=sys.stderr)
             return 2
-    print(render(*documents))
+    reliability = documents.pop() if reliability_path else None
+    print(render(*documents, reliability=reliability))
     return 0
 
 

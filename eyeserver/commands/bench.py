@@ -29,8 +29,19 @@ def _non_negative_int(text: str) -> int:
     return _whole_number(text, 0)
 
 
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number ≥ 0, not {text}")
+    return value
+
+
 def add_parser(subparsers: Subparsers) -> None:
-    """Register ``eyeserver bench speed``, ``accuracy``, ``pose`` and ``tracking``."""
+    """Register ``eyeserver bench speed``, ``accuracy``, ``pose``, ``tracking`` and
+    ``reliability``."""
     bench = subparsers.add_parser("bench", help="benchmarks (speed, accuracy)",
                                   description="Measure speed and accuracy on the simulated room.")
     commands = bench.add_subparsers(title="benchmarks", dest="bench_command", metavar="COMMAND")
@@ -140,6 +151,48 @@ def add_parser(subparsers: Subparsers) -> None:
                           help="the patient's unit: left (default), right, or all (both units "
                           "interleaved; with the room rendering live)")
     tracking.set_defaults(handler=_tracking)
+    reliability = commands.add_parser(
+        "reliability", help="crashes, unplugged devices, a full disk, load and fuzz",
+        description="Through daemons on loopback: kill -9 during captures (acknowledged, lost, "
+        "corrupted), each device kind unplugged and replugged during captures (detected, "
+        "recovered, how fast), the data directory's disk full and freed (a tmpfs; root only), "
+        "status latency, capture throughput and event stream under load, and a schemathesis "
+        "fuzz of every operation; what went wrong listed at the end (progress on stderr). "
+        "Each part is skipped with 0.")
+    reliability.add_argument("--json", action="store_true", help="one JSON document on stdout")
+    reliability.add_argument("--kill-cycles", type=_non_negative_int, default=12, metavar="N",
+                             help="SIGKILLs of the daemon while captures are posted, each "
+                             "restarted on the same data directory (default 12)")
+    reliability.add_argument("--unplug-rounds", type=_non_negative_int, default=1, metavar="N",
+                             help="times each device is unplugged and replugged (default 1)")
+    reliability.add_argument("--devices", metavar="IDS",
+                             help="comma-separated device ids to unplug (default: the first "
+                             "camera, projector and trigger of /api/v1/devices)")
+    reliability.add_argument("--unplugged-seconds", type=_non_negative_float, default=2.0,
+                             metavar="S", help="how long a device stays unplugged after its "
+                             "fault was seen, captures posted meanwhile (default 2)")
+    reliability.add_argument("--disk-mib", type=_non_negative_int, default=128, metavar="MIB",
+                             help="size of the tmpfs the full-disk daemon stores on "
+                             "(default 128)")
+    reliability.add_argument("--load-seconds", type=_non_negative_int, default=30, metavar="S",
+                             help="how long the load lasts (default 30)")
+    reliability.add_argument("--status-clients", type=_positive_int, default=100, metavar="N",
+                             help="connections reading GET /api/v1/status under load: wrk's "
+                             "when installed, else threads (default 100)")
+    reliability.add_argument("--capture-clients", type=_positive_int, default=20, metavar="N",
+                             help="threads posting captures under load (default 20)")
+    reliability.add_argument("--fuzz-examples", type=_non_negative_int, default=3, metavar="N",
+                             help="fuzz cases per operation and role at most (default 3)")
+    reliability.add_argument("--fuzz-operations", metavar="REGEX",
+                             help="fuzz only the operations whose path matches (default all "
+                             "but rendering ahead and tracking's start)")
+    reliability.add_argument("--seed", type=int, default=0,
+                             help="seed of the kill delays and the fuzz (default 0)")
+    reliability.add_argument("--room", type=Path, metavar="FILE", help="room file (default room)")
+    reliability.add_argument("--out", type=Path, metavar="DIR",
+                             help="keep the daemons' data directories and logs here (a fresh "
+                             "directory)")
+    reliability.set_defaults(handler=_reliability)
 
 
 def _speed(args: argparse.Namespace) -> int:
@@ -196,4 +249,29 @@ def _tracking(args: argparse.Namespace) -> int:
                           eyes=args.eyes, seed=args.seed, unit=args.unit,
                           progress=_progress)
     print(json.dumps(report, indent=1) if args.json else tracking.format_text(report))
+    return 0
+
+
+def _reliability(args: argparse.Namespace) -> int:
+    import re
+
+    from eyeserver.bench import reliability
+    from eyeserver.hardware.sim.config import load_room
+
+    if args.room is not None:
+        load_room(args.room)  # a bad room file said in one line, before any daemon starts
+    if args.fuzz_operations:
+        try:
+            re.compile(args.fuzz_operations)
+        except re.error as exc:
+            raise EyeserverError(f"--fuzz-operations: not a regular expression: {exc}") from None
+    devices = [d for d in args.devices.split(",") if d] if args.devices else None
+    report = reliability.run(
+        kill_cycles=args.kill_cycles, unplug_rounds=args.unplug_rounds, devices=devices,
+        unplugged_s=args.unplugged_seconds, disk_mib=args.disk_mib,
+        load_seconds=args.load_seconds, status_clients=args.status_clients,
+        capture_clients=args.capture_clients, fuzz_examples=args.fuzz_examples,
+        fuzz_operations=args.fuzz_operations, seed=args.seed, room_file=args.room,
+        work=args.out, progress=_progress)
+    print(json.dumps(report, indent=1) if args.json else reliability.format_text(report))
     return 0

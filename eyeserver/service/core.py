@@ -396,15 +396,21 @@ class Service:
             yield
 
     def _mark_fault(self, error: DeviceError) -> None:
+        """Put a device in fault. The log line and the ``device.fault`` event come once per
+        fault (and again when its reason changes), not on every refused capture or failed
+        retry while it lasts: a client counting events counts faults."""
+        reason = str(error.reason)
         with self._lock:
-            self._faults[error.device_id] = str(error.reason)
+            new = self._faults.get(error.device_id) != reason
+            self._faults[error.device_id] = reason
             if self._state == "idle":  # outside an operation (a device setting failed)
                 self._state = "fault"
                 self.events.publish("state", state="fault", previous="idle")
-        _log.error("device fault", extra={"device_id": error.device_id, "reason": error.reason})
         self._recovery.poke()  # after releasing the lock: the retry loop takes it
-        self.events.publish("device.fault", device_id=error.device_id,
-                            unit=self._unit_id(error.device_id), reason=str(error.reason))
+        if new:
+            _log.error("device fault", extra={"device_id": error.device_id, "reason": reason})
+            self.events.publish("device.fault", device_id=error.device_id,
+                                unit=self._unit_id(error.device_id), reason=reason)
 
     def _unit_id(self, device_id: str) -> str | None:
         """The unit owning a device; None for the trigger (it serves every unit)."""
