@@ -8,12 +8,26 @@
 # a full disk, load and fuzz through daemons on loopback, a few minutes; its full-disk part needs
 # root for its tmpfs and says skipped otherwise) and render their JSON.
 # Figures and PNGs are kept in build/benchmarks/.
-# Usage: bash scripts/benchmarks.sh [--quick]
+# Usage: bash scripts/benchmarks.sh [--quick | --reliability]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 out=build/benchmarks
 mkdir -p "$out"
+# The load's status readers are wrk (a client in C) when it is installed: a Python client on the
+# same two cores measures mostly its own saturation.
+if ! command -v wrk > /dev/null && [[ $(id -u) == 0 ]] && command -v apt-get > /dev/null; then
+    apt-get install -y -q wrk > /dev/null || echo "wrk not installed: Python status readers" >&2
+fi
+if [[ "${1:-}" == "--reliability" ]]; then
+    # Only the reliability bench (a few minutes): its section of the page made anew.
+    .venv/bin/eyeserver bench reliability --json > "$out/reliability.json"
+    .venv/bin/python -m eyeserver.bench.report --splice docs/benchmarks.md \
+        --reliability "$out/reliability.json" > "$out/benchmarks.md"
+    mv "$out/benchmarks.md" docs/benchmarks.md
+    echo "docs/benchmarks.md: its Reliability section regenerated"
+    exit 0
+fi
 quick=()
 if [[ "${1:-}" == "--quick" ]]; then quick=(--quick); fi
 .venv/bin/eyeserver bench accuracy --json "${quick[@]}" --out "$out/accuracy" > "$out/accuracy.json"
@@ -24,11 +38,6 @@ if [[ "${1:-}" == "--quick" ]]; then quick=(--quick); fi
     --calibration "$out/accuracy/calibration" > "$out/pose_biometry.json"
 .venv/bin/eyeserver bench pose --json --eyes sharp --poses 600 \
     --calibration "$out/accuracy/calibration" > "$out/pose_sharp.json"
-# The load's status readers are wrk (a client in C) when it is installed: a Python client on the
-# same two cores measures mostly its own saturation.
-if ! command -v wrk > /dev/null && [[ $(id -u) == 0 ]] && command -v apt-get > /dev/null; then
-    apt-get install -y -q wrk > /dev/null || echo "wrk not installed: Python status readers" >&2
-fi
 .venv/bin/eyeserver bench reliability --json > "$out/reliability.json"
 .venv/bin/python -m eyeserver.bench.report "$out/accuracy.json" "$out/speed.json" \
     "$out/pose.json" "$out/pose_biometry.json" "$out/pose_sharp.json" \

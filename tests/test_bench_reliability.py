@@ -294,3 +294,26 @@ def test_wrks_report_is_read_with_its_units_and_refusals() -> None:
     assert reliability.parse_wrk(quick)["statuses"] == {"200": 10265}
     with pytest.raises(ValueError, match="no latency distribution"):
         reliability.parse_wrk("unable to connect to 127.0.0.1:1 Connection refused\n")
+
+
+def test_the_reliability_section_is_spliced_into_the_page_alone() -> None:
+    from eyeserver.bench.report import splice_reliability
+
+    page = "# Benchmarks\n\n## Speed\n\nfast\n\n## Reliability\n\nold run\n\n## After\n\nkept\n"
+    assert splice_reliability(page, "## Reliability\n\nnew run\n") == (
+        "# Benchmarks\n\n## Speed\n\nfast\n\n## Reliability\n\nnew run\n\n## After\n\nkept\n")
+    last = "# Benchmarks\n\n## Speed\n\nfast\n\n## Reliability\n\nold run\n"
+    assert splice_reliability(last, "## Reliability\n\nnew\n") == (
+        "# Benchmarks\n\n## Speed\n\nfast\n\n## Reliability\n\nnew\n")
+    assert splice_reliability("# Benchmarks\n\n## Speed\n\nfast\n", "## Reliability\n\nnew\n") \
+        == "# Benchmarks\n\n## Speed\n\nfast\n\n## Reliability\n\nnew\n"
+
+
+def test_splicing_needs_a_page_and_a_reliability_report(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert report_main(["--splice", str(tmp_path / "page.md")]) == 2
+    assert "usage" in capsys.readouterr().err
+    (tmp_path / "r.json").write_text("{}")
+    assert report_main(["--splice", str(tmp_path / "missing.md"), "--reliability",
+                        str(tmp_path / "r.json")]) == 2
+    assert "missing.md" in capsys.readouterr().err

@@ -2,7 +2,9 @@
 benches and this module; the page is never edited by hand).
 
 Usage: ``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...]
-[--reliability RELIABILITY.json] > docs/benchmarks.md``
+[--reliability RELIABILITY.json] > docs/benchmarks.md``, or ``python -m eyeserver.bench.report
+--splice docs/benchmarks.md --reliability RELIABILITY.json``: the page with its reliability
+section (only) made anew from that run, on stdout (``scripts/benchmarks.sh --reliability``).
 """
 
 from __future__ import annotations
@@ -559,21 +561,45 @@ def render_reliability(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+RELIABILITY_HEADING = "## Reliability"
+
+
+def splice_reliability(page: str, section: str) -> str:
+    """``page`` with its reliability section (from its heading to the next ``## `` heading or
+    the end) replaced by ``section``, or ``section`` appended when it has none."""
+    lines = page.rstrip("\n").split("\n")
+    if RELIABILITY_HEADING not in lines:
+        return "\n".join([*lines, "", section.rstrip("\n")]) + "\n"
+    start = lines.index(RELIABILITY_HEADING)
+    end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")),
+               len(lines))
+    after = ["", *lines[end:]] if end < len(lines) else []
+    return "\n".join([*lines[:start], section.rstrip("\n"), *after]) + "\n"
+
+
+def _option(args: list[str], name: str) -> str | None:
+    """The value of ``name VALUE`` in ``args`` (removed from it); ``""`` when it has none."""
+    if name not in args:
+        return None
+    at = args.index(name)
+    value = args[at + 1] if at + 1 < len(args) else ""
+    del args[at:at + 2]
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...]
-    [--reliability RELIABILITY.json]``: the page on stdout."""
+    [--reliability RELIABILITY.json]`` or ``--splice PAGE --reliability RELIABILITY.json``:
+    the page on stdout."""
     args = list(sys.argv[1:] if argv is None else argv)
-    reliability_path = None
-    if "--reliability" in args:
-        at = args.index("--reliability")
-        if at + 1 >= len(args):
-            args = []  # the usage below
-        else:
-            reliability_path = args[at + 1]
-            del args[at:at + 2]
-    if len(args) < 2:
+    reliability_path = _option(args, "--reliability")
+    splice = _option(args, "--splice")
+    if reliability_path == "" or splice == "" or (splice is not None and (
+            args or reliability_path is None)) or (splice is None and len(args) < 2):
         print("usage: python -m eyeserver.bench.report ACCURACY.json SPEED.json "
-              "[POSE.json ...] [--reliability RELIABILITY.json]", file=sys.stderr)
+              "[POSE.json ...] [--reliability RELIABILITY.json]\n"
+              "       python -m eyeserver.bench.report --splice PAGE.md "
+              "--reliability RELIABILITY.json", file=sys.stderr)
         return 2
     documents = []
     for path in [*args, *([reliability_path] if reliability_path else [])]:
@@ -583,6 +609,15 @@ def main(argv: list[str] | None = None) -> int:
             print(f"eyeserver.bench.report: error: {path}: {exc}", file=sys.stderr)
             return 2
     reliability = documents.pop() if reliability_path else None
+    if splice is not None:
+        assert reliability is not None
+        try:
+            page = Path(splice).read_text()
+        except OSError as exc:
+            print(f"eyeserver.bench.report: error: {splice}: {exc}", file=sys.stderr)
+            return 2
+        print(splice_reliability(page, render_reliability(reliability)), end="")
+        return 0
     print(render(*documents, reliability=reliability))
     return 0
 
