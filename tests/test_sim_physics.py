@@ -755,6 +755,29 @@ def test_preparing_a_camera_casts_a_moving_eyes_static_part_before_its_first_fra
 
 
 @pytest.mark.slow
+def test_a_scripted_head_shift_is_cast_ahead_and_its_transit_is_not_kept() -> None:
+    # Issue 35: after a scripted 1-mm shift live tracking had no frame for seconds; each
+    # camera cast the head's static part for the positions in transit and again where it
+    # ended. Preparing casts the end ahead; positions in transit are cast but not kept.
+    sim = SimRoom(clock=ManualClock(0))
+    shift = ScriptEvent(t_s=1.0, kind="shift", shift_mm=(1.0, 0.0, 0.0), duration_s=0.3)
+    motion = MotionSpec(seed=2, drift_deg=0.0, saccade_rate_hz=0.0, blink_rate_hz=0.0,
+                        script=[shift])
+    sim.set_scene(SceneSpec(kind="eye", eye=EyeSpec(motion=motion)))
+    sim.prepare("S1", ["P1"])
+    prepared = list(sim.renderer._static)
+    assert len(prepared) == 2  # where the head is now and where the shift leaves it
+    for t_s in (1.1, 1.2, 1.6):  # twice in transit, once after
+        sim.components("S1", t_s, ["P1"])
+    assert set(sim.renderer._static) == set(prepared)  # nothing new cached
+    # What was cast ahead is what a frame after the shift shows.
+    fresh = SimRoom(clock=ManualClock(0))
+    fresh.set_scene(sim.scene)
+    np.testing.assert_array_equal(sim.components("S1", 1.6, ["P1"]).fringe["P1"],
+                                  fresh.components("S1", 1.6, ["P1"]).fringe["P1"])
+
+
+@pytest.mark.slow
 def test_a_blink_renders_with_the_static_part_prepared_for_the_open_eye() -> None:
     # The lids stay in the static part with the opening wide; only the part that closes over
     # the opening moves. A blink's frames need no static part of their own (cast whole at the

@@ -183,6 +183,11 @@ def _union(parts: Sequence[npt.NDArray[np.intp]], size: int) -> npt.NDArray[np.b
     return mask
 
 
+STATIC_PARTS_PER_CAMERA = 4
+"""Static parts of moving scenes cached per camera (the last head positions, and those a
+script's head shifts will end at, cast ahead by :meth:`SimRoom.prepare`)."""
+
+
 class Renderer:
     """Renders images of a room's cameras; thread-safe, with a small cache of still scenes."""
 
@@ -291,7 +296,7 @@ class Renderer:
         return out
 
     def components_moving(self, camera_id: str, built: BuiltScene,
-                          projectors: Iterable[str] = ()) -> Components:
+                          projectors: Iterable[str] = (), *, keep: bool = True) -> Components:
         """Components of a moving scene at one instant, re-casting only what moved.
 
         The static part (``built.static``) is rendered once and cached. Each frame re-casts,
@@ -314,7 +319,7 @@ class Renderer:
             raise ValueError("the scene has no static part to cache")
         cam = self.cameras[camera_id]
         sources = [AMBIENT, *projectors]
-        static = self._static_part(camera_id, built, sources)
+        static = self._static_part(camera_id, built, sources, keep=keep)
         rays = cam.rays().reshape(-1, 3)
         moving = Scene([body for body in built.scene.bodies
                         if not any(body is other for other in built.static.bodies)])
@@ -444,8 +449,11 @@ class Renderer:
                 values[pixels] = shaded[source].values
                 static.closed_values[source] = values
 
-    def _static_part(self, camera_id: str, built: BuiltScene, sources: Sequence[str],
-                     ) -> _StaticPart:
+    def _static_part(self, camera_id: str, built: BuiltScene, sources: Sequence[str], *,
+                     keep: bool = True) -> _StaticPart:
+        """The static part of ``built`` for ``camera_id`` with ``sources`` shaded, from the
+        cache or cast now; ``keep`` False leaves one cast now out of the cache (a head in
+        transit: its position never comes again, and it would push out those that do)."""
         assert built.static is not None and built.static_key is not None
         assert built.envelope is not None
         key = (camera_id, built.static_key)
@@ -483,9 +491,10 @@ class Renderer:
         if built.closed is not None:
             self._closed_layer(camera_id, built, part, sources)
         with self._lock:
-            self._static[key] = part
-            self._static.move_to_end(key)
-            while len(self._static) > 2 * len(self.cameras):
+            if keep or key in self._static:
+                self._static[key] = part
+                self._static.move_to_end(key)
+            while len(self._static) > STATIC_PARTS_PER_CAMERA * len(self.cameras):
                 self._static.popitem(last=False)
         return part
 

@@ -64,6 +64,24 @@ class _Recording:
         return image
 
 
+PREPARED_SHIFTS = 2
+"""Scripted head shifts whose end positions :meth:`SimRoom.prepare` casts ahead (each one
+static part per camera, kept among
+:data:`~eyeserver.hardware.sim.render.STATIC_PARTS_PER_CAMERA`)."""
+
+TRANSIT_PROBE_S = 1e-3
+"""How far apart two moments are compared to tell a head in transit (seconds)."""
+
+
+def _head_in_transit(spec: SceneSpec, scene_t: float) -> bool:
+    """Whether the head moves at scene time ``scene_t`` (a scripted shift under way)."""
+    if spec.eye is None or spec.eye.motion is None:
+        return False
+    motion = EyeMotion(spec.eye.motion)
+    return (motion.state(scene_t).head_offset_mm
+            != motion.state(scene_t + TRANSIT_PROBE_S).head_offset_mm)
+
+
 class SimRoom:
     """A room described by a :class:`RoomConfig`, with one scene at a time."""
 
@@ -145,7 +163,8 @@ class SimRoom:
         if spec.moving:
             built = build_scene(spec, scene_t)
             if render.supersample_moving == 1 and built.static is not None:
-                return self.renderer.components_moving(camera_id, built, projectors)
+                return self.renderer.components_moving(
+                    camera_id, built, projectors, keep=not _head_in_transit(spec, scene_t))
             return self.renderer.components(camera_id, built.scene, render.supersample_moving,
                                             projectors)
         built = build_scene(spec, 0.0)
@@ -157,8 +176,19 @@ class SimRoom:
     def prepare(self, camera_id: str, projectors: Sequence[str]) -> None:
         """Fill the render caches for ``camera_id`` lit by ``projectors`` with the scene in
         front of it now: a moving scene's static part (cast whole, ≈ 1 s a camera; a blink
-        renders with it too) or a still scene's light components."""
-        self.components(camera_id, self.clock.now_ns() / 1e9, projectors)
+        renders with it too) or a still scene's light components; and the static parts where
+        the next :data:`PREPARED_SHIFTS` head shifts of the script end, so that the frames
+        after a shift do not wait for that cast (live tracking had no frame for seconds after
+        a scripted 1-mm shift, issue 35)."""
+        now = self.clock.now_ns() / 1e9
+        self.components(camera_id, now, projectors)
+        with self._lock:
+            spec, scene_t = self._scene, self.scene_time(now)
+        if spec.moving and spec.eye is not None and spec.eye.motion is not None:
+            ends = sorted(e.t_s + e.duration_s for e in spec.eye.motion.script
+                          if e.kind == "shift" and e.t_s + e.duration_s > scene_t)
+            for end in ends[:PREPARED_SHIFTS]:
+                self._components(camera_id, spec, end, projectors)
 
     def render(self, camera_id: str, *, t_s: float, projectors: Mapping[str, float],
                exposure_us: float, gain_db: float, rng: np.random.Generator) -> Image:
