@@ -12,6 +12,7 @@ Without ``--calibration`` a calibration of the default room is made first (≈ 1
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import tempfile
@@ -83,7 +84,7 @@ def _track(daemon: DaemonProcess, calibration: Path, duration_s: float) -> dict[
                                                "frames_dropped", "frames_missed",
                                                "frames_held", "stalls")},
         "pose_messages": len(poses),
-        "gaps_s": [[round(a, 2), round(b - a, 2)] for a, b in zip(poses, poses[1:], strict=False)
+        "gaps_s": [[round(a, 2), round(b - a, 2)] for a, b in itertools.pairwise(poses)
                    if b - a > GAP_S],
         "holds": [[round(t, 2), m.get("reason")] for t, m in received if m["type"] == "hold"],
     }
