@@ -47,8 +47,8 @@ def render(args: argparse.Namespace) -> None:
 
 def fit(args: argparse.Namespace) -> None:
     from eyeserver.errors import EyeserverError
-    from eyeserver.pipeline.eyepose import EyeModel, fit_eye
-    from eyeserver.pipeline.limbus import LimbusNotFoundError, find_limbus
+    from eyeserver.eye.fit import EyeModel, fit_eye
+    from eyeserver.eye.limbus import LimbusNotFoundError, find_limbus
     from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
 
     def off(pose_centre: Any, pose_gaze: Any, eye: dict[str, Any], key: str = "centre_mm"
@@ -91,9 +91,9 @@ def fit(args: argparse.Namespace) -> None:
 
 def oracle(args: argparse.Namespace) -> None:
     from eyeserver.errors import EyeserverError
-    from eyeserver.pipeline.eyepose import checked_cloud
-    from eyeserver.pipeline.limbus import Limbus, globe_on_limbus
-    from eyeserver.pipeline.sclera import refit
+    from eyeserver.eye.fit import checked_cloud
+    from eyeserver.eye.limbus import Limbus, globe_on_limbus
+    from eyeserver.eye.sclera import refit
     from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
 
     for bundle in sorted(args.setdir.glob("eye_*")):

@@ -37,11 +37,12 @@ from eyeserver.bench.report import (
 )
 from eyeserver.cli import main
 from eyeserver.errors import EyeserverError
+from eyeserver.eye.fit import EyePose
+from eyeserver.eye.tunables import SHAPE_SD_MM
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.population import SHARP, biometry, describe
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec, scene_truth
 from eyeserver.pipeline.demodulate import Carrier, demodulate
-from eyeserver.pipeline.eyepose import SHAPE_SD_MM, EyePose
 from eyeserver.service.patients import DEFAULT_MIN_CONFIDENCE
 
 

@@ -12,14 +12,14 @@ from typing import Any
 
 import pytest
 
+from eyeserver import eye
 from eyeserver.cli import main
 from eyeserver.commands import pose as pose_command
 from eyeserver.errors import EyeserverError
+from eyeserver.eye import EyeModel, EyePose
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.scenes import SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
-from eyeserver.pipeline import eyepose
-from eyeserver.pipeline.eyepose import EyeModel, EyePose
 from eyeserver.service import reconstruction
 
 POPULATION = EyeModel.population()
@@ -58,7 +58,7 @@ def fit(monkeypatch: pytest.MonkeyPatch) -> _Fit:
     recorder = _Fit()
     monkeypatch.setattr(reconstruction, "reconstruct_bundle", reconstruct)
     monkeypatch.setattr(reconstruction, "limbus_views", views)
-    monkeypatch.setattr(eyepose, "fit_eye", recorder)
+    monkeypatch.setattr(eye, "fit_eye", recorder)  # what `eyeserver pose` imports
     return recorder
 
 

@@ -11,12 +11,7 @@ import numpy as np
 import pytest
 
 from eyeserver.cli import main
-from eyeserver.hardware.sim.config import load_room
-from eyeserver.hardware.sim.scenes import SceneSpec
-from eyeserver.hardware.sim.sessions import SimSession
-from eyeserver.hardware.sim.truth import room_truth
-from eyeserver.io.rig_file import rig_from_dict
-from eyeserver.pipeline.eyepose import (
+from eyeserver.eye.fit import (
     EyeModel,
     PoseError,
     _surface_distance,
@@ -24,6 +19,11 @@ from eyeserver.pipeline.eyepose import (
     fit_sphere,
     radius_bounds,
 )
+from eyeserver.hardware.sim.config import load_room
+from eyeserver.hardware.sim.scenes import SceneSpec
+from eyeserver.hardware.sim.sessions import SimSession
+from eyeserver.hardware.sim.truth import room_truth
+from eyeserver.io.rig_file import rig_from_dict
 from eyeserver.service.tracking import FrameSet, PoseFinder, RigReconstructor
 
 
@@ -145,7 +145,8 @@ def test_a_globe_far_outside_the_models_radii_is_refused() -> None:
     """A fit that ran away (a patient eye of the pose bench gave a 68-km globe at confidence
     0.02) is refused with its reason, not reported; twice the bounds still passes, to be
     reported at a low confidence."""
-    from eyeserver.pipeline.eyepose import NO_GLOBE_FACTOR, _refuse_no_globe
+    from eyeserver.eye.fit import _refuse_no_globe
+    from eyeserver.eye.tunables import NO_GLOBE_FACTOR
 
     bounds = radius_bounds(EyeModel.population())
     with pytest.raises(PoseError, match=r"radius of 6.81e\+07 mm"):

@@ -17,22 +17,17 @@ import pytest
 
 from eyeserver.calibration.artefact import load_calibration
 from eyeserver.core.clock import ManualClock
+from eyeserver.eye import limbus as limbus_module
+from eyeserver.eye.fit import CloudLike, EyeModel, EyePose, PoseError, fit_eye
+from eyeserver.eye.limbus import LimbusView
+from eyeserver.eye.track import eye_window, lids_closed, pose_window, track_eye
+from eyeserver.eye.tunables import WINDOW_QUANTUM_PX
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.scenes import SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.io.rig_file import rig_from_dict
-from eyeserver.pipeline import limbus as limbus_module
-from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError, fit_eye
-from eyeserver.pipeline.eyetrack import (
-    WINDOW_QUANTUM_PX,
-    eye_window,
-    lids_closed,
-    pose_window,
-    track_eye,
-)
 from eyeserver.pipeline.fusion import Part, fuse
 from eyeserver.pipeline.geometry import project
-from eyeserver.pipeline.limbus import LimbusView
 from eyeserver.pipeline.reconstruct import (
     camera_phase,
     cropped,

@@ -1,4 +1,4 @@
-"""The limbus found in the fringe images (``eyeserver.pipeline.limbus``), on three rigs.
+"""The limbus found in the fringe images (``eyeserver.eye.limbus``), on three rigs.
 
 The rendered patient eye is reconstructed and fitted as ``eyeserver pose`` does; truth is read
 only afterwards. Measured on the default rig over 200 random poses (eyeserver bench pose: ±5 mm,
@@ -20,13 +20,13 @@ import pytest
 from scipy.optimize import least_squares
 
 from eyeserver.bench.pose import RADII_MM, random_spec
+from eyeserver.eye import limbus, tunables
+from eyeserver.eye.fit import EyeModel, EyePose, PoseError, fit_eye
+from eyeserver.eye.limbus import LimbusNotFoundError, find_limbus
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.optics import ProjectorModel
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
-from eyeserver.pipeline import limbus
-from eyeserver.pipeline.eyepose import SHAPE_SD_MM, EyeModel, EyePose, PoseError, fit_eye
-from eyeserver.pipeline.limbus import LimbusNotFoundError, find_limbus
 from eyeserver.service.patients import DEFAULT_MIN_CONFIDENCE, Tolerances
 from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
 from eyeserver.service.verification import deviation, judge
@@ -141,7 +141,7 @@ def test_an_unknown_ellipsoid_is_refused_against_a_planned_pose(calibrated_rooms
     error = np.subtract(pose.centre_mm, truth["centre_mm"])
     along = abs(float(error @ np.asarray(truth["gaze"])))
 
-    assert pose.shape_sd_mm == SHAPE_SD_MM
+    assert pose.shape_sd_mm == tunables.SHAPE_SD_MM
     stated = math.hypot(float(np.asarray(pose.centre_sd_mm) @ np.abs(truth["gaze"])),
                         pose.shape_sd_mm)
     assert along < 2.0 * stated
@@ -216,7 +216,7 @@ def test_the_circle_fit_is_scipys_robust_least_squares(calibrated_rooms: Any, tm
     for size in (6, 7):
         ours = limbus._fit_circle(images, edges, centre, normal, 11.7 / 2, 1.0, size == 7)
         start = np.array([*centre, normal[0], normal[1], 11.7 / 2, 1.0][:size])
-        scale = limbus._CIRCLE_X_SCALE[:size]
+        scale = tunables.CIRCLE_X_SCALE[:size]
         scipys = least_squares(lambda x: rows(x[None])[0], start, loss="cauchy", f_scale=1.0,
                                x_scale=scale, xtol=1e-12, ftol=1e-12, gtol=1e-12)
 
@@ -382,7 +382,7 @@ def test_the_globe_depth_takes_the_whole_shell_and_states_the_bias_it_cannot_see
     votes' mode: on a noisy shell the least-squares radius is closer than the mode's (measured on
     180 rendered poses: globe centre 0.103 → 0.083 mm median). A bias shared by the whole sclera
     cannot be told from a larger globe, so the stated depth uncertainty holds the gain such a
-    bias has on the depth times :data:`~eyeserver.pipeline.limbus.SCLERA_BIAS_MM`, and the
+    bias has on the depth times :data:`~eyeserver.eye.tunables.CLOUD_SCLERA_BIAS_MM`, and the
     depth moves by that gain when the sclera is shifted."""
     rng = np.random.default_rng(8)
     r, radius = 11.7 / 2, 12.5
@@ -404,7 +404,7 @@ def test_the_globe_depth_takes_the_whole_shell_and_states_the_bias_it_cannot_see
     assert max(abs(g.radius - radius) for g in noisy) < 0.01  # the mode: 0.037 mm at worst
     gain = (-float(shifted.centre[2]) - depth) / 0.02
     assert 2.0 < gain < 8.0  # how far the depth moves per millimetre of the sclera's bias
-    assert exact.depth_sd_mm == pytest.approx(gain * limbus.SCLERA_BIAS_MM, rel=0.05)
+    assert exact.depth_sd_mm == pytest.approx(gain * tunables.CLOUD_SCLERA_BIAS_MM, rel=0.05)
 
 
 def test_the_cornea_shadows_the_sclera_beyond_the_limbus_from_light_past_its_rim() -> None:

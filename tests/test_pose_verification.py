@@ -26,18 +26,12 @@ from eyeserver.api import create_app
 from eyeserver.api.auth import TokenTable
 from eyeserver.api.routers.sim import NO_SIM_ROOM
 from eyeserver.calibration.artefact import ARRAYS_FILE, CALIBRATION_FILE
+from eyeserver.eye.fit import CloudLike, EyeModel, EyePose, PoseError, fit_eye
+from eyeserver.eye.limbus import LimbusView
+from eyeserver.eye.tunables import SHAPE_SD_MM
 from eyeserver.hardware.sim.drivers import build_sim_rig
 from eyeserver.hardware.sim.room import SimRoom
 from eyeserver.io import rig_from_dict
-from eyeserver.pipeline.eyepose import (
-    SHAPE_SD_MM,
-    CloudLike,
-    EyeModel,
-    EyePose,
-    PoseError,
-    fit_eye,
-)
-from eyeserver.pipeline.limbus import LimbusView
 from eyeserver.service.core import Service
 from eyeserver.service.patients import ReferencePose, Tolerances
 from eyeserver.service.verification import (
@@ -99,7 +93,7 @@ def test_the_verdict_follows_the_tolerances(delta: tuple[float, float, float], g
 
 def test_a_globe_shape_the_model_does_not_give_fails_against_a_planned_pose() -> None:
     # With population defaults the centre is known to ±0.65 mm (1 sd) along the gaze in
-    # absolute terms (eyepose.SHAPE_SD_MM): a planned pose cannot be checked to 0.2 mm.
+    # absolute terms (tunables.SHAPE_SD_MM): a planned pose cannot be checked to 0.2 mm.
     found = replace(deviation((0.05, 0.0, 0.0), (0, 0, 1), (0, 0, 0), (0, 0, 1)),
                     model_sd_mm=SHAPE_SD_MM)
 

@@ -1,4 +1,4 @@
-"""The sclera measured again from its own fringes (``eyeserver.pipeline.sclera``).
+"""The sclera measured again from its own fringes (``eyeserver.eye.sclera``).
 
 Synthetic fringes check the local fit where the band-limited demodulation is biased (beside
 the end of the fringe field); a synthetic sphere checks the joint fit of globe and limbus; a
@@ -18,14 +18,15 @@ from typing import Any
 import numpy as np
 import pytest
 
+from eyeserver.eye import fit as fit_module
+from eyeserver.eye import limbus as limbus_module
+from eyeserver.eye import sclera, tunables
+from eyeserver.eye.fit import EyeModel, fit_eye, radius_bounds
+from eyeserver.eye.limbus import Limbus, LimbusView
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
-from eyeserver.pipeline import eyepose, sclera
-from eyeserver.pipeline import limbus as limbus_module
 from eyeserver.pipeline.demodulate import Carrier, demodulate
-from eyeserver.pipeline.eyepose import EyeModel, fit_eye, radius_bounds
-from eyeserver.pipeline.limbus import Limbus, LimbusView
 from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
 from tests.conftest import ROOMS
 
@@ -130,7 +131,7 @@ def test_the_globe_and_gaze_take_the_sclera_where_it_knows_better_than_the_limbu
         return math.degrees(math.acos(min(1.0, float(a @ b) / float(np.linalg.norm(a)))))
 
     # A limbus unsure of its tilt takes the sclera's: the exact globe, and the gaze to what
-    # a sclera trusted to SCLERA_BIAS_MM as a whole says across the globe (≈ 0.05°).
+    # a sclera trusted to REMEASURED_SCLERA_BIAS_MM as a whole says across the globe (≈ 0.05°).
     assert np.linalg.norm(loose.centre - centre) < 0.01
     assert loose.radius == pytest.approx(radius, abs=0.005)
     assert angle(loose.gaze, gaze) < 0.1
@@ -138,7 +139,8 @@ def test_the_globe_and_gaze_take_the_sclera_where_it_knows_better_than_the_limbu
     assert angle(tight.gaze, measured_normal) < 0.02
     # A held radius stays held.
     assert held.radius == pytest.approx(radius, abs=1e-9)
-    # Stated uncertainties: the sclera is trusted to SCLERA_BIAS_MM as a whole.
+    # Stated uncertainties: the sclera is trusted to REMEASURED_SCLERA_BIAS_MM as a
+    # whole.
     assert 0.0 < loose.gaze_sd_deg < 2.0
     assert np.all(np.sqrt(np.diag(loose.centre_cov)) > 0.0)
 
@@ -213,7 +215,7 @@ def test_the_remeasured_sclera_lies_on_the_globe_not_on_the_sphere_it_was_measur
 def test_the_remeasure_fills_the_gaps_of_a_patchy_cloud_sclera(turned: tuple[Path, Path]
                                                                 ) -> None:
     """Where the visible sclera is a narrow band, the cloud's comes in patches: the pixels
-    between them (within :data:`~eyeserver.pipeline.sclera.NEAR_MM`) are measured too, and lie
+    between them (within :data:`~eyeserver.eye.tunables.NEAR_MM`) are measured too, and lie
     on the globe like the rest."""
     eye = _reconstructed(turned)
     views, points, centre, radius = eye.views, eye.points, eye.centre, eye.radius
@@ -258,7 +260,7 @@ def test_the_limbus_found_again_with_the_fringe_divided_out_is_sharper(
     monkeypatch.setattr(limbus_module, "in_cornea_shadow",
                         lambda *args: np.zeros(len(args[3]), dtype=bool))
     fit_eye(cloud, EyeModel.population(), views)
-    assert len(found) == sclera.PASSES
+    assert len(found) == tunables.PASSES
     truth = json.loads((bundle / "truth.json").read_text())["eye"]
     gaze, centre = np.asarray(truth["gaze"]), np.asarray(truth["limbus_centre_mm"])
 
@@ -299,28 +301,28 @@ def test_a_remeasured_globe_of_no_eyes_size_is_not_trusted(
     views = limbus_views(caldir, tmp_path / "eye")
     model = EyeModel.population()
     # Everything else that sets the confidence held at 0.9, the radius alone differing.
-    monkeypatch.setattr(eyepose, "_confidence", lambda *args: 0.9)
+    monkeypatch.setattr(fit_module, "_confidence", lambda *args: 0.9)
     good = fit_eye(cloud, model, views)
-    real_refit = eyepose.refit
+    real_refit = fit_module.refit
 
     def too_large(*args: Any) -> sclera.GlobeFit | None:
         fit = real_refit(*args)
         assert fit is not None
         return replace(fit, radius=radius_bounds(model)[1] + 0.3)
 
-    monkeypatch.setattr(eyepose, "refit", too_large)
+    monkeypatch.setattr(fit_module, "refit", too_large)
     bad = fit_eye(cloud, model, views)
 
     assert good.confidence == pytest.approx(0.9)
     assert bad.globe_radius_mm > radius_bounds(model)[1]
-    assert bad.confidence == pytest.approx(0.9 * eyepose.IMPLAUSIBLE_RADIUS)
+    assert bad.confidence == pytest.approx(0.9 * tunables.IMPLAUSIBLE_RADIUS)
     assert bad.confidence < 0.5
 
 
 def test_faint_fringes_are_left_out_of_the_remeasure(turned: tuple[Path, Path],
                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     """Light at grazing incidence and the edges of the lids' and the cornea's shadows bias a
-    window's phase (:data:`~eyeserver.pipeline.sclera.MIN_AMPLITUDE`); their fringes are the
+    window's phase (:data:`~eyeserver.eye.tunables.MIN_AMPLITUDE`); their fringes are the
     faint ones."""
     eye = _reconstructed(turned)
     views, points, centre, radius = eye.views, eye.points, eye.centre, eye.radius

@@ -29,9 +29,9 @@ from websockets.sync.client import ClientConnection, connect
 from eyeserver.api import create_app
 from eyeserver.core.clock import Clock, ManualClock, MonotonicClock
 from eyeserver.core.frames import Frame, FrameMeta
+from eyeserver.eye.fit import CloudLike, EyeModel, EyePose, PoseError
 from eyeserver.hardware.base import TriggerPulse, TriggerStep
 from eyeserver.hardware.rig import AcquiredStep
-from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError
 from eyeserver.service.events import EventBus
 from eyeserver.service.patients import Tolerances
 from eyeserver.service.tracking import (

@@ -21,6 +21,9 @@ import pytest
 from threadpoolctl import threadpool_limits
 
 from eyeserver.core.clock import ManualClock
+from eyeserver.eye.fit import LIMBUS_FROM_IMAGES, EyeModel, fit_eye
+from eyeserver.eye.track import track_eye
+from eyeserver.eye.tunables import WELL_SEEN_LIMBUS_POINTS
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.motion import MotionSpec, ScriptEvent
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
@@ -28,13 +31,6 @@ from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.hardware.sim.truth import room_truth
 from eyeserver.io import RigSpec
 from eyeserver.io.rig_file import rig_from_dict
-from eyeserver.pipeline.eyepose import (
-    LIMBUS_FROM_IMAGES,
-    WELL_SEEN_LIMBUS_POINTS,
-    EyeModel,
-    fit_eye,
-)
-from eyeserver.pipeline.eyetrack import track_eye
 from eyeserver.pipeline.reconstruct import strong_modulation
 from eyeserver.service import tracking
 from eyeserver.service.events import EventBus

@@ -55,7 +55,7 @@ from eyeserver.errors import (
     NotBuiltError,
     StateConflictError,
 )
-from eyeserver.pipeline.eyepose import PoseError
+from eyeserver.eye import PoseError
 from eyeserver.service.capture_files import CaptureDataNotFoundError
 from eyeserver.service.core import NoCloudError, UnknownUnitError
 from eyeserver.service.patients import NoReferenceError, UnknownPatientError

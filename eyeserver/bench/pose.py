@@ -49,11 +49,11 @@ from eyeserver.bench.report import (
 from eyeserver.bench.simcal import calibrate_room
 from eyeserver.bench.speed import machine
 from eyeserver.errors import EyeserverError
+from eyeserver.eye import EyeModel, EyePose, fit_eye
 from eyeserver.hardware.sim import population
 from eyeserver.hardware.sim.config import RoomConfig
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
-from eyeserver.pipeline.eyepose import EyeModel, EyePose, fit_eye
 from eyeserver.service.patients import (
     DEFAULT_MIN_CONFIDENCE,
     DEFAULT_TOLERANCE_MM,
@@ -259,7 +259,7 @@ def passes(confidence: float, shape_sd_mm: float = 0.0,
     """Whether the daemon's check of a pose against a planned (absolute) pose lets it through:
     its confidence passes ``min_confidence`` (``confidence >= min_confidence``; default the
     daemon's) and what the eye model leaves unknown of the globe's shape
-    (:attr:`~eyeserver.pipeline.eyepose.EyePose.shape_sd_mm`) leaves no reason to refuse
+    (:attr:`~eyeserver.eye.fit.EyePose.shape_sd_mm`) leaves no reason to refuse
     (:func:`~eyeserver.service.verification.shape_reason`, as
     :func:`~eyeserver.service.verification.judge` asks). The bench scores absolute poses."""
     return (confidence >= min_confidence

@@ -46,13 +46,13 @@ from eyeserver.bench.daemon import DaemonError, DaemonProcess, zip_directory
 from eyeserver.bench.simcal import calibrate_room
 from eyeserver.bench.speed import reference_ms
 from eyeserver.core.clock import MonotonicClock
+from eyeserver.eye import EyeModel, fit_eye
 from eyeserver.hardware.sim import population
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.motion import EyeMotion, MotionSpec
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec, scene_truth
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.io.rig_file import rig_from_dict
-from eyeserver.pipeline.eyepose import EyeModel, fit_eye
 from eyeserver.service.events import EventBus
 from eyeserver.service.patients import Tolerances
 from eyeserver.service.tracking import (

@@ -13,7 +13,7 @@ from eyeserver.commands import progress as _progress
 from eyeserver.errors import EyeserverError
 
 if TYPE_CHECKING:
-    from eyeserver.pipeline.eyepose import EyeModel
+    from eyeserver.eye import EyeModel
 
 # The population model's values, for the help text only (the pipeline is not imported to
 # build the parser); a test holds them equal to EyeModel.population().
@@ -24,7 +24,7 @@ POPULATION_LIMBUS_DIAMETER_MM = 11.7
 @dataclass(frozen=True)
 class Biometry:
     """One measure of the patient's eye the command takes: its flag, the
-    :class:`~eyeserver.pipeline.eyepose.EyeModel` field it sets and the values accepted (mm)."""
+    :class:`~eyeserver.eye.fit.EyeModel` field it sets and the values accepted (mm)."""
 
     flag: str
     field: str
@@ -107,7 +107,7 @@ def eye_model(args: argparse.Namespace) -> tuple[EyeModel, dict[str, Any]]:
         Half the limbus diameter is not smaller than the cornea radius or the globe radius
         (the limbus is where the cornea meets the globe).
     """
-    from eyeserver.pipeline.eyepose import EyeModel
+    from eyeserver.eye import EyeModel
 
     given = {item.field: getattr(args, item.dest) for item in BIOMETRY
              if getattr(args, item.dest) is not None}
@@ -138,7 +138,7 @@ def _check_limbus_fits(model: EyeModel, given: dict[str, float]) -> None:
 
 
 def _pose(args: argparse.Namespace) -> int:
-    from eyeserver.pipeline.eyepose import fit_eye
+    from eyeserver.eye import fit_eye
     from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
 
     # Checked before the reconstruction's seconds are spent.

@@ -36,7 +36,7 @@ from pydantic import ConfigDict, Field, model_validator
 
 from eyeserver.core.validation import NumbersOnly
 from eyeserver.errors import EyeserverError
-from eyeserver.pipeline.eyepose import EyeModel
+from eyeserver.eye import EyeModel
 from eyeserver.service.audit import AuditTrail
 from eyeserver.service.storage import Store
 
@@ -189,7 +189,7 @@ class EyeModelSpec(NumbersOnly):
         return self.globe_radius_mm is None and self.ellipsoid is None
 
     def to_eye_model(self) -> EyeModel:
-        """The pipeline's :class:`~eyeserver.pipeline.eyepose.EyeModel`."""
+        """The pipeline's :class:`~eyeserver.eye.fit.EyeModel`."""
         ellipsoid = self.ellipsoid
         return EyeModel(
             globe_radius_mm=self.globe_radius_mm,

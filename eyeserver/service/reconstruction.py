@@ -12,10 +12,10 @@ import numpy as np
 
 from eyeserver.calibration.artefact import load_calibration
 from eyeserver.errors import EyeserverError
+from eyeserver.eye import LimbusView
 from eyeserver.io import Bundle, PointCloud, read_bundle
 from eyeserver.pipeline.demodulate import Carrier
 from eyeserver.pipeline.fusion import Part, Region, fuse
-from eyeserver.pipeline.limbus import LimbusView
 from eyeserver.pipeline.phase_height import PhaseHeightModel
 from eyeserver.pipeline.reconstruct import (
     METHODS,
@@ -153,7 +153,7 @@ EMPTY_REASON = ("no surface was reconstructed: nothing in the cameras' view carr
 
 def limbus_views(calibration: str | Path, bundle_path: str | Path) -> list[LimbusView]:
     """Each camera's first fringe image in a bundle, with its calibration: where the eye fit
-    looks for the limbus (:func:`~eyeserver.pipeline.eyepose.fit_eye`)."""
+    looks for the limbus (:func:`~eyeserver.eye.fit.fit_eye`)."""
     bundle = read_bundle(bundle_path)
     cameras = calibrated_cameras(load_calibration(calibration, bundle.rig))
     first: dict[str, int] = {}

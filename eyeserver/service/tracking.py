@@ -29,8 +29,8 @@ mid-exposure on the rig's clock to the send). No eye, a lost eye or a blink: ``p
 
 Once a frame gave a pose, the next ones are followed from it (the eye moves little in 40 ms): only
 a window around the eye is reconstructed (:meth:`RigReconstructor.focus`) and the globe refitted
-from the last pose (:func:`~eyeserver.pipeline.eyetrack.track_eye`); the global fit
-(:func:`~eyeserver.pipeline.eyepose.fit_eye`) of the whole images comes back when the warm fit
+from the last pose (:func:`~eyeserver.eye.track.track_eye`); the global fit
+(:func:`~eyeserver.eye.fit.fit_eye`) of the whole images comes back when the warm fit
 fails or finds no limbus (:class:`PoseFinder`). A frame after one that lost the eye is still
 followed from a last pose at most :data:`FOLLOW_LOST_S` old (the global fit takes ten frame
 periods or more); a blink keeps the last globe. Measured: docs/notes/tracking.md.
@@ -59,18 +59,19 @@ import numpy.typing as npt
 from eyeserver.calibration.artefact import load_calibration
 from eyeserver.core.clock import Clock, MonotonicClock
 from eyeserver.errors import DeviceError, EyeserverError, StateConflictError
-from eyeserver.hardware.rig import AcquiredStep, Rig
-from eyeserver.io import PointCloud, RigSpec
-from eyeserver.pipeline.eyepose import (
+from eyeserver.eye import (
     LIMBUS_FROM_IMAGES,
     CloudLike,
     EyeModel,
     EyePose,
+    LimbusView,
     PoseError,
+    fringe_removed,
+    pose_window,
 )
-from eyeserver.pipeline.eyetrack import pose_window
+from eyeserver.hardware.rig import AcquiredStep, Rig
+from eyeserver.io import PointCloud, RigSpec
 from eyeserver.pipeline.fusion import Part, fuse
-from eyeserver.pipeline.limbus import LimbusView, fringe_removed
 from eyeserver.pipeline.reconstruct import (
     CalibratedCamera,
     camera_phase,
@@ -176,8 +177,8 @@ Reconstructor = Callable[[FrameSet], CloudLike]
 
 class TrackFunction(Protocol):
     """Cloud, eye model, the last frame's pose and, when given, the fringe images the cloud came
-    from → pose (:func:`~eyeserver.pipeline.eyetrack.track_eye`); raises
-    :class:`~eyeserver.pipeline.eyepose.PoseError` when it cannot follow the eye."""
+    from → pose (:func:`~eyeserver.eye.track.track_eye`); raises
+    :class:`~eyeserver.eye.fit.PoseError` when it cannot follow the eye."""
 
     def __call__(self, cloud: CloudLike, model: EyeModel, previous: EyePose,
                  views: Sequence[LimbusView] = (), /) -> EyePose: ...
@@ -188,7 +189,7 @@ class TrackedCloud:
     """A frame set's fused cloud (WCS, mm) with the images it came from, for the limbus.
 
     ``views`` are the cameras and images (or their windows around the eye) the cloud was
-    reconstructed from (:class:`~eyeserver.pipeline.limbus.LimbusView`); ``pixels_per_point``
+    reconstructed from (:class:`~eyeserver.eye.limbus.LimbusView`); ``pixels_per_point``
     the image pixels each point stands for (:data:`WINDOW_DECIMATION` squared in a window,
     else 1).
     """
@@ -215,7 +216,7 @@ class FocusingReconstructor(Protocol):
 
 class FindPose(Protocol):
     """Frame set and the last frame's pose (None: none yet, or the eye was lost) → this frame's
-    pose; raises :class:`~eyeserver.pipeline.eyepose.PoseError`,
+    pose; raises :class:`~eyeserver.eye.fit.PoseError`,
     :class:`~eyeserver.service.reconstruction.ReconstructionError` or :class:`ValueError` for
     a frame without an eye (lost). :meth:`close` frees what it holds (a worker process)."""
 
@@ -234,7 +235,7 @@ class PoseFinder:
     """Reconstruct a frame set and find the eye in it, in this process (:class:`FindPose`).
 
     With a last pose and a ``track``, the eye is followed from it
-    (:func:`~eyeserver.pipeline.eyetrack.track_eye`), in the window around it where the
+    (:func:`~eyeserver.eye.track.track_eye`), in the window around it where the
     reconstruction is a :class:`FocusingReconstructor`. Where the reconstruction gives the
     images the cloud came from (:class:`TrackedCloud`), a followed pose counts only when its
     limbus was found in them (or the lids cover the eye: a blink): the cloud-only warm fit
@@ -242,7 +243,7 @@ class PoseFinder:
     millimetre while its limbus was not seen would be reported near where it was (measured: an
     eye 4 mm away came out 4.3 mm off, with no error). Such a frame, one where following fails
     (:class:`PoseError`) and one with no last pose get the global fit ``fit``
-    (:func:`~eyeserver.pipeline.eyepose.fit_eye`) of the whole images. Without a ``track``
+    (:func:`~eyeserver.eye.fit.fit_eye`) of the whole images. Without a ``track``
     every frame gets ``fit``, in the window around the last pose.
 
     Parameters
@@ -380,10 +381,10 @@ class RigReconstructor:
     with that reason, rather than posed from the other unit alone.
 
     After :meth:`focus` on a pose, each camera's image is reconstructed only inside the window
-    around that eye (:func:`~eyeserver.pipeline.eyetrack.pose_window`), a few times fewer pixels
+    around that eye (:func:`~eyeserver.eye.track.pose_window`), a few times fewer pixels
     than the whole image, and on every :data:`WINDOW_DECIMATION`-th pixel of it (demodulated and
     searched for the limbus at full resolution); the cropped cameras are kept per window
-    (windows are rounded to :data:`~eyeserver.pipeline.eyetrack.WINDOW_QUANTUM_PX`, so a still
+    (windows are rounded to :data:`~eyeserver.eye.tunables.WINDOW_QUANTUM_PX`, so a still
     eye keeps one). A window masks weak fringes against the whole image's strong ones
     (:func:`~eyeserver.pipeline.reconstruct.strong_modulation`), measured once per camera and
     reconstructor — from the last whole image reconstructed, else the first windowed frame's
@@ -570,15 +571,15 @@ def start_pose(reference: dict[str, Any], model: EyeModel) -> EyePose | None:
     """The pose tracking looks for the eye from while it knows none: the reference's globe
     centre and gaze, with the model's radius, as if its limbus had been found in the images —
     so the first frame is followed from it in the cap about the reference gaze
-    (:func:`~eyeserver.pipeline.eyetrack.track_eye`, ≈ 30 ms) instead of fitted in the whole
-    images (:func:`~eyeserver.pipeline.eyepose.fit_eye`, ≈ 0.7 s, 18 camera frames): the patient
+    (:func:`~eyeserver.eye.track.track_eye`, ≈ 30 ms) instead of fitted in the whole
+    images (:func:`~eyeserver.eye.fit.fit_eye`, ≈ 0.7 s, 18 camera frames): the patient
     was set up there. Where the limbus is not found near it, the frame gets the global fit of
     the whole images (:class:`PoseFinder`).
 
     None when the model leaves the radius free (no captured reference holds it): tracking
     holds the radius of the pose it starts from, which must then be a fitted one. An
     ellipsoid's is the sphere's through its limbus
-    (:meth:`~eyeserver.pipeline.eyepose.EyeModel.radius_through_limbus`).
+    (:meth:`~eyeserver.eye.fit.EyeModel.radius_through_limbus`).
     """
     radius = model.radius_through_limbus(model.limbus_diameter_mm / 2)
     if radius is None:

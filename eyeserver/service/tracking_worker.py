@@ -6,7 +6,7 @@ Python steps between the array operations; in the daemon's process they would ho
 against acquisition and the event loop, and neither could use the machine's other core while
 the other runs. So :class:`PoseWorker` runs :class:`~eyeserver.service.tracking.PoseFinder`
 (:class:`~eyeserver.service.tracking.RigReconstructor` of the active calibration,
-:func:`~eyeserver.pipeline.eyetrack.track_eye`, :func:`~eyeserver.pipeline.eyepose.fit_eye`)
+:func:`~eyeserver.eye.track.track_eye`, :func:`~eyeserver.eye.fit.fit_eye`)
 in a child process (started with ``spawn``: the daemon has threads, and a forked child would
 inherit their locks):
 
@@ -46,9 +46,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from eyeserver.errors import EyeserverError
+from eyeserver.eye import EyeModel, EyePose, PoseError, fit_eye, track_eye
 from eyeserver.io import RigSpec
-from eyeserver.pipeline.eyepose import EyeModel, EyePose, PoseError, fit_eye
-from eyeserver.pipeline.eyetrack import track_eye
 from eyeserver.service.reconstruction import ReconstructionError
 
 __all__ = ["FRAME_TIMEOUT_S", "START_TIMEOUT_S", "PoseWorker", "TrackingWorkerError"]

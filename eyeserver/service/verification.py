@@ -19,7 +19,7 @@ the fit) as
 ``patients/<key>/measurements/<pose id>.json`` and a row, in one audited transaction; the
 capture of a stored measurement or captured reference is never deleted, by a person (HTTP 409)
 or the retention rule (:meth:`PoseVerification.evidence_captures`). A fit that
-fails raises :class:`~eyeserver.pipeline.eyepose.PoseError` (HTTP 422); the failure is written
+fails raises :class:`~eyeserver.eye.fit.PoseError` (HTTP 422); the failure is written
 to the audit file with the capture it was tried on.
 
 The deviation arithmetic (:func:`deviation`, :func:`judge`) is pure and kept apart for tests.
@@ -36,9 +36,8 @@ from datetime import UTC, datetime
 from typing import Any, Literal, Protocol
 
 from eyeserver.errors import EyeserverError
+from eyeserver.eye import CloudLike, EyeModel, EyePose, LimbusView, PoseError, fit_eye
 from eyeserver.io import RigSpec, read_ply
-from eyeserver.pipeline.eyepose import CloudLike, EyeModel, EyePose, PoseError, fit_eye
-from eyeserver.pipeline.limbus import LimbusView
 from eyeserver.service.core import NoActiveCalibrationError, Service
 from eyeserver.service.patients import (
     EyeModelVersion,
@@ -57,7 +56,7 @@ __all__ = ["MIN_UNIT_POINTS", "MODEL_SD_SHARE", "Deviation", "FitFunction", "Pos
 
 class FitFunction(Protocol):
     """What fits an eye model to a cloud and, when given, the fringe images it came from
-    (:func:`~eyeserver.pipeline.eyepose.fit_eye`)."""
+    (:func:`~eyeserver.eye.fit.fit_eye`)."""
 
     def __call__(self, cloud: CloudLike, model: EyeModel,
                  views: Sequence[LimbusView] = (), /) -> EyePose: ...
@@ -293,7 +292,7 @@ class PoseVerification:
     patients : Patients
         Its patients.
     fit : FitFunction, optional
-        The eye fit (default :func:`~eyeserver.pipeline.eyepose.fit_eye`); tests give their
+        The eye fit (default :func:`~eyeserver.eye.fit.fit_eye`); tests give their
         own for determinism. A public attribute.
 
     All methods block (hardware, disk, CPU) and are thread-safe.

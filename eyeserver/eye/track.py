@@ -3,7 +3,7 @@
 Live tracking (:mod:`eyeserver.service.tracking`) knows the last frame's pose. Between two
 camera frames (40 ms) the globe's centre moves by the head's drift, hundredths of a millimetre,
 and not at all when the eye turns (a globe turns about its own centre); its radius never
-changes. So the global search of :func:`~eyeserver.pipeline.eyepose.fit_eye` (voxel means,
+changes. So the global search of :func:`~eyeserver.eye.fit.fit_eye` (voxel means,
 normals, the Hough vote, the shell search) is not needed again:
 
 1. **Where to look** (:func:`eye_window`, :func:`pose_window`): the front of the globe and
@@ -12,8 +12,8 @@ normals, the Hough vote, the shell search) is not needed again:
    :data:`WINDOW_QUANTUM_PX` so that cropped cameras can be cached per window
    (:func:`~eyeserver.pipeline.reconstruct.cropped`).
 2. **With the images** (``views`` of :func:`track_eye`): the limbus found in them from the last
-   pose (:func:`~eyeserver.pipeline.limbus.find_limbus`) and the sphere of the held radius
-   through it that fits the sclera (:func:`~eyeserver.pipeline.limbus.globe_on_limbus`): the
+   pose (:func:`~eyeserver.eye.limbus.find_limbus`) and the sphere of the held radius
+   through it that fits the sclera (:func:`~eyeserver.eye.limbus.globe_on_limbus`): the
    global fit's own steps with images, only the search for a first globe skipped, so the
    tracked pose is the one a reference captured with the global fit is compared with.
    Where the limbus is not found and the lids cover the front of the last globe
@@ -27,16 +27,17 @@ normals, the Hough vote, the shell search) is not needed again:
    geometric fit of the sclera jointly with the concentric lid shell, the radius held at the
    last one. The sclera and the lids are told apart by which shell a point lies nearer
    (within half their gap), so the fit starts from a centre up to about half the gap off
-   (≈ 0.6 mm in the simulated room); without lids, from up to :data:`BAND_MM`. Then the bands
-   shrink as in :func:`~eyeserver.pipeline.eyepose.fit_eye`, whose refinement it shares.
-4. **The gaze** from the cloud alone: as :func:`~eyeserver.pipeline.eyepose.fit_eye` finds
+   (≈ 0.6 mm in the simulated room); without lids, from up to :data:`WARM_FIT_BAND_MM`. Then
+   the bands shrink as in :func:`~eyeserver.eye.fit.fit_eye`, whose refinement it shares.
+4. **The gaze** from the cloud alone: as :func:`~eyeserver.eye.fit.fit_eye` finds
    it (the edge circle, the widest empty cone, a corneal cap), from the same start (the mean
    direction of what lies around the globe), not from the last gaze: the empty cone's score
    has several optima, and a search from the last gaze settled on another one than the global
    fit's. The cone search is this path's largest cost. Measured: docs/notes/tracking.md.
 
 A cloud that leaves too few points near the last sphere raises
-:class:`~eyeserver.pipeline.eyepose.PoseError`: the caller falls back on the global fit.
+:class:`~eyeserver.eye.fit.PoseError`: the caller falls back on the global fit. The constants:
+:mod:`eyeserver.eye.tunables`.
 """
 
 from __future__ import annotations
@@ -48,9 +49,8 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
-from eyeserver.pipeline.eyepose import (
+from eyeserver.eye.fit import (
     LIMBUS_FROM_IMAGES,
-    MIN_SCLERA_POINTS,
     CloudLike,
     EyeModel,
     EyePose,
@@ -65,56 +65,30 @@ from eyeserver.pipeline.eyepose import (
     pose_from_cloud,
     pose_on_limbus,
 )
-from eyeserver.pipeline.geometry import project
-from eyeserver.pipeline.limbus import (
+from eyeserver.eye.limbus import (
     LimbusView,
     _basis,  # the limbus circle's frame, shared, not copied
 )
+from eyeserver.eye.tunables import (
+    FRONT_HALF_ANGLE_DEG,
+    LID_REACH_MM,
+    LIDS_COVER_SHARE,
+    LIMBUS_HALF_ANGLE_DEG,
+    MAX_LID_POINTS,
+    MIN_SCLERA_POINTS,
+    MOTION_MM,
+    PAD_PERIODS,
+    WARM_FIT_BAND_MM,
+    WARM_FIT_COARSE_BANDS_MM,
+    WARM_FIT_REFINE_BANDS_MM,
+    WINDOW_QUANTUM_PX,
+)
+from eyeserver.pipeline.geometry import project
 from eyeserver.pipeline.reconstruct import CalibratedCamera
 
-__all__ = ["BAND_MM", "WINDOW_QUANTUM_PX", "eye_window", "lids_closed", "pose_window",
-           "track_eye"]
+__all__ = ["eye_window", "lids_closed", "pose_window", "track_eye"]
 
 F64 = npt.NDArray[np.float64]
-
-BAND_MM = 1.5
-"""Points this far from the last sphere (or its lid shell) take part in the warm fit."""
-
-WINDOW_QUANTUM_PX = 32
-"""Windows are rounded out to multiples of this, so a still eye keeps one window."""
-
-LID_REACH_MM = 3.0
-"""The lids (or retractors) rest up to this far outside the globe (the outermost lid shell
-:func:`~eyeserver.pipeline.eyepose.fit_eye` accepts)."""
-
-FRONT_HALF_ANGLE_DEG = 50.0
-"""The window holds the cap of the lid shell within this angle of +Z: the limbus of a gaze up
-to ≈ 25° off +Z with the limbus search's margin around it, and the sclera and lids beside it.
-Measured on the simulated eye: poses from windows of 65°, 50°, 40° and 30° were the same (to
-the printed 0.001 mm and 0.0001), the reconstruction 57, 42, 26 and 18 ms; 50° keeps room for
-the gaze to turn and for the cloud-only fit's lid shell."""
-
-LIMBUS_HALF_ANGLE_DEG = 35.0
-"""Once the last frame's limbus was found in the images, the window holds the cap within this
-angle of its gaze: the limbus after a saccade the limbus search follows (≤ 12°) and a ring of
-sclera beside it, all the pose from the images needs. Measured on three rendered saccades of 8°
-(one unit, radius held): poses from 50° about +Z and 35° or 40° about the last gaze within
-0.0004 mm and 0.001° of each other, the reconstruction 38–43, 25–45 and 20–26 ms."""
-
-MOTION_MM = 1.5
-"""The window's allowance for the eye's motion since the last pose."""
-
-PAD_PERIODS = 1.5
-"""The window's padding in fringe periods: the band-pass corrupts a period at the border
-(masked), and the fringe order's check needs the other camera's view around each point."""
-
-LIDS_COVER_SHARE = 0.3
-"""The share of the ring's points (:func:`lids_closed`) that shut lids leave inside the limbus
-at least (as the areas go, ≈ 0.9 when they cover the disc whole)."""
-
-_REFINE_BANDS = (0.45, 0.3, 0.25, 0.2)  # fit_eye's, from a seed good to ≈ 0.5 mm
-_COARSE_BANDS = (BAND_MM, 1.0, 0.7)
-_MAX_LID_POINTS = 4000
 
 
 def eye_window(camera: CalibratedCamera, centre_mm: npt.ArrayLike, radius_mm: float, *,
@@ -205,14 +179,14 @@ def pose_window(camera: CalibratedCamera, pose: EyePose) -> tuple[int, int, int,
 
 def _seen_shells(points: F64, centre: F64, radius: float) -> tuple[float, float]:
     """The sclera's and the lids' shells as seen from the last centre: the innermost shell of
-    the radial histogram within :data:`BAND_MM` of the last radius (the lids rest on the globe,
-    so the innermost is the sclera, as :func:`~eyeserver.pipeline.eyepose.fit_eye` reads it),
+    the radial histogram within :data:`WARM_FIT_BAND_MM` of the last radius (the lids rest on
+    the globe, so the innermost is the sclera, as :func:`~eyeserver.eye.fit.fit_eye` reads it),
     and the strongest 0.6–3 mm outside that (NaN: no lids). A globe that moved shows its
     sclera a little off the last radius; the lids, about as far again outside."""
     shells = _radial_shells(points, np.ones(len(points)), centre,
-                            (radius - BAND_MM, radius + BAND_MM))
+                            (radius - WARM_FIT_BAND_MM, radius + WARM_FIT_BAND_MM))
     strongest = max((support for _, support in shells), default=0.0)
-    inner = [r for r, support in shells if abs(r - radius) <= BAND_MM
+    inner = [r for r, support in shells if abs(r - radius) <= WARM_FIT_BAND_MM
              and support >= max(MIN_SCLERA_POINTS, 0.1 * strongest)]
     sclera = min(inner, default=radius)
     outer = [(support, r) for r, support in shells
@@ -230,8 +204,7 @@ def lids_closed(points: F64, centre: F64, radius: float, gaze: F64, limbus_radiu
     side at most, nearer the old sphere than the lids). Shut lids cover it with their shell,
     0.6 mm to :data:`LID_REACH_MM` outside the globe, as densely as the ring of sclera or lids
     around it (2–12° outside the limbus): closed when that shell inside the disc holds at
-    least :data:`LIDS_COVER_SHARE` of the ring's points and
-    :data:`~eyeserver.pipeline.eyepose.MIN_SCLERA_POINTS`.
+    least :data:`LIDS_COVER_SHARE` of the ring's points and :data:`MIN_SCLERA_POINTS`.
     """
     rel = points - centre
     dist = np.linalg.norm(rel, axis=1)
@@ -268,7 +241,7 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
         the whole image's or a window's around the eye. A cloud with a ``pixels_per_point``
         (a decimated reconstruction's, :class:`~eyeserver.service.tracking.TrackedCloud`) has
         its sclera counted in image pixels for the confidence, as the whole images' fit counts
-        it (``pixels_per_point`` of :func:`~eyeserver.pipeline.eyepose.pose_on_limbus`).
+        it (``pixels_per_point`` of :func:`~eyeserver.eye.fit.pose_on_limbus`).
     model : EyeModel
         The patient's model: a fixed ``globe_radius_mm`` is held, and the limbus diameter
         places the limbus centre.
@@ -278,14 +251,14 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
     views : sequence of LimbusView
         The fringe images the cloud came from (or their windows around the eye), with their
         cameras: the limbus is found in them from the last pose
-        (:func:`~eyeserver.pipeline.limbus.find_limbus`) and sets the gaze and, with the
-        sclera, the globe, as :func:`~eyeserver.pipeline.eyepose.fit_eye` does with images;
+        (:func:`~eyeserver.eye.limbus.find_limbus`) and sets the gaze and, with the
+        sclera, the globe, as :func:`~eyeserver.eye.fit.fit_eye` does with images;
         where it is not found the cloud's own estimate stands.
 
     Returns
     -------
     EyePose
-        As :func:`~eyeserver.pipeline.eyepose.fit_eye` gives it, the radius the previous one.
+        As :func:`~eyeserver.eye.fit.fit_eye` gives it, the radius the previous one.
 
     Raises
     ------
@@ -302,7 +275,8 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
                    else previous.globe_radius_mm)
     # Only what lies around the last globe matters from here on (sclera, lids, cornea).
     dist = np.linalg.norm(points - centre, axis=1)
-    near = (dist > radius - BAND_MM) & (dist < radius + LID_REACH_MM + BAND_MM)
+    near = ((dist > radius - WARM_FIT_BAND_MM)
+            & (dist < radius + LID_REACH_MM + WARM_FIT_BAND_MM))
     points, weights = points[near], weights[near]
     if len(points) < MIN_SCLERA_POINTS:
         raise PoseError(f"eye lost: only {len(points)} points near the last globe")
@@ -330,7 +304,8 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
     # where the fit put them. Without lids the sclera alone is searched in wider bands; with
     # them, a wide band would take in the face around the lids and drag their shell outwards.
     with_lids = math.isfinite(lid_radius)
-    bands = (0.45, *_REFINE_BANDS) if with_lids else (*_COARSE_BANDS, *_REFINE_BANDS)
+    bands = ((0.45, *WARM_FIT_REFINE_BANDS_MM) if with_lids
+             else (*WARM_FIT_COARSE_BANDS_MM, *WARM_FIT_REFINE_BANDS_MM))
     for index, band in enumerate(bands):
         on_globe, on_lids = _shells(points, centre, seen_radius if index == 0 else radius,
                                     lid_radius, band)
@@ -338,7 +313,7 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
             raise PoseError(f"eye lost: only {int(on_globe.sum())} points on the last globe")
         # The lid shell only pins the depth: a fixed subsample of its points (weighted up)
         # does that as well; the sclera (a few thousand points) is always kept whole.
-        stride = -(-int(on_lids.sum()) // _MAX_LID_POINTS) or 1
+        stride = -(-int(on_lids.sum()) // MAX_LID_POINTS) or 1
         lid_index = np.flatnonzero(on_lids)[::stride]
         lid_scale = float(stride)
         centre, _, lid_radius, cov, resid, inliers = _refine_globe(

@@ -2,7 +2,7 @@
 limbus (docs/design.md §4 step 8).
 
 Why. The globe's depth behind the limbus is ill-conditioned: a radial error of the sclera is
-amplified 3–8 times into the centre (:func:`~eyeserver.pipeline.limbus.globe_on_limbus`). The
+amplified 3–8 times into the centre (:func:`~eyeserver.eye.limbus.globe_on_limbus`). The
 band-limited Fourier demodulation blends each pixel's phase with its neighbours' over about a
 fringe period, and the visible sclera is a band only a few periods wide between the dark
 cornea and the lids, most of it within a period of where its fringe field ends: the
@@ -34,10 +34,11 @@ edge would.
 :func:`globe_and_gaze` then fits the globe to the remeasured points together with the limbus:
 centre ``L' − h·g'`` with ``g'`` the limbus normal tilted and ``L'`` its centre shifted, each held
 to the limbus's measurement within its uncertainty. The sclera counts as a whole, good to
-:data:`SCLERA_BIAS_MM`, so it moves the gaze only where it says so more precisely than the limbus
-does. :func:`refit` runs :data:`PASSES` passes of the three, each about the last one's globe. It
-costs ≈ 0.3 s a fit; live tracking (radius held) leaves it out. What each step gained, how the
-windows and margins were chosen, and what is left: docs/notes/sclera.md.
+:data:`REMEASURED_SCLERA_BIAS_MM`, so it moves the gaze only where it says so more precisely than
+the limbus does. :func:`refit` runs :data:`PASSES` passes of the three, each about the last one's
+globe. It costs ≈ 0.3 s a fit; live tracking (radius held) leaves it out. What each step gained,
+how the windows and margins were chosen, and what is left: docs/notes/sclera.md. The constants:
+:mod:`eyeserver.eye.tunables`.
 """
 
 from __future__ import annotations
@@ -53,8 +54,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
-from eyeserver.pipeline.geometry import project, rays_from_normalised, undistorted_normalised
-from eyeserver.pipeline.limbus import (
+from eyeserver.eye.limbus import (
     Limbus,
     LimbusNotFoundError,
     LimbusView,
@@ -62,71 +62,29 @@ from eyeserver.pipeline.limbus import (
     circle_points,
     refined,
 )
+from eyeserver.eye.tunables import (
+    IN_FRONT_MM,
+    LIMBUS_MARGIN_MM,
+    MAX_OFFSET_RAD,
+    MAX_PHASE_SD_RAD,
+    MIN_AMPLITUDE,
+    MIN_ILLUMINATION,
+    MIN_REMEASURED_POINTS,
+    MIN_SHARE,
+    NEAR_MM,
+    OUTSIDE_MM,
+    PASSES,
+    REMEASURED_SCLERA_BIAS_MM,
+    ROBUST_MM,
+    ROUNDS,
+    WINDOW_PX,
+)
+from eyeserver.pipeline.geometry import project, rays_from_normalised, undistorted_normalised
 from eyeserver.pipeline.reconstruct import CalibratedCamera
 
 __all__ = ["GlobeFit", "globe_and_gaze", "refit", "remeasured", "sharpened"]
 
 F64 = npt.NDArray[np.float64]
-
-WINDOW_PX = 9
-"""Side of the square of pixels one phase offset is fitted over (≈ 0.7 fringe period on the
-default rig); only the sclera's pixels in it count."""
-
-MIN_SHARE = 0.4
-"""A window needs this share of its pixels on the sclera for a fit."""
-
-MAX_OFFSET_RAD = 0.6
-"""Pixels whose phase lies further than this from the sphere's are not its sclera (a lid in
-front of it from this camera: the lids lie ≈ 1.2 mm, ≈ 1.4 rad, outside)."""
-
-MAX_PHASE_SD_RAD = 0.04
-"""Windows whose phase is less sure than this are left out (faint fringes: the sclera at
-grazing light or in a lid's half-shadow, where the noise also biases ``atan2``; the sclera's
-in full light is good to ≈ 0.01 rad)."""
-
-MIN_AMPLITUDE = 0.8
-"""Pixels whose fringe amplitude (their window's, fitted over the pixels kept) is below this
-share of the camera's median over the sclera are left out: light at grazing incidence and the
-edges of the shadows that the lids and the cornea cast, where a window's phase is biased (the
-light changes steeply across it, or ends inside it; measured: docs/notes/sclera.md)."""
-
-NEAR_MM = 0.5
-"""A pixel sees the sclera where its ray meets the sphere this close to a sclera point of the
-cloud (any camera's). Where the visible sclera is a narrow band, the cloud's is patchy, and a
-globe's depth rests on how far out the sclera is seen (0.2 mm did worse: docs/notes/sclera.md).
-Pixels that see a lid, not the sphere, are still left out by their phase
-(:data:`MAX_OFFSET_RAD`)."""
-
-ROUNDS = 2
-"""Fits of the offsets, each about the last one's phase."""
-
-SCLERA_BIAS_MM = 0.01
-"""The remeasured sclera's systematic radial error in one capture (mm): what the sclera as a
-whole is trusted to. Chosen on 36 rendered poses so that the stated sds cover the errors without
-letting the limbus hold the gaze too firmly (docs/notes/sclera.md)."""
-
-MIN_POINTS = 30
-"""Fewest remeasured points a globe is fitted to."""
-
-ROBUST_MM = 0.05
-"""Scale of the soft-L1 loss on the points' distances to the globe."""
-
-PASSES = 2
-"""Remeasure-and-fit passes, each about the last pass's globe."""
-
-OUTSIDE_MM = 0.4
-"""Points of the cloud this far outside the sphere are not its sclera: they can hide it."""
-
-IN_FRONT_MM = 0.25
-"""A pixel whose ray meets a point of the cloud this much before the sphere does not see the
-sphere (a lid in front of it)."""
-
-LIMBUS_MARGIN_MM = 0.05
-"""Sclera pixels closer than this to the limbus's plane are not fitted for the illumination
-(the edge's blur)."""
-
-MIN_ILLUMINATION = 0.25
-"""The illumination divided out is at least this share of the sclera's median background."""
 
 
 def remeasured(views: Sequence[LimbusView], centre: F64, radius: float, sclera: F64,
@@ -165,7 +123,7 @@ def _camera_points(view: LimbusView, centre: F64, radius: float, tree: cKDTree,
     cam = view.camera
     uv = project(np.asarray(tree.data, dtype=np.float64), cam.K, cam.dist, cam.R, cam.T)
     seen = np.all(np.isfinite(uv), axis=1)
-    if seen.sum() < MIN_POINTS:
+    if seen.sum() < MIN_REMEASURED_POINTS:
         return np.empty((0, 3))
     window = _window_about(cam, uv[seen], WINDOW_PX)
     if window is None:
@@ -175,12 +133,12 @@ def _camera_points(view: LimbusView, centre: F64, radius: float, tree: cKDTree,
     if pixels.seen.any():
         distance, _ = tree.query(pixels.on_sphere[pixels.seen], distance_upper_bound=NEAR_MM)
         near[pixels.seen] = np.isfinite(distance)
-    if near.sum() < MIN_POINTS:
+    if near.sum() < MIN_REMEASURED_POINTS:
         return np.empty((0, 3))
     dphi = np.where(near, pixels.dphi, 0.0)
     offset, mask = _offsets(pixels.crop(view.image), dphi + pixels.reference,
                             near & np.isfinite(dphi))
-    if mask.sum() < MIN_POINTS:
+    if mask.sum() < MIN_REMEASURED_POINTS:
         return np.empty((0, 3))
     z = cam.model.height(pixels.x[mask], pixels.y[mask], dphi[mask] + offset[mask])
     ray = pixels.rays[mask]
@@ -235,7 +193,7 @@ class _SpherePixels:
 
 def sharpened(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: float,
               cloud: F64 | None = None, cornea_radius: float | None = None) -> Limbus:
-    """The limbus found again (its last round of edges, :func:`~eyeserver.pipeline.limbus.
+    """The limbus found again (its last round of edges, :func:`~eyeserver.eye.limbus.
     refined`) in images whose fringe is divided out: in each camera, ``I / (a + p·cos ψ +
     q·sin ψ)`` with ``ψ`` the phase the globe hypothesis (``centre``, ``radius``) predicts and
     ``a, p, q`` fitted over :data:`WINDOW_PX` squares of the sclera beyond the
@@ -431,7 +389,7 @@ class GlobeFit:
 
 Surface = Callable[[F64, F64, F64], F64]
 """Distances (mm, + outside) of points from a held globe's surface given its centre and gaze:
-an ellipsoidal globe's (``eyepose``), where a sphere's would not fit its sclera."""
+an ellipsoidal globe's (:mod:`~eyeserver.eye.fit`), where a sphere's would not fit its sclera."""
 
 
 def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: float | None,
@@ -443,8 +401,8 @@ def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: floa
     tilts of the gaze and three shifts of the limbus centre. The points' distances
     to the sphere are soft-L1 robust at :data:`ROBUST_MM` (lids and speckle off the sphere
     count little) and weighed so that together they say what one measurement good to
-    :data:`SCLERA_BIAS_MM` says; the tilts and shifts are held to 0 by the limbus's per-axis
-    uncertainties. ``surface``, with a ``fixed_radius``: the points' distances from the
+    :data:`REMEASURED_SCLERA_BIAS_MM` says; the tilts and shifts are held to 0 by the limbus's
+    per-axis uncertainties. ``surface``, with a ``fixed_radius``: the points' distances from the
     patient's own globe in place of the sphere's.
     """
     pts = np.asarray(points, dtype=np.float64)
@@ -456,7 +414,7 @@ def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: floa
     e2 = np.cross(g, e1)
     tilt_sd = max(math.radians(limbus.gaze_sd_deg) / math.sqrt(2.0), 1e-6)
     shift_sd = max(limbus.centre_sd_mm / math.sqrt(3.0), 1e-6)
-    weight = 1.0 / (SCLERA_BIAS_MM * math.sqrt(len(pts)))
+    weight = 1.0 / (REMEASURED_SCLERA_BIAS_MM * math.sqrt(len(pts)))
     if fixed_radius is not None:
         depth = math.sqrt(max(fixed_radius**2 - r**2, 1.0))
 
@@ -509,7 +467,7 @@ def refit(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: floa
           cornea_radius: float | None = None, surface: Surface | None = None
           ) -> GlobeFit | None:
     """The globe and gaze from the sclera remeasured about the globe ``centre``, ``radius``
-    (:func:`~eyeserver.pipeline.limbus.globe_on_limbus`'s, whose ``sclera`` points say where
+    (:func:`~eyeserver.eye.limbus.globe_on_limbus`'s, whose ``sclera`` points say where
     it is seen; ``cloud`` what may hide it, see :func:`remeasured`) and the limbus found again
     about it (:func:`sharpened`, with the cornea's shadow where ``cornea_radius`` is given), in
     :data:`PASSES` passes; None where too little sclera is remeasured. ``surface`` as
@@ -520,7 +478,7 @@ def refit(views: Sequence[LimbusView], limbus: Limbus, centre: F64, radius: floa
         # What hides the sphere depends on the sphere: made once a pass, for both steps.
         occluders = _occluders(cloud, centre, radius)
         points = _remeasured(views, centre, radius, tree, occluders)
-        if len(points) < MIN_POINTS:
+        if len(points) < MIN_REMEASURED_POINTS:
             return fit
         limbus = _sharpened(views, limbus, centre, radius, occluders, cornea_radius)
         depth = math.sqrt(max(radius**2 - limbus.radius**2, 1.0))

@@ -29,15 +29,16 @@ fringe period outside it, lopsided.
 5. **Globe.** ``C = L − h·g``, ``R = √(h² + r²)``: one number ``h``, which the cloud's sclera
    gives (:func:`globe_on_limbus`), clear of the lids and the limbus (the band blends surfaces
    across depth steps). Its systematic error, amplified 3–8 times into ``h``, sets the depth's
-   stated uncertainty (:data:`SCLERA_BIAS_MM`).
+   stated uncertainty (:data:`CLOUD_SCLERA_BIAS_MM`).
 6. **Again.** A pose measurement measures the sclera again from its own fringes and finds the
    limbus again (:func:`refined`) with the sclera's illumination divided out
-   (:mod:`eyeserver.pipeline.sclera`), leaving out the edges where the cornea keeps the
+   (:mod:`eyeserver.eye.sclera`), leaving out the edges where the cornea keeps the
    camera's projector's light off the sclera just beyond the limbus (:func:`in_cornea_shadow`:
    the edge found there moves outwards). Live tracking, its radius held, keeps step 5's globe.
 
 Not modelled: a pupil or iris pattern inside the limbus (its edges would be taken for the limbus)
-and corneal refraction. Measured, and the variants not used: docs/notes/limbus.md.
+and corneal refraction. Measured, and the variants not used: docs/notes/limbus.md. The
+constants: :mod:`eyeserver.eye.tunables`.
 """
 
 from __future__ import annotations
@@ -54,82 +55,42 @@ import numpy.typing as npt
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from eyeserver.eye.tunables import (
+    CIRCLE_ITERATIONS,
+    CIRCLE_STEPS,
+    CIRCLE_X_SCALE,
+    CIRCLE_XTOL,
+    CLOUD_SCLERA_BIAS_MM,
+    DARK_SHARE,
+    EDGE_SHARE,
+    FOLLOWED_TURN_DEG,
+    GLOBE_DEPTHS_MM,
+    GOOD_RESIDUAL_PX,
+    LID_CLEARANCE_MM,
+    LIMBUS_CLEARANCE_MM,
+    LIMBUS_WINDOW_MARGIN_PX,
+    MAX_RESIDUAL_PX,
+    MIN_COVERAGE,
+    MIN_EDGE_DN_PER_PX,
+    MIN_SCLERA_POINTS,
+    OVAL_CORNEA_MM,
+    OVAL_RATIOS,
+    REACHES_PX,
+    SAMPLES,
+    SHADOW_PROBE_MM,
+    SHELL_SEARCH_MM,
+    START_TILTS_DEG,
+)
 from eyeserver.pipeline.demodulate import demodulate
 from eyeserver.pipeline.geometry import project
 from eyeserver.pipeline.reconstruct import CalibratedCamera, Phase
 
 __all__ = ["Globe", "Limbus", "LimbusNotFoundError", "LimbusView", "Shade", "circle_points",
-           "find_limbus", "fringe_free", "globe_on_limbus", "in_cornea_shadow", "refined"]
+           "find_limbus", "fringe_free", "fringe_removed", "globe_on_limbus", "in_cornea_shadow",
+           "refined"]
 
 F64 = npt.NDArray[np.float64]
 F32 = npt.NDArray[np.float32]
-
-SAMPLES = 120
-"""Points of the projected circle where an edge is looked for, per camera."""
-
-EDGE_SHARE = 0.4
-"""An edge counts when it rises at least this share of the profile's strongest rise."""
-
-MIN_EDGE_DN_PER_PX = 2.0
-"""And by at least this much (DN per pixel): flatter profiles hold no edge."""
-
-REACHES_PX = (20.0, 8.0, 4.0)
-"""Half-widths of the edge search, round by round."""
-
-MIN_COVERAGE = 0.4
-"""Share of the circle's samples that must hold an edge, in at least two cameras."""
-
-MAX_RESIDUAL_PX = 1.0
-"""A fit whose median edge distance exceeds this is not the limbus."""
-
-GOOD_RESIDUAL_PX = 0.5
-"""One within this needs no second start (measured: 0.1–0.2 px on the limbus, ≈ 1 px on a
-circle stuck on a lid or shadow edge)."""
-
-LID_CLEARANCE_MM = 1.0
-"""Sclera points closer than this to the lid shell are left out of the globe's fit."""
-
-LIMBUS_CLEARANCE_MM = 1.5
-"""And so are those closer than this to the limbus."""
-
-GLOBE_DEPTHS_MM = (6.0, 17.0)
-"""Distances from the globe centre to the limbus plane considered when the radius is fitted
-(globes of ≈ 8–18 mm with a 11.7 mm limbus)."""
-
-MIN_SCLERA_POINTS = 30
-"""Fewest sclera points the globe is placed on."""
-
-SCLERA_BIAS_MM = 0.02
-"""The reconstructed sclera's systematic radial error in one capture (mm): the spread, over
-150 rendered poses, of the sclera's mean distance from the true globe (each point weighted as
-it weighs in ``h``; 0.018 mm on 200 others). It does not average over the points: it sets the
-floor of the globe depth's uncertainty (:func:`globe_on_limbus`)."""
-
-SHELL_SEARCH_MM = 2.0
-"""How far beyond the first votes for ``h`` the sclera's shell is looked for."""
-
-DARK_SHARE = 0.35
-"""Fringe-free intensity below this share of the image's bright level counts as dark (the
-cornea returns ≈ 0.06 of the white plate's light, sclera and skin 0.4–0.5)."""
-
-_WINDOW_MARGIN_PX = 40
-_TILTS_DEG = (0.0, 6.0, 12.0, 18.0, 24.0, 30.0)
-
-SHADOW_PROBE_MM = 0.01
-"""How far beyond the limbus, along the globe, the sclera is tested for the cornea's shadow
-(:func:`refined` with a :class:`Shade`): ≈ 0.1 px on the default rig."""
-
-OVAL_CORNEA_MM = 7.8
-"""Radius of the cornea whose sagitta lifts the visible oval's top and bottom (on the cornea,
-inside the junction's radius) in front of the junction's plane."""
-
-OVAL_RATIOS = (0.7, 1.15)
-"""Heights over widths an oval fit may end at; beyond them the edges fit no limbus."""
-
-FOLLOWED_TURN_DEG = 1.0
-"""Live tracking takes the limbus that the last round alone finds from the last gaze only when
-it turned the gaze by no more than this (a frame at 25 Hz turns it by hundredths of a degree
-but in a saccade); else the search scores tilted circles first (:func:`find_limbus`)."""
 
 
 class LimbusNotFoundError(ValueError):
@@ -246,8 +207,8 @@ def _window(view: LimbusView, centre: F64, radius: float) -> tuple[int, int, int
     corners = centre + radius * np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1)
                                           for sz in (-1, 1)], dtype=np.float64)
     uv = project(corners, camera.K, camera.dist, camera.R, camera.T)
-    x0, y0 = np.floor(uv.min(axis=0)).astype(int) - _WINDOW_MARGIN_PX
-    x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + _WINDOW_MARGIN_PX
+    x0, y0 = np.floor(uv.min(axis=0)).astype(int) - LIMBUS_WINDOW_MARGIN_PX
+    x1, y1 = np.ceil(uv.max(axis=0)).astype(int) + LIMBUS_WINDOW_MARGIN_PX
     x0, y0, x1, y1 = max(0, x0), max(0, y0), min(width, x1), min(height, y1)
     if x1 - x0 < 32 or y1 - y0 < 32:
         raise LimbusNotFoundError(f"camera {camera.camera_id} does not see the eye")
@@ -347,7 +308,7 @@ def _circles(centres: F64, normals: F64, radius: float | F64, angles: F64,
 
 
 def _start(images: Sequence[_Image], pivot: F64, arm: float, gaze: F64, radius: float,
-           tilts_deg: Sequence[float] = _TILTS_DEG) -> tuple[float, F64]:
+           tilts_deg: Sequence[float] = START_TILTS_DEG) -> tuple[float, F64]:
     """Among circles tilted by ``tilts_deg`` about ``gaze`` (centred at ``pivot + arm·g`` for a
     gaze ``g``), the one whose outline steps up most (the mean over the cameras of the median
     outward intensity step across it): ``(score, g)``."""
@@ -442,11 +403,6 @@ def _gaze(params: F64) -> F64:
     return np.stack([gx, gy, np.sqrt(np.maximum(1e-9, 1.0 - gx * gx - gy * gy))], axis=-1)
 
 
-_STEPS = np.array([1e-6, 1e-6, 1e-6, 1e-7, 1e-7, 1e-6, 1e-7])
-"""Forward-difference steps of the circle's parameters (mm, gaze components, mm; an oval's
-height ratio)."""
-
-
 @dataclass(frozen=True)
 class _Circle:
     """A fitted circle's parameters ``x`` (centre, gaze X and Y, radius), its residuals (px)
@@ -457,13 +413,6 @@ class _Circle:
     fun: F64
     jac: F64
 
-
-_CIRCLE_X_SCALE = np.array([0.1, 0.1, 0.1, 0.01, 0.01, 0.1, 0.01])
-"""Typical changes of the circle's parameters; a fit stops when its steps fall below
-:data:`_CIRCLE_XTOL` of them."""
-
-_CIRCLE_XTOL = 1e-4
-_CIRCLE_ITERATIONS = 30
 
 
 def _cauchy_cost(residuals: F64) -> float:
@@ -514,7 +463,7 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
     """
     rows = _circle_residuals(images, edges, centre, normal, radius, ratio)
     size = 7 if fit_ratio else 6
-    steps, x_scale = _STEPS[:size], _CIRCLE_X_SCALE[:size]
+    steps, x_scale = CIRCLE_STEPS[:size], CIRCLE_X_SCALE[:size]
 
     def evaluate(params: F64) -> tuple[F64, F64]:
         """Residuals ``(N,)`` at ``params`` and their forward-difference Jacobian ``(N, 6)``
@@ -526,7 +475,7 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
     residuals, jac = evaluate(x)
     cost = _cauchy_cost(residuals)
     damping = 1e-3
-    for _ in range(_CIRCLE_ITERATIONS):
+    for _ in range(CIRCLE_ITERATIONS):
         weights = 1.0 / (1.0 + residuals * residuals)
         hessian = jac.T @ (weights[:, None] * jac)
         gradient = jac.T @ (weights * residuals)
@@ -541,7 +490,7 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
         if trial_cost <= cost:
             x, residuals, jac, cost = trial, trial_residuals, trial_jac, trial_cost
             damping = max(damping / 10.0, 1e-9)
-            if np.all(np.abs(step) < _CIRCLE_XTOL * x_scale):
+            if np.all(np.abs(step) < CIRCLE_XTOL * x_scale):
                 break
         else:
             damping *= 10.0
@@ -657,9 +606,9 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
             found.append(limbus)
     if len(images) >= 2:
         # From the last frame's pose, the eye turned by a saccade at most.
-        tilts = _TILTS_DEG if search else _TILTS_DEG[:3]
+        tilts = START_TILTS_DEG if search else START_TILTS_DEG[:3]
         starts = [gaze0]
-        if search and gaze0[2] < math.cos(math.radians(_TILTS_DEG[1])):
+        if search and gaze0[2] < math.cos(math.radians(START_TILTS_DEG[1])):
             # A rough gaze from the cloud alone can be 40° off (one unit's view of the eye):
             # the limbus is also looked for about the cameras' side, where the eye looks.
             starts.append(np.array([0.0, 0.0, 1.0]))
@@ -719,7 +668,7 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
 def refined(views: Sequence[LimbusView], limbus: Limbus, shade: Shade | None = None) -> Limbus:
     """The last round of edges and circle (module steps 3 and 4) again, from ``limbus``: for
     views whose :attr:`~LimbusView.flat` was made with a better fringe removal
-    (:func:`~eyeserver.pipeline.sclera.sharpened`). With ``shade``, the edges where the cornea
+    (:func:`~eyeserver.eye.sclera.sharpened`). With ``shade``, the edges where the cornea
     shadows the sclera beyond the limbus from the camera's projector are left out (module step
     6; cameras whose calibration gives no light direction keep theirs).
 
@@ -855,7 +804,8 @@ def _fitted_depth(sclera: F64, limbus: Limbus, start: float) -> tuple[float, flo
     # The sclera shifted by b moves h by b·Σslope/Σslope² (the bias's gain, 3–8.5 on the
     # simulated eye); the points' own noise averages away, that bias does not.
     gain = abs(float(slope.sum())) / information
-    return float(fit.x[0]), math.hypot(sigma / math.sqrt(information), gain * SCLERA_BIAS_MM)
+    return float(fit.x[0]), math.hypot(sigma / math.sqrt(information),
+                                       gain * CLOUD_SCLERA_BIAS_MM)
 
 
 def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float | None = None
@@ -882,9 +832,10 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
     sphere by only (cos θ − cos θ_limbus) ≈ −0.2 per millimetre of ``h`` over the visible
     band (θ ≈ 40–65°), so a radial bias of the reconstructed sclera is amplified about four
     times into the radius, and about five times into the centre along the gaze. What is left
-    of that bias, per pose, sets the depth's stated uncertainty (:data:`SCLERA_BIAS_MM`). The
-    gaze's tilt is the limbus's, not fitted to the sclera, whose own bias would pull it further
-    off than the limbus is. Measured: docs/notes/limbus.md.
+    of that bias, per pose, sets the depth's stated uncertainty
+    (:data:`CLOUD_SCLERA_BIAS_MM`). The gaze's tilt is the limbus's, not fitted to the sclera,
+    whose own bias would pull it further off than the limbus is. Measured:
+    docs/notes/limbus.md.
     """
     cloud = np.asarray(points, dtype=np.float64)
     L, g, r = limbus.centre, limbus.normal, limbus.radius

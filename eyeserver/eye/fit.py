@@ -21,16 +21,17 @@ that is spherical: the lids are shells in front of it. So:
    combined with it by inverse variance. The limbus centre lies on that axis at the model's
    limbus depth √(R² − (D/2)²). Gaze is +Z when the eye looks at the beam source
    (docs/design.md §2).
-4. **The limbus in the images** (``views``): found by :mod:`eyeserver.pipeline.limbus` from the
+4. **The limbus in the images** (``views``): found by :mod:`eyeserver.eye.limbus` from the
    rough pose, it sets the gaze and the limbus centre; the globe is the sphere through it that
    the sclera lies on (:func:`pose_on_limbus`), the sclera measured again from its own fringes
-   and the globe fitted with the limbus (:mod:`eyeserver.pipeline.sclera`). Its accuracy:
+   and the globe fitted with the limbus (:mod:`eyeserver.eye.sclera`). Its accuracy:
    docs/benchmarks.md ("Eye pose"). Without images, or where no limbus is found, the pose of
    steps 2–3 stands (``gaze_source`` says which; with images that showed no limbus, at a
    confidence scaled by :data:`UNSEEN_LIMBUS`).
 
 Torsion is invisible to the surface of a sphere with a round limbus (docs/design.md §4 step 8):
-reported as None. The cloud-only gaze's measured error: docs/notes/limbus.md.
+reported as None. The cloud-only gaze's measured error: docs/notes/limbus.md. The constants:
+:mod:`eyeserver.eye.tunables`.
 
 References
 ----------
@@ -54,8 +55,28 @@ from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
 from eyeserver.errors import EyeserverError
-from eyeserver.pipeline.limbus import LimbusNotFoundError, LimbusView, find_limbus, globe_on_limbus
-from eyeserver.pipeline.sclera import refit
+from eyeserver.eye.limbus import LimbusNotFoundError, LimbusView, find_limbus, globe_on_limbus
+from eyeserver.eye.sclera import refit
+from eyeserver.eye.tunables import (
+    BOUNDARY_SECTORS,
+    CONE_POINTS,
+    EDGE_IS_LIMBUS_MM,
+    IMPLAUSIBLE_RADIUS,
+    LID_REACH_MM,
+    MIN_SCLERA_POINTS,
+    MSAC_HYPOTHESES,
+    MSAC_LOCAL_MM,
+    NO_GLOBE_FACTOR,
+    NORMAL_REACH_MM,
+    OVAL_LIMBUS,
+    SHAPE_SD_MM,
+    SHELL_BAND_MM,
+    UNSEEN_LIMBUS,
+    VOTED_CENTRE_MM,
+    VOXEL_MM,
+    WELL_SEEN_LIMBUS_POINTS,
+    WELL_SEEN_POINTS,
+)
 
 __all__ = ["CloudLike", "EyeModel", "EyePose", "Gaze", "PoseError", "checked_cloud", "cloud_gaze",
            "fit_eye", "fit_sphere", "pose_from_cloud", "pose_on_limbus", "radius_bounds"]
@@ -166,9 +187,9 @@ class EyePose:
     """One standard deviation per WCS axis. Like ``limbus_sd_mm`` and ``gaze_sd_deg`` (a tilt's
     in two axes at once) it counts what no number of points averages away: edges and points
     within a fringe period share their error, and the sclera as a whole is trusted only to its
-    systematic error from capture to capture (:data:`~eyeserver.pipeline.sclera.
-    SCLERA_BIAS_MM` for the sclera remeasured in the images,
-    :data:`~eyeserver.pipeline.limbus.SCLERA_BIAS_MM` for the cloud's while tracking), which
+    systematic error from capture to capture (:data:`~eyeserver.eye.tunables.
+    REMEASURED_SCLERA_BIAS_MM` for the sclera remeasured in the images,
+    :data:`~eyeserver.eye.tunables.CLOUD_SCLERA_BIAS_MM` for the cloud's while tracking), which
     moves a fitted globe's depth (``eyeserver bench pose`` reports how often the errors lie
     within one and two). A pose from the cloud alone (``gaze_source`` other than
     ``"limbus (images)"``) still counts its points as independent: its sds are too small."""
@@ -226,56 +247,8 @@ class EyePose:
 
 F64 = npt.NDArray[np.float64]
 
-MIN_SCLERA_POINTS = 30
-"""Fewest points a globe fit is attempted on (fewer: :class:`PoseError`)."""
-
-OVAL_LIMBUS = True
-"""The one-shot fit finds the limbus as an oval (:func:`~eyeserver.pipeline.limbus.find_limbus`
-``oval``); live tracking follows a circle."""
-
-SHAPE_SD_MM = 0.65
-"""The globe centre's sd along the gaze (mm) where the model gives no globe shape (population
-defaults, or a sphere): real globes are ellipsoids whose semi-axes differ from their mean by
-up to ±0.5 mm each (docs/eye-model.md), and the sphere fitted through the limbus to one's
-visible sclera puts the centre 1.5 times the axial semi-axis's difference from the others off
-along the gaze: 0.62–0.72 mm sd for 11–13-mm globes (geometry alone, no rendering;
-docs/notes/patient-eye.md)."""
-
-WELL_SEEN_POINTS = 300
-"""Sclera points at which the confidence's point term reaches 1 − 1/e."""
-
-WELL_SEEN_LIMBUS_POINTS = 100
-"""The same when the limbus comes from the images: the sclera then only sets one number, the
-globe's depth behind the limbus, from the points clear of lids and limbus."""
-
-IMPLAUSIBLE_RADIUS = 0.3
-"""Scales the confidence of a pose whose globe radius lies outside the model's bounds
-(:func:`radius_bounds`): below the 0.5 that fails a verification."""
-
-NO_GLOBE_FACTOR = 2.0
-"""A globe whose fitted radius lies more than this factor outside the model's bounds
-(:func:`radius_bounds`) is no fit at all: refused (:class:`PoseError`) rather than reported at a
-low confidence. Measured: one patient eye of 60 (`eyeserver bench pose --poses 60`, a soft
-limbus) gave a globe of 68 km at confidence 0.02."""
-
-UNSEEN_LIMBUS = 0.3
-"""Scales the confidence of a pose from the cloud alone when the images were there and showed
-no limbus (lids shut, the eye turned away or hidden): below the 0.5 that fails a verification
-and holds the beam. Measured: shut lids on the simulated eye gave such a pose 1.3 mm and
-40–50° off with confidence up to 0.97 (the lids taken for the globe, their slit for the
-limbus); the cloud's gaze is ≈ 5° off at best (4.8° median, p95 13° on 24 poses)."""
-
 LIMBUS_FROM_IMAGES = "limbus (images)"
 """The ``gaze_source`` of a pose whose limbus was found in the fringe images."""
-
-_VOXEL_MM = 0.5
-_LOCAL_MM = 6.0
-_HYPOTHESES = 400
-_BAND_MM = 0.25
-_SECTORS = 36
-_NORMAL_MM = 1.6
-_CONE_POINTS = 1500
-_EDGE_IS_LIMBUS_MM = 0.5
 
 
 def fit_sphere(points: npt.ArrayLike) -> tuple[F64, float]:
@@ -342,7 +315,7 @@ def _shell_score(voxels: F64, counts: F64, centres: F64, radii: F64) -> F64:
     for start in range(0, len(centres), 64):
         dist = np.abs(np.linalg.norm(voxels[None] - centres[start:start + 64, None], axis=2)
                       - radii[start:start + 64, None])
-        score[start:start + 64] = (dist < _BAND_MM) @ counts
+        score[start:start + 64] = (dist < SHELL_BAND_MM) @ counts
     return score
 
 
@@ -354,7 +327,7 @@ def _normals(voxels: F64) -> tuple[F64, npt.NDArray[np.bool_]]:
     ≈ 1 s on a 20 k-voxel cloud.
     """
     tree = cKDTree(voxels)
-    neighbours = tree.query_ball_point(voxels, _NORMAL_MM, return_sorted=False)
+    neighbours = tree.query_ball_point(voxels, NORMAL_REACH_MM, return_sorted=False)
     sizes = np.fromiter((len(m) for m in neighbours), dtype=np.intp, count=len(voxels))
     normals = np.zeros_like(voxels)
     valid = sizes >= 8
@@ -400,10 +373,6 @@ def _hough_centre(voxels: F64, counts: F64, normals: F64, r_lo: float, r_hi: flo
     return centre
 
 
-_VOTED_CENTRE_MM = 0.5
-"""How far :func:`_hough_centre`'s centre may lie from the globe's (it is refined later)."""
-
-
 def _radial_shells(voxels: F64, counts: F64, centre: F64, r_bounds: tuple[float, float],
                    ) -> list[tuple[float, float]]:
     """``(radius, support)`` of the shells around ``centre``: peaks of the radial histogram."""
@@ -424,7 +393,7 @@ def _globe_candidates(points: F64, r_bounds: tuple[float, float], fixed: float |
     (:func:`_hough_centre`); around it the radial histogram shows the sclera and, about a
     millimetre outside, the lids or retractors (both convex shells). The innermost shell of a
     globe's size with enough support is the sclera; "of a globe's size" allows for the voted
-    centre's error (:data:`_VOTED_CENTRE_MM`), which moves the sclera's peak by as much (a held
+    centre's error (:data:`VOTED_CENTRE_MM`), which moves the sclera's peak by as much (a held
     radius of 12 mm ± 5 % missed the sclera's peak at 11.35 mm on 2 of 30 noise draws of an eye
     at rest, and on 4 of 60 draws of another noise generator; measured). Falls back to the
     LO-MSAC shell search.
@@ -439,10 +408,10 @@ def _globe_candidates(points: F64, r_bounds: tuple[float, float], fixed: float |
         strongest = max((s for _, s in shells), default=0.0)
         for radius, support in shells:
             if (support >= max(MIN_SCLERA_POINTS, 0.1 * strongest)
-                    and r_bounds[0] - _VOTED_CENTRE_MM <= radius
-                    <= r_bounds[1] + _VOTED_CENTRE_MM):
+                    and r_bounds[0] - VOTED_CENTRE_MM <= radius
+                    <= r_bounds[1] + VOTED_CENTRE_MM):
                 # The lids: the strongest shell 0.6–3 mm outside the sclera, if any.
-                outer = [(s, r) for r, s in shells if radius + 0.6 <= r <= radius + 3.0
+                outer = [(s, r) for r, s in shells if radius + 0.6 <= r <= radius + LID_REACH_MM
                          and s >= MIN_SCLERA_POINTS]
                 lid_radius = max(outer)[1] if outer else math.nan
                 return [(centre, fixed if fixed is not None else radius, lid_radius)], off_plane
@@ -454,7 +423,7 @@ def _without_planes(points: F64) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
     """Voxel means and counts of ``points`` without the dominant plane(s) (MSAC), and which
     points are kept."""
     rng = np.random.default_rng(0)  # a fixed seed: the same cloud always gives the same pose
-    voxels, counts, inverse = _voxel_means(points, _VOXEL_MM)
+    voxels, counts, inverse = _voxel_means(points, VOXEL_MM)
     if len(voxels) < 4:
         return voxels, counts, np.ones(len(points), dtype=bool)
     keep = np.ones(len(voxels), dtype=bool)
@@ -490,10 +459,10 @@ def _shell_search(voxels: F64, counts: F64, r_bounds: tuple[float, float], fixed
             break
         sub = voxels[idx]
         tree = cKDTree(sub)
-        seeds = rng.integers(0, len(sub), size=_HYPOTHESES)
-        near = tree.query_ball_point(sub[seeds], _LOCAL_MM)
-        groups = np.zeros((_HYPOTHESES, 4, 3))
-        valid = np.zeros((_HYPOTHESES, 4), dtype=bool)
+        seeds = rng.integers(0, len(sub), size=MSAC_HYPOTHESES)
+        near = tree.query_ball_point(sub[seeds], MSAC_LOCAL_MM)
+        groups = np.zeros((MSAC_HYPOTHESES, 4, 3))
+        valid = np.zeros((MSAC_HYPOTHESES, 4), dtype=bool)
         for h, members in enumerate(near):
             if len(members) >= 4:
                 groups[h] = sub[rng.choice(members, 4, replace=False)]
@@ -510,14 +479,14 @@ def _shell_search(voxels: F64, counts: F64, r_bounds: tuple[float, float], fixed
         found = None
         for h in np.argsort(score)[::-1][:5]:
             centre, radius = centres[h], float(radii[h])
-            for band in (0.6, 0.4, _BAND_MM):  # local optimisation on the hypothesis' inliers
+            for band in (0.6, 0.4, SHELL_BAND_MM):  # local optimisation on the hypothesis' inliers
                 inl = np.abs(np.linalg.norm(sub - centre, axis=1) - radius) < band
                 if inl.sum() < 4:
                     break
                 centre, radius = fit_sphere(sub[inl])
                 if fixed is not None:
                     radius = fixed
-            inl = np.abs(np.linalg.norm(sub - centre, axis=1) - radius) < _BAND_MM
+            inl = np.abs(np.linalg.norm(sub - centre, axis=1) - radius) < SHELL_BAND_MM
             support = float(counts[idx][inl].sum())
             if (r_bounds[0] <= radius <= r_bounds[1] and support >= MIN_SCLERA_POINTS
                     and np.median(sub[inl, 2]) > centre[2] + 0.2 * radius
@@ -527,7 +496,7 @@ def _shell_search(voxels: F64, counts: F64, r_bounds: tuple[float, float], fixed
             break
         shells.append(found)
         dist = np.abs(np.linalg.norm(voxels - found[0], axis=1) - found[1])
-        keep &= dist > 2 * _BAND_MM
+        keep &= dist > 2 * SHELL_BAND_MM
         keep &= np.linalg.norm(voxels - found[0], axis=1) < found[1] + 8.0
     if not shells:
         return []
@@ -621,16 +590,17 @@ def _limbus(directions: F64, start: F64 | None = None) -> tuple[F64, float, F64,
     for _ in range(5):
         e1, e2 = _frame(axis)
         azimuth = np.arctan2(directions @ e2, directions @ e1)
-        sector = ((azimuth + math.pi) / (2 * math.pi) * _SECTORS).astype(int) % _SECTORS
+        sector = (((azimuth + math.pi) / (2 * math.pi) * BOUNDARY_SECTORS).astype(int)
+                  % BOUNDARY_SECTORS)
         height = directions @ axis
         boundary = []
-        for k in range(_SECTORS):
+        for k in range(BOUNDARY_SECTORS):
             members = np.flatnonzero(sector == k)
             if len(members) < 3:
                 continue
             top = members[np.argsort(height[members])[-2:]]  # the innermost two of the sector
             boundary.extend(top.tolist())
-        sides = {int(sector[b] * 4 // _SECTORS) for b in boundary}
+        sides = {int(sector[b] * 4 // BOUNDARY_SECTORS) for b in boundary}
         if len(boundary) < 8 or len(sides) < 2:
             return None
         b = directions[np.asarray(boundary)]
@@ -668,8 +638,8 @@ def _empty_cone(directions: F64, axis: F64) -> F64:
     keeps every edge furthest away (the 99.9th percentile of ``u·g`` smallest, a few stray
     points allowed) follows the hole's middle. Grids of tilts: ±25° by 1°, then ±1.5° by 0.1°.
     """
-    if len(directions) > _CONE_POINTS:  # a fixed subsample: the score is a high percentile
-        directions = directions[np.linspace(0, len(directions) - 1, _CONE_POINTS).astype(int)]
+    if len(directions) > CONE_POINTS:  # a fixed subsample: the score is a high percentile
+        directions = directions[np.linspace(0, len(directions) - 1, CONE_POINTS).astype(int)]
     best = axis / np.linalg.norm(axis)
     allowed = max(1, round(0.001 * len(directions)))
     for span, step in ((25.0, 1.0), (1.5, 0.1)):
@@ -766,7 +736,7 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
         The patient's model; a fixed ``globe_radius_mm`` is imposed, None fits the radius.
     views : sequence of LimbusView
         The fringe images the cloud came from, with their cameras. When given, the limbus is
-        found in them (:mod:`eyeserver.pipeline.limbus`) and sets the gaze, the limbus centre
+        found in them (:mod:`eyeserver.eye.limbus`) and sets the gaze, the limbus centre
         and, with the sclera, the globe (``gaze_source`` ``"limbus (images)"``); when it is not
         found there (lids closed, too little contrast) the cloud-only estimate stands, its
         confidence scaled by :data:`UNSEEN_LIMBUS`.
@@ -803,7 +773,7 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
         radius = fixed
     # The seed centre is good to ≈ 0.5 mm and the lids lie ≈ 1 mm outside: a band half that.
     band = 0.45
-    for next_band in (0.3, _BAND_MM, 0.2):
+    for next_band in (0.3, SHELL_BAND_MM, 0.2):
         dist = np.linalg.norm(points - centre, axis=1)
         near = np.abs(dist - radius) < band
         on_lids = (np.abs(dist - lid_radius) < band if math.isfinite(lid_radius)
@@ -876,7 +846,7 @@ def cloud_gaze(points: F64, sclera: F64, centre: F64, radius: float, centre_sd: 
     if g[2] < 0:  # the hole faces the cameras; a flip means the ring was misread
         g = -g
     edge_radius = radius * math.sqrt(max(1.0 - cos_beta**2, 0.0))
-    if opening is not None and abs(edge_radius - half) > _EDGE_IS_LIMBUS_MM:
+    if opening is not None and abs(edge_radius - half) > EDGE_IS_LIMBUS_MM:
         g = opening  # the hole is not the limbus: its edge circle would stray
     lateral = float(np.sqrt(np.sum(centre_sd**2 * (1.0 - g**2))))
     # Tilt of the fitted circle plus the globe centre's own lateral uncertainty seen from
@@ -906,16 +876,16 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
                    *, search: bool = True, remeasure: bool = True,
                    pixels_per_point: float = 1.0) -> EyePose | None:
     """The pose from the limbus found in ``views`` and the sclera of ``points`` that carries
-    it (:mod:`eyeserver.pipeline.limbus`), from a rough globe and gaze; None where no limbus
+    it (:mod:`eyeserver.eye.limbus`), from a rough globe and gaze; None where no limbus
     is found.
 
     ``fixed_radius`` holds the globe's radius (the patient's model, or the last frame's while
     tracking; None: the model's ellipsoid places the globe on the limbus, see
     :meth:`EyeModel.radius_through_limbus`, or else the sclera does); ``search`` as
-    :func:`~eyeserver.pipeline.limbus.find_limbus`. ``started`` is
+    :func:`~eyeserver.eye.limbus.find_limbus`. ``started`` is
     the fit's start (``time.perf_counter()``) for ``fit_ms``. ``remeasure``: the globe and gaze
     from the sclera measured again in the images and the limbus found again there
-    (:func:`~eyeserver.pipeline.sclera.refit`; live tracking, whose radius is held, leaves it
+    (:func:`~eyeserver.eye.sclera.refit`; live tracking, whose radius is held, leaves it
     out for time). ``pixels_per_point``: the image pixels each point stands for (a decimated
     reconstruction's, as live tracking's): the confidence counts the sclera's support in
     pixels, so that it does not depend on how densely the cloud was reconstructed.
