@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Self
 
 import platformdirs
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError, field_validator
+from pydantic import Field, SecretStr, ValidationError, field_validator
 from pydantic_core import ErrorDetails
 from pydantic_settings import (
     BaseSettings,
@@ -43,6 +43,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
+from eyeserver.core.validation import StrictModel
 from eyeserver.errors import ConfigError
 
 __all__ = ["ENV_PREFIX", "MIN_TOKEN_LENGTH", "ROLES", "ClientCertMode", "LogLevel", "Role",
@@ -64,10 +65,8 @@ MIN_TOKEN_LENGTH = 16
 """Shortest bearer token accepted: a guessable token protects nothing."""
 
 
-class TokenConfig(BaseModel):
+class TokenConfig(StrictModel):
     """One bearer token: who holds it (the name the audit trail records) and its role."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     name: str = Field(min_length=1, description="Who holds the token (recorded in the audit).")
     role: Role = Field(description="operator or physicist.")

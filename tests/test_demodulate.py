@@ -15,6 +15,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
+from eyeserver.core.types import F64
 from eyeserver.pipeline import demodulate as demodulate_module
 from eyeserver.pipeline.demodulate import (
     Carrier,
@@ -23,8 +24,6 @@ from eyeserver.pipeline.demodulate import (
     measure_carrier,
     phase_difference,
 )
-
-F64 = npt.NDArray[np.float64]
 
 HEIGHT, WIDTH = 320, 400
 BACKGROUND_DN = 50.0

@@ -24,7 +24,7 @@ from eyeserver.hardware.sim.scenes import SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.hardware.sim.truth import room_truth
 from eyeserver.io.rig_file import rig_from_dict
-from eyeserver.service.tracking import FrameSet, PoseFinder, RigReconstructor
+from eyeserver.service.frame_pose import FrameSet, PoseFinder, RigReconstructor
 
 
 def _synthetic_eye(centre: np.ndarray, radius: float, gaze: np.ndarray, rng: np.random.Generator,

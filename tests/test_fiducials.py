@@ -29,6 +29,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
+from eyeserver.core.types import F64
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.room import SimRoom
 from eyeserver.hardware.sim.scenes import (
@@ -47,8 +48,6 @@ from eyeserver.pipeline.fiducials import (
     triangulate,
 )
 from tests.conftest import ROOMS
-
-F64 = npt.NDArray[np.float64]
 
 PERIOD_PX = 24.0  # the simulated rooms' fringe period in the image (23–30 px)
 

@@ -19,13 +19,12 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
+from eyeserver.core.types import F64
 from eyeserver.hardware.sim.config import room_from_dict
 from eyeserver.hardware.sim.optics import CameraModel, ProjectorModel
 from eyeserver.hardware.sim.room import SimRoom
 from eyeserver.pipeline import phase_height
 from eyeserver.pipeline.phase_height import FitResult, PhaseHeightModel, fit_phase_height
-
-F64 = npt.NDArray[np.float64]
 
 PLANES_MM = np.arange(-10.0, 25.5, 1.0)
 REFERENCE_MM = 10.0

@@ -18,18 +18,16 @@ import dataclasses
 import math
 
 import numpy as np
-import numpy.typing as npt
 import pytest
 from scipy.spatial.transform import Rotation
 
+from eyeserver.core.types import F64
 from eyeserver.pipeline.registration import (
     Registration,
     estimate_normals,
     icp_point_to_plane,
     nearest_distances,
 )
-
-F64 = npt.NDArray[np.float64]
 
 N_POINTS = 20_000
 # A few degrees and a few millimetres: the misalignment left after positioning the patient.

@@ -14,9 +14,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 import pytest
 
+from eyeserver.core.types import F32
 from eyeserver.errors import FormatError
 from eyeserver.hardware.sim.config import (
     RoomConfig,
@@ -266,8 +266,6 @@ def test_an_unreadable_or_malformed_file_is_a_format_error(tmp_path: Path) -> No
 
 
 # --- the example rigs render as their files say -------------------------------------------------
-
-F32 = npt.NDArray[np.float32]
 
 
 @functools.cache

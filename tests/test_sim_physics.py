@@ -22,6 +22,7 @@ from scipy import ndimage, optimize
 
 from eyeserver.calibration.chessboard import board_points, detect_chessboard
 from eyeserver.core.clock import ManualClock
+from eyeserver.core.types import F64
 from eyeserver.hardware.sim import motion as motion_module
 from eyeserver.hardware.sim.config import RoomConfig, room_from_dict
 from eyeserver.hardware.sim.drivers import SimCamera, build_sim_rig
@@ -42,8 +43,6 @@ from eyeserver.hardware.sim.scenes import (
     scene_truth,
 )
 from eyeserver.hardware.sim.truth import device_truth
-
-F64 = npt.NDArray[np.float64]
 
 # A rig unlike the default one in every respect the camera model has: distance, azimuth,
 # elevation, roll, a look-at point off the origin, strong radial and tangential distortion with

@@ -33,12 +33,11 @@ from eyeserver.eye.fit import CloudLike, EyeModel, EyePose, PoseError
 from eyeserver.hardware.base import TriggerPulse, TriggerStep
 from eyeserver.hardware.rig import AcquiredStep
 from eyeserver.service.events import EventBus
+from eyeserver.service.frame_pose import FrameSet, PoseFinder
 from eyeserver.service.patients import Tolerances
 from eyeserver.service.tracking import (
     FOLLOW_LOST_S,
-    FrameSet,
     LatestFrame,
-    PoseFinder,
     RigFrameSource,
     TrackingControl,
     TrackingSession,

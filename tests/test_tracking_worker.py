@@ -32,17 +32,12 @@ from eyeserver.hardware.sim.truth import room_truth
 from eyeserver.io import RigSpec
 from eyeserver.io.rig_file import rig_from_dict
 from eyeserver.pipeline.reconstruct import strong_modulation
-from eyeserver.service import tracking
+from eyeserver.service import frame_pose
 from eyeserver.service.events import EventBus
+from eyeserver.service.frame_pose import FrameSet, PoseFinder, RigReconstructor
 from eyeserver.service.patients import Tolerances
 from eyeserver.service.reconstruction import ReconstructionError
-from eyeserver.service.tracking import (
-    FrameSet,
-    PoseFinder,
-    RigReconstructor,
-    TrackingSession,
-    start_pose,
-)
+from eyeserver.service.tracking import TrackingSession, start_pose
 from eyeserver.service.tracking_worker import (
     PIPE_BYTES,
     PoseWorker,
@@ -146,7 +141,7 @@ def test_a_windows_cloud_counts_its_sclera_as_the_pixels_its_points_stand_for(
     first = PoseFinder(reconstructor, fit_eye, MODEL)(rest, None)
     reconstructor.focus(first)
     window = reconstructor(turned)
-    assert window.pixels_per_point == tracking.WINDOW_DECIMATION ** 2
+    assert window.pixels_per_point == frame_pose.WINDOW_DECIMATION ** 2
     counted = track_eye(window, MODEL, first, window.views)
     uncounted = track_eye(replace(window, pixels_per_point=1.0), MODEL, first, window.views)
     assert counted.gaze_source == LIMBUS_FROM_IMAGES
@@ -154,7 +149,7 @@ def test_a_windows_cloud_counts_its_sclera_as_the_pixels_its_points_stand_for(
     # The radius held: the support is the sclera's points, WELL_SEEN_LIMBUS_POINTS its scale.
     points = counted.sclera_points
     seen = [1.0 - np.exp(-round(points * weight) / WELL_SEEN_LIMBUS_POINTS)
-            for weight in (tracking.WINDOW_DECIMATION ** 2, 1.0)]
+            for weight in (frame_pose.WINDOW_DECIMATION ** 2, 1.0)]
     assert 30 <= points < 1000 and seen[1] < 0.9999
     assert counted.confidence / uncounted.confidence == pytest.approx(seen[0] / seen[1],
                                                                       rel=1e-9)
@@ -280,7 +275,7 @@ def test_windows_take_the_whole_images_fringe_strength_measured_once_per_camera(
         measured.append(strong_modulation(camera, image))
         return measured[-1]
 
-    monkeypatch.setattr(tracking, "strong_modulation", counted)
+    monkeypatch.setattr(frame_pose, "strong_modulation", counted)
     after_whole = RigReconstructor(caldir, rig)
     pose = fit_eye(cloud := after_whole(rest), MODEL, cloud.views)
     moved = replace(pose, centre_mm=tuple(np.add(pose.centre_mm, (3.0, 2.0, 0.0))))

@@ -18,7 +18,7 @@ from __future__ import annotations
 import json
 import tempfile
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,11 +28,12 @@ import numpy as np
 from scipy import ndimage
 
 from eyeserver.bench.figures import FIGURES
+from eyeserver.bench.machine import machine
 from eyeserver.bench.plots import error_map, write_figures
 from eyeserver.bench.public import score_ftm
 from eyeserver.bench.simcal import calibrate_room
-from eyeserver.bench.speed import machine
 from eyeserver.calibration.artefact import load_calibration
+from eyeserver.core.types import Progress, quiet
 from eyeserver.errors import EyeserverError
 from eyeserver.hardware.sim.config import RoomConfig
 from eyeserver.hardware.sim.room import SimRoom
@@ -56,17 +57,11 @@ from eyeserver.service.reconstruction import (
     z_range,
 )
 
-Progress = Callable[[str], None]
-
 STATIC_REPEATS = {True: 4, False: 10}
 """Captures of the still surface for the repeatability figure (quick, full)."""
 
 ICP_SAMPLE = 5000
 """Cloud points each ICP iteration pairs (of a few hundred thousand)."""
-
-
-def _quiet(_: str) -> None:
-    pass
 
 
 @dataclass(frozen=True)
@@ -242,7 +237,7 @@ def seam_distances(truth: dict[str, Any], cloud: PointCloud, config: RoomConfig)
 
 
 def static_noise(config: RoomConfig, caldir: Path, work: Path, seed: int, repeats: int,
-                 progress: Progress = _quiet) -> dict[str, Any]:
+                 progress: Progress = quiet) -> dict[str, Any]:
     """Repeatability: the same still phantom captured ``repeats`` times (fresh sensor noise
     each time); per pixel the spread (standard deviation) of its height, median over the
     pixels every capture reconstructed."""
@@ -291,7 +286,7 @@ def _views(config: RoomConfig) -> list[tuple[str, list[str] | None, str]]:
 
 def run(config: RoomConfig, *, quick: bool = False, seed: int = 0, out: Path | None = None,
         calibration: Path | None = None, phantoms: Sequence[str] = PHANTOMS,
-        progress: Progress = _quiet) -> dict[str, Any]:
+        progress: Progress = quiet) -> dict[str, Any]:
     """The whole accuracy report as one JSON-able document."""
     started = time.perf_counter()
     room = SimRoom(config)

@@ -27,13 +27,14 @@ import re
 import tempfile
 import time
 from collections import Counter
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from eyeserver.bench.machine import machine
 from eyeserver.bench.report import (
     DESCRIPTORS,
     by_globe_text,
@@ -47,7 +48,7 @@ from eyeserver.bench.report import (
     uncertainty_coverage,
 )
 from eyeserver.bench.simcal import calibrate_room
-from eyeserver.bench.speed import machine
+from eyeserver.core.types import Progress, quiet
 from eyeserver.errors import EyeserverError
 from eyeserver.eye import EyeModel, EyePose, fit_eye
 from eyeserver.hardware.sim import population
@@ -64,8 +65,6 @@ from eyeserver.service.patients import (
 from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
 from eyeserver.service.verification import shape_reason, turned_shape_sd_mm
 
-Progress = Callable[[str], None]
-
 FORMAT = "eyeserver.bench.pose/2"
 GOALS = {"centre_mm": 0.1, "gaze_deg": 0.5, "surface_mad_mm": 0.10, "paper_surface_mad_mm": 0.43,
          "within_2_sd": 0.95, "confident_wrong": 0}
@@ -79,10 +78,6 @@ TOLERANCE_MM = DEFAULT_TOLERANCE_MM
 GOOD_MM = GOALS["centre_mm"]
 """A pose within this of the truth is good: refusing it costs the patient a beam hold for
 nothing."""
-
-
-def _quiet(_: str) -> None:
-    pass
 
 
 def _placed(rng: np.random.Generator, eye: EyeSpec) -> SceneSpec:
@@ -406,7 +401,7 @@ def by_bin(rows: list[dict[str, Any]],
 
 def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Path | None = None,
         units: list[str] | None = None, eyes: str = "patient", biometry: bool = False,
-        displacement: bool = False, progress: Progress = _quiet) -> dict[str, Any]:
+        displacement: bool = False, progress: Progress = quiet) -> dict[str, Any]:
     """The pose bench as one JSON-able document.
 
     ``units``: capture only these units (default all: the default room's two look at the one

@@ -50,6 +50,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy import ndimage
 
+from eyeserver.core.types import F64
 from eyeserver.errors import EyeserverError, FormatError
 from eyeserver.pipeline.demodulate import (
     BANDWIDTH,
@@ -60,8 +61,6 @@ from eyeserver.pipeline.demodulate import (
     measure_carrier,
     phase_difference,
 )
-
-F64 = npt.NDArray[np.float64]
 
 __all__ = ["BASELINE_HALF_WIDTH", "DATA_DIR", "OBJECT_THRESHOLD_DN", "score_ftm"]
 

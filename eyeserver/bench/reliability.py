@@ -64,7 +64,8 @@ import numpy as np
 from websockets.sync.client import ClientConnection, connect
 
 from eyeserver.bench.daemon import DaemonError, DaemonProcess
-from eyeserver.bench.speed import machine, reference_ms
+from eyeserver.bench.machine import machine, reference_ms
+from eyeserver.core.types import Progress, quiet
 from eyeserver.errors import EyeserverError, FormatError
 from eyeserver.io import read_bundle
 
@@ -120,12 +121,6 @@ DOCUMENTED_5XX = frozenset({"503", "504", "507"})
 any other 5xx is a bug."""
 KEPT_IDS = 20
 """Lost or corrupted ids listed in the report (all are counted)."""
-
-Progress = Callable[[str], None]
-
-
-def _quiet(_: str) -> None:
-    pass
 
 
 def _checked(response: httpx.Response, what: str) -> Any:
@@ -499,7 +494,7 @@ def _warm_up(client: httpx.Client, units: Iterable[str]) -> list[dict[str, Any]]
 
 def kill_during_captures(work: Path, cycles: int, rng: random.Random, *,
                          env: Mapping[str, str] | None = None,
-                         progress: Progress = _quiet) -> dict[str, Any]:
+                         progress: Progress = quiet) -> dict[str, Any]:
     """SIGKILL the daemon ``cycles`` times while a client posts captures of ``left`` back to
     back, restarting it on the same data directory; then check the store (see the module).
 
@@ -654,7 +649,7 @@ def _unplug_one(daemon: DaemonProcess, events: _EventReader, device: Mapping[str
 
 def unplug_devices(work: Path, *, rounds: int = 1, devices: Sequence[str] | None = None,
                    unplugged_s: float = 2.0, env: Mapping[str, str] | None = None,
-                   progress: Progress = _quiet) -> dict[str, Any]:
+                   progress: Progress = quiet) -> dict[str, Any]:
     """Unplug and replug each chosen device ``rounds`` times while its unit's captures are
     posted, ``unplugged_s`` seconds after the fault was seen (see the module)."""
     work.mkdir(parents=True, exist_ok=True)
@@ -710,7 +705,7 @@ def _unmount(mount: Path) -> str | None:
 
 
 def disk_full(work: Path, size_mib: int, *, env: Mapping[str, str] | None = None,
-              progress: Progress = _quiet) -> dict[str, Any]:
+              progress: Progress = quiet) -> dict[str, Any]:
     """The daemon's data directory on a ``size_mib`` MiB tmpfs, filled and freed (see the
     module); ``{"skipped": why}`` when it cannot be mounted (not root, no ``mount``)."""
     if not hasattr(os, "geteuid") or os.geteuid() != 0:
@@ -832,7 +827,7 @@ class _WrkStatus:
 
 def load(work: Path, seconds: float, *, status_clients: int = 100, capture_clients: int = 20,
          env: Mapping[str, str] | None = None, use_wrk: bool | None = None,
-         progress: Progress = _quiet) -> dict[str, Any]:
+         progress: Progress = quiet) -> dict[str, Any]:
     """``status_clients`` connections reading ``/status`` and ``capture_clients`` threads
     posting captures (every unit and ``all`` in turn), back to back for ``seconds``, with one
     event-stream client; idle status latency measured first (see the module). The status
@@ -1009,7 +1004,7 @@ def _fuzz_operation(operation: schemathesis.APIOperation[Any, Any, Any, Any], ba
 
 
 def fuzz(work: Path, examples: int, *, operations: str | None = None, seed: int = 0,
-         env: Mapping[str, str] | None = None, progress: Progress = _quiet) -> dict[str, Any]:
+         env: Mapping[str, str] | None = None, progress: Progress = quiet) -> dict[str, Any]:
     """A schemathesis run over every operation of the daemon's own OpenAPI document (those
     whose path matches the regular expression ``operations``, if given) but
     :data:`FUZZ_LEFT_OUT`, at most ``examples`` cases per operation and role, seeded;
@@ -1092,7 +1087,7 @@ def run(*, kill_cycles: int = 12, unplug_rounds: int = 1,
         load_seconds: float = 30.0, status_clients: int = 100, capture_clients: int = 20,
         fuzz_examples: int = 3, fuzz_operations: str | None = None, seed: int = 0,
         room_file: Path | None = None, work: Path | None = None,
-        progress: Progress = _quiet) -> dict[str, Any]:
+        progress: Progress = quiet) -> dict[str, Any]:
     """Run the five parts (each skipped when its size is 0) and report (JSON-able).
 
     ``work`` keeps each part's data directory and daemon log (``kill/``, ``unplug/``, …; must

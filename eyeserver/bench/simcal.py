@@ -2,24 +2,18 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 
 from eyeserver.calibration.artefact import stereo_document, write_calibration
 from eyeserver.calibration.phase_height import add_phase_height
 from eyeserver.calibration.stereo import calibrate_stereo
+from eyeserver.core.types import Progress, quiet
 from eyeserver.hardware.sim.config import RoomConfig
 from eyeserver.hardware.sim.sessions import SimSession, write_calibration_set
 
-Progress = Callable[[str], None]
-
-
-def _quiet(_: str) -> None:
-    pass
-
 
 def calibrate_room(config: RoomConfig, work: Path, seed: int,
-                   progress: Progress = _quiet) -> Path:
+                   progress: Progress = quiet) -> Path:
     """Record a calibration set in the simulated room and calibrate it; the calibration
     directory."""
     calset, caldir = work / "calset", work / "calibration"

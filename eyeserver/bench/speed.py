@@ -43,7 +43,6 @@ held in memory (no file I/O is timed), with OpenCV held to one thread of its own
 from __future__ import annotations
 
 import os
-import platform
 import resource
 import sys
 import tempfile
@@ -61,9 +60,13 @@ from typing import TYPE_CHECKING, Any, ParamSpec, TypeVar
 
 import numpy as np
 import numpy.typing as npt
-import scipy.fft
 
+from eyeserver.bench import tracking
+from eyeserver.bench.api import api_latency
+from eyeserver.bench.machine import machine, reference_ms
+from eyeserver.bench.simcal import calibrate_room
 from eyeserver.core.clock import ManualClock
+from eyeserver.core.types import F32, Progress, quiet
 from eyeserver.hardware.sim.config import RoomConfig
 from eyeserver.hardware.sim.motion import MotionSpec
 from eyeserver.hardware.sim.room import SimRoom
@@ -74,8 +77,6 @@ if TYPE_CHECKING:
     from eyeserver.pipeline.fusion import Fused
     from eyeserver.pipeline.reconstruct import CalibratedCamera, CameraCloud, Phase
 
-Progress = Callable[[str], None]
-F32 = npt.NDArray[np.float32]
 P = ParamSpec("P")
 T = TypeVar("T")
 
@@ -115,35 +116,6 @@ MULTI_VIEW_STAGES = tuple(s for s in STAGES if not s.startswith("spatial_"))
 SPATIAL_STAGES = tuple(s for s in STAGES if s != "fringe_order_propagate")
 
 
-def _quiet(_: str) -> None:
-    pass
-
-
-def machine() -> dict[str, Any]:
-    """Where the figures came from."""
-    return {"python": platform.python_version(), "numpy": np.__version__,
-            "platform": platform.platform(), "processor": platform.processor() or "unknown",
-            "cpu_count": os.cpu_count()}
-
-
-def reference_ms(repeats: int = 50) -> float:
-    """How fast the machine runs right now: the median time of one FFT of a 640 × 512 image
-    (``scipy.fft.rfft2``, one thread), a fixed piece of the pipeline's own work.
-
-    Timings are only comparable at similar values: on the shared 2-core virtual machine of
-    docs/benchmarks.md the same code's figures moved by up to 2× within an hour, with the load
-    average near zero throughout (a tracked frame alone 10–22 ms, NumPy's FFT of this image
-    4.4–8.7 ms).
-    """
-    image = np.random.default_rng(0).random((512, 640), dtype=np.float32)
-    samples = []
-    for _ in range(repeats):
-        started = time.perf_counter()
-        scipy.fft.rfft2(image, workers=1)
-        samples.append(time.perf_counter() - started)
-    return float(np.median(samples) * 1e3)
-
-
 def _summary(samples_s: Sequence[float]) -> dict[str, float]:
     ms = np.asarray(samples_s) * 1e3
     return {"median_ms": float(np.median(ms)), "p95_ms": float(np.percentile(ms, 95)),
@@ -166,7 +138,7 @@ def time_frames(room: SimRoom, clock: ManualClock, cameras: Sequence[tuple[str, 
     return samples
 
 
-def sim_render(config: RoomConfig, frames: int = 30, progress: Progress = _quiet,
+def sim_render(config: RoomConfig, frames: int = 30, progress: Progress = quiet,
                ) -> dict[str, Any]:
     """Render times of 2- and 4-camera frame-sets, moving eye and still scene."""
     clock = ManualClock(0)
@@ -206,9 +178,11 @@ class UnitImages:
 
 
 @dataclass(frozen=True)
-class FrameSet:
-    """What the pipeline timings run on: the units' images (the 2-camera frame-set is the first
-    unit, the 4-camera one the first two), the calibrated range and the rig's camera indices."""
+class RecordedFrameSet:
+    """What the pipeline timings run on: a frame-set recorded in the simulated room and held in
+    memory, its units' images (the 2-camera frame-set is the first unit, the 4-camera one the
+    first two), the calibrated range and the rig's camera indices. (Not live tracking's
+    ``FrameSet`` in :mod:`eyeserver.service`, one camera frame of the rig.)"""
 
     units: tuple[UnitImages, ...]
     z_range: tuple[float, float]
@@ -222,7 +196,7 @@ class FrameSet:
                 if len(used) == (1 if label == "2cam" else 2)}
 
 
-def record_frameset(config: RoomConfig, calibration: Path, work: Path) -> FrameSet:
+def record_frameset(config: RoomConfig, calibration: Path, work: Path) -> RecordedFrameSet:
     """Record an eye phantom in the simulated room (every unit lit in turn) and load it with the
     calibration, as ``eyeserver reconstruct`` would."""
     from eyeserver.calibration.artefact import load_calibration
@@ -245,12 +219,12 @@ def record_frameset(config: RoomConfig, calibration: Path, work: Path) -> FrameS
                         bundle.load_image(index, id_a), cameras[id_b],
                         bundle.load_image(index, id_b))
              for index, id_a, id_b in unit_pairs(bundle)]
-    return FrameSet(
+    return RecordedFrameSet(
         units=tuple(units), z_range=z_range(document), saturation_dn=saturation_dn(bundle),
         camera_index={c: bundle.rig.camera_index(c) for c in bundle.rig.camera_ids})
 
 
-def reconstruct_frameset(frameset: FrameSet, units: Sequence[UnitImages], method: str,
+def reconstruct_frameset(frameset: RecordedFrameSet, units: Sequence[UnitImages], method: str,
                          executor: Executor | None = None) -> Fused:
     """Images → fused cloud: each unit's clouds (in parallel on ``executor`` when given), then
     fusion, as ``eyeserver reconstruct`` does without the file I/O."""
@@ -296,7 +270,7 @@ def _repeat(call: Callable[[], object], runs: int) -> list[float]:
     return samples
 
 
-def pipeline(frameset: FrameSet, frames: int = 100, progress: Progress = _quiet,
+def pipeline(frameset: RecordedFrameSet, frames: int = 100, progress: Progress = quiet,
              ) -> dict[str, Any]:
     """Single-threaded times of 2- and 4-camera frame-sets (images → fused cloud), for both
     fringe-order paths (the spatial one, ≈ 0.1 s a camera, a fifth as often)."""
@@ -312,7 +286,7 @@ def pipeline(frameset: FrameSet, frames: int = 100, progress: Progress = _quiet,
     return results
 
 
-def parallel(frameset: FrameSet, frames: int = 100, progress: Progress = _quiet,
+def parallel(frameset: RecordedFrameSet, frames: int = 100, progress: Progress = quiet,
              ) -> dict[str, Any]:
     """Multi-view frame-sets on :data:`WORKERS` threads: the units of one 4-camera frame-set in
     parallel (its latency), and one frame-set per worker (throughput, each frame-set taking as
@@ -427,7 +401,7 @@ def skimage_unwrap(phase: Phase) -> Any:
     return unwrap_phase(masked)  # type: ignore[no-untyped-call]
 
 
-def _multi_view_pass(frameset: FrameSet, samples: _Samples) -> dict[str, Any]:
+def _multi_view_pass(frameset: RecordedFrameSet, samples: _Samples) -> dict[str, Any]:
     """One repetition of the multi-view path, stage by stage, in :func:`unit_clouds`' order
     (unit by unit: both cameras' phases, both clouds, the cross-check, the speckle filter), then
     fusion per frame-set. Returns what the side pass and the checks need: phases, demodulations,
@@ -493,7 +467,7 @@ def _multi_view_pass(frameset: FrameSet, samples: _Samples) -> dict[str, Any]:
     return out
 
 
-def _side_pass(frameset: FrameSet, samples: _Samples, peers: dict[str, Callable[..., Any]],
+def _side_pass(frameset: RecordedFrameSet, samples: _Samples, peers: dict[str, Callable[..., Any]],
                state: dict[str, Any]) -> dict[str, dict[str, F32]]:
     """One repetition of the spatial path's own stages and of the peers, per camera, on the
     phases and grids of a multi-view pass (``state``); returns the peers' phases.
@@ -531,7 +505,7 @@ def _side_pass(frameset: FrameSet, samples: _Samples, peers: dict[str, Callable[
     return peer_phase
 
 
-def _by_frameset(samples: _Samples, frameset: FrameSet, stages: Sequence[str],
+def _by_frameset(samples: _Samples, frameset: RecordedFrameSet, stages: Sequence[str],
                  ) -> dict[str, list[float]]:
     """Per frame-set, the seconds of ``stages`` summed over its cameras, pass by pass."""
     totals = {}
@@ -545,7 +519,7 @@ def _by_frameset(samples: _Samples, frameset: FrameSet, stages: Sequence[str],
     return totals
 
 
-def stages(frameset: FrameSet, frames: int = 100, progress: Progress = _quiet,
+def stages(frameset: RecordedFrameSet, frames: int = 100, progress: Progress = quiet,
            ) -> tuple[dict[str, Any], dict[str, Any]]:
     """Every stage timed on its own, ``frames`` passes over the same images after one warm-up;
     the peers timed in the same passes. Returns the stage report and the peer report."""
@@ -662,7 +636,7 @@ def _agreement(state: dict[str, Any], name: str, cameras: Sequence[str]) -> dict
             "phase_vs_ours_p95_rad": float(np.percentile(pooled, 95))}
 
 
-def _reproduces(frameset: FrameSet, clouds: dict[str, CameraCloud]) -> bool:
+def _reproduces(frameset: RecordedFrameSet, clouds: dict[str, CameraCloud]) -> bool:
     """Do the stages, called one by one, give unit_clouds' points (same pixels)?"""
     from eyeserver.pipeline.reconstruct import unit_clouds
 
@@ -779,7 +753,7 @@ def peak_rss_mib() -> float:
     return float(peak) / (2 ** 20 if sys.platform == "darwin" else 2 ** 10)
 
 
-def traced_peak_mib(frameset: FrameSet, units: Sequence[UnitImages]) -> float:
+def traced_peak_mib(frameset: RecordedFrameSet, units: Sequence[UnitImages]) -> float:
     """Peak of the memory Python's allocators see (numpy arrays included; OpenCV's and the
     FFT's internal buffers not) while one multi-view frame-set is reconstructed, MiB."""
     tracemalloc.start()
@@ -828,7 +802,7 @@ def tracking_figures(live: dict[str, Any] | None, ahead: dict[str, Any] | None
     return report
 
 
-def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
+def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
         calibration: Path | None = None, room_file: Path | None = None,
         api_requests: int = 10, tracking_seconds: int = 60,
         replay_seconds: int = 10, replay_workers: int = 2) -> dict[str, Any]:
@@ -841,10 +815,6 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = _quiet,
     ``replay_seconds`` of frames rendered beforehand
     (:func:`~eyeserver.bench.tracking.replayed` with ``replay_workers`` worker processes, 0:
     not run)."""
-    from eyeserver.bench import tracking
-    from eyeserver.bench.api import api_latency
-    from eyeserver.bench.simcal import calibrate_room
-
     started = time.perf_counter()
     load_at_start = os.getloadavg()
     reference_at_start = reference_ms()
@@ -1077,8 +1047,7 @@ def format_text(report: dict[str, Any]) -> str:
                      f" MiB); Python-visible peak of one frame-set: {traced}")
     lines += tracking_lines(report)
     if report.get("tracking_replay"):
-        from eyeserver.bench.tracking import format_replayed
-        lines.append(format_replayed(report["tracking_replay"]))
+        lines.append(tracking.format_replayed(report["tracking_replay"]))
     lines.append("")
     lines.append(f"took {report['duration_s']} s")
     return "\n".join(lines)

@@ -34,7 +34,6 @@ import tempfile
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -43,9 +42,10 @@ import numpy as np
 from websockets.sync.client import ClientConnection, connect
 
 from eyeserver.bench.daemon import DaemonError, DaemonProcess, zip_directory
+from eyeserver.bench.machine import reference_ms
 from eyeserver.bench.simcal import calibrate_room
-from eyeserver.bench.speed import reference_ms
 from eyeserver.core.clock import MonotonicClock
+from eyeserver.core.types import Progress, quiet
 from eyeserver.eye import EyeModel, fit_eye
 from eyeserver.hardware.sim import population
 from eyeserver.hardware.sim.config import load_room
@@ -54,14 +54,9 @@ from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec, scene_truth
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.io.rig_file import rig_from_dict
 from eyeserver.service.events import EventBus
+from eyeserver.service.frame_pose import FrameSet, PoseFinder, RigReconstructor
 from eyeserver.service.patients import Tolerances
-from eyeserver.service.tracking import (
-    FrameSet,
-    PoseFinder,
-    RigReconstructor,
-    TrackingSession,
-    start_pose,
-)
+from eyeserver.service.tracking import TrackingSession, start_pose
 from eyeserver.service.tracking_worker import PoseWorker
 
 __all__ = ["format_replayed", "format_text", "replayed", "run"]
@@ -78,12 +73,6 @@ UNIT = "left"
 """The patient's unit: the one that tracks (and whose frames are rendered ahead)."""
 PRERENDER_MARGIN_S = 10.0
 """Script rendered ahead beyond the tracked seconds: the start (workers, warm-up) and stop."""
-
-Progress = Callable[[str], None]
-
-
-def _quiet(_: str) -> None:
-    pass
 
 
 def _checked(response: Any, what: str) -> dict[str, Any]:
@@ -153,7 +142,7 @@ def _percentile(values: list[float], q: float) -> float | None:
 def run(seconds: float = 60.0, *, calibration: Path | None = None,
         room_file: Path | None = None, work: Path | None = None, workers: int = 2,
         prerendered: bool = False, eyes: str = "sharp", seed: int = 0, unit: str = UNIT,
-        progress: Progress = _quiet) -> dict[str, Any]:
+        progress: Progress = quiet) -> dict[str, Any]:
     """Track for ``seconds`` on a daemon on loopback (``unit``: the patient's, ``all`` for
     both units interleaved; ``workers``: its ``tracking_workers``;
     ``prerendered``: the room's frames rendered before tracking, see the module; ``eyes``:
@@ -635,7 +624,7 @@ class _Recorded(EventBus):
 
 
 def replayed(calibration: Path, seconds: float = 10.0, *, room_file: Path | None = None,
-             workers: int = 2, progress: Progress = _quiet) -> dict[str, Any]:
+             workers: int = 2, progress: Progress = quiet) -> dict[str, Any]:
     """Live tracking's pipeline alone (the report, JSON-able).
 
     ``seconds`` of the moving simulated eye (fixational drift) are rendered first, then handed

@@ -14,8 +14,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-F64 = npt.NDArray[np.float64]
-Image = npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
+from eyeserver.core.types import F64, Image
 
 
 def board_points(cols: int, rows: int, square_mm: float) -> F64:

@@ -13,14 +13,13 @@ import math
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 
+from eyeserver.core.types import F64
 from eyeserver.pipeline.geometry import undistorted_normalised
 from eyeserver.pipeline.phase_height import PhaseHeightModel
 
 __all__ = ["SAMPLE_GRID", "compare_calibrations"]
 
-F64 = npt.NDArray[np.float64]
 
 SAMPLE_GRID = 7
 """Sample pixels per image axis (inside a 10 % margin), and heights over the calibrated range."""

@@ -17,7 +17,6 @@ volume; the multi-view fringe order needs a clear margin (docs/design.md §4 ste
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -26,6 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from eyeserver.calibration.stereo import CalibrationError
+from eyeserver.core.types import F64, Progress, quiet
 from eyeserver.io import Bundle, RigSpec, read_bundle, rig_from_dict
 from eyeserver.pipeline.demodulate import (
     border_mask,
@@ -40,9 +40,6 @@ from eyeserver.pipeline.geometry import (
 )
 from eyeserver.pipeline.phase_height import PhaseHeightModel, fit_phase_height
 
-F64 = npt.NDArray[np.float64]
-Progress = Callable[[str], None]
-
 SAMPLE_STRIDE = 4
 """Every 4th pixel along each axis feeds the fit (20 k pixels per plane): plenty for 11
 coefficients, and it keeps a 36-plane stack at a few hundred thousand samples."""
@@ -50,10 +47,6 @@ SLIP_MM = 1.0
 """A plane whose median |residual| exceeds this has slipped by 2π (one fringe is ≈ 5 mm)."""
 MARGIN_WARNING_RAD = 0.5
 """Below this, noise can pick the wrong fringe order (docs/design.md §4 step 4)."""
-
-
-def _quiet(_: str) -> None:
-    pass
 
 
 def _fringe_frames(bundle: Bundle, camera_id: str) -> list[int]:
@@ -134,7 +127,7 @@ def fringe_order_margin(model_a: PhaseHeightModel, model_b: PhaseHeightModel,
 
 
 def calibrate_phase_height(document: dict[str, Any], plate_path: str | Path,
-                           reference_path: str | Path, progress: Progress = _quiet,
+                           reference_path: str | Path, progress: Progress = quiet,
                            ) -> tuple[dict[str, Any], dict[str, npt.NDArray[np.float32]]]:
     """Fit every camera's phase-to-height model; returns the document's new section and arrays.
 
@@ -260,7 +253,7 @@ def calibrate_phase_height(document: dict[str, Any], plate_path: str | Path,
 
 
 def add_phase_height(calibration: str | Path, plate_path: str | Path,
-                     reference_path: str | Path, progress: Progress = _quiet,
+                     reference_path: str | Path, progress: Progress = quiet,
                      ) -> dict[str, Any]:
     """Calibrate phase to height and add it, with its inputs' hashes, to the stereo calibration
     directory ``calibration`` (rewritten atomically); returns the new section."""

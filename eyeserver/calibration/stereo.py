@@ -8,20 +8,17 @@ origin board.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
-import numpy.typing as npt
 
 from eyeserver.calibration.chessboard import board_points, detect_chessboard
+from eyeserver.core.types import F64, Progress, quiet
 from eyeserver.errors import EyeserverError
 from eyeserver.io import Bundle, RigSpec, read_bundle
-
-F64 = npt.NDArray[np.float64]
-Progress = Callable[[str], None]
 
 MIN_BOARDS = 4
 """Boards a camera must see for its intrinsics to be determined (OpenCV needs ≥ 3 views for
@@ -30,10 +27,6 @@ five distortion coefficients; one more keeps the fit from being exactly determin
 
 class CalibrationError(EyeserverError):
     """A calibration cannot be computed from the inputs given."""
-
-
-def _quiet(_: str) -> None:
-    pass
 
 
 @dataclass
@@ -113,7 +106,7 @@ def _board_observations(bundles: Sequence[Bundle], rig: RigSpec, progress: Progr
     return seen, missed, origin_name
 
 
-def calibrate_stereo(paths: Sequence[str | Path], progress: Progress = _quiet) -> StereoResult:
+def calibrate_stereo(paths: Sequence[str | Path], progress: Progress = quiet) -> StereoResult:
     """Calibrate every camera of the rig from chessboard bundle directories.
 
     Raises :class:`CalibrationError` (naming the camera or bundle) when the bundles disagree on

@@ -5,8 +5,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass, field
 
-import numpy as np
-import numpy.typing as npt
+from eyeserver.core.types import Image
 
 ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]+$")
 """Device and unit ids: short strings of letters, digits, ``-`` and ``_`` (FORMATS.md)."""
@@ -58,6 +57,6 @@ class FrameMeta:
 class Frame:
     """One image (``uint8`` or ``uint16``, shape ``(height, width)``) with its metadata."""
 
-    image: npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
+    image: Image
     meta: FrameMeta
     extra: dict[str, object] = field(default_factory=dict)

@@ -1,12 +1,12 @@
-"""What request bodies share: numbers are numbers."""
+"""What the pydantic models share: numbers are numbers; files and specs take no unknown keys."""
 
 from __future__ import annotations
 
 from typing import Any
 
-from pydantic import BaseModel, model_validator
+from pydantic import BaseModel, ConfigDict, model_validator
 
-__all__ = ["NumbersOnly"]
+__all__ = ["NumbersOnly", "StrictModel"]
 
 
 def _has_bool(value: Any) -> bool:
@@ -32,3 +32,11 @@ class NumbersOnly(BaseModel):
                 if _has_bool(value):
                     raise ValueError(f"{name}: a number is needed, not true or false")
         return data
+
+
+class StrictModel(BaseModel):
+    """A frozen model that refuses unknown keys: a misspelt key in a rig, room or settings file
+    is an error naming it, not a default silently kept. Strict about keys, not about types
+    (this is not pydantic's ``strict`` mode: a JSON integer still fills a float)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)

@@ -54,6 +54,7 @@ import numpy.typing as npt
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from eyeserver.core.types import F64
 from eyeserver.errors import EyeserverError
 from eyeserver.eye.limbus import LimbusNotFoundError, LimbusView, find_limbus, globe_on_limbus
 from eyeserver.eye.sclera import refit
@@ -243,9 +244,6 @@ class EyePose:
             "shape_sd_mm": float(self.shape_sd_mm),
         }
 
-
-
-F64 = npt.NDArray[np.float64]
 
 LIMBUS_FROM_IMAGES = "limbus (images)"
 """The ``gaze_source`` of a pose whose limbus was found in the fringe images."""

@@ -55,6 +55,7 @@ import numpy.typing as npt
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from eyeserver.core.types import F32, F64
 from eyeserver.eye.tunables import (
     CIRCLE_ITERATIONS,
     CIRCLE_STEPS,
@@ -88,9 +89,6 @@ from eyeserver.pipeline.reconstruct import CalibratedCamera, Phase
 __all__ = ["Globe", "Limbus", "LimbusNotFoundError", "LimbusView", "Shade", "circle_points",
            "find_limbus", "fringe_free", "fringe_removed", "globe_on_limbus", "in_cornea_shadow",
            "refined"]
-
-F64 = npt.NDArray[np.float64]
-F32 = npt.NDArray[np.float32]
 
 
 class LimbusNotFoundError(ValueError):

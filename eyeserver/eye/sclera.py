@@ -54,6 +54,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from eyeserver.core.types import F64
 from eyeserver.eye.limbus import (
     Limbus,
     LimbusNotFoundError,
@@ -83,8 +84,6 @@ from eyeserver.pipeline.geometry import project, rays_from_normalised, undistort
 from eyeserver.pipeline.reconstruct import CalibratedCamera
 
 __all__ = ["GlobeFit", "globe_and_gaze", "refit", "remeasured", "sharpened"]
-
-F64 = npt.NDArray[np.float64]
 
 
 def remeasured(views: Sequence[LimbusView], centre: F64, radius: float, sclera: F64,

@@ -49,6 +49,7 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
+from eyeserver.core.types import F64
 from eyeserver.eye.fit import (
     LIMBUS_FROM_IMAGES,
     CloudLike,
@@ -87,8 +88,6 @@ from eyeserver.pipeline.geometry import project
 from eyeserver.pipeline.reconstruct import CalibratedCamera
 
 __all__ = ["eye_window", "lids_closed", "pose_window", "track_eye"]
-
-F64 = npt.NDArray[np.float64]
 
 
 def eye_window(camera: CalibratedCamera, centre_mm: npt.ArrayLike, radius_mm: float, *,
@@ -239,7 +238,7 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
     cloud : CloudLike
         Points (N, 3) in WCS mm, with optional per-point quality in [0, 1] used as weights;
         the whole image's or a window's around the eye. A cloud with a ``pixels_per_point``
-        (a decimated reconstruction's, :class:`~eyeserver.service.tracking.TrackedCloud`) has
+        (a decimated reconstruction's, :class:`~eyeserver.service.frame_pose.TrackedCloud`) has
         its sclera counted in image pixels for the confidence, as the whole images' fit counts
         it (``pixels_per_point`` of :func:`~eyeserver.eye.fit.pose_on_limbus`).
     model : EyeModel

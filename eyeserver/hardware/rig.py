@@ -18,9 +18,10 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Annotated, Literal, Self
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
+from pydantic import AfterValidator, Field, model_validator
 
 from eyeserver.core.frames import Frame, is_valid_id
+from eyeserver.core.validation import StrictModel
 from eyeserver.errors import ConfigError
 from eyeserver.hardware.base import Camera, Device, Projector, Trigger, TriggerPulse, TriggerStep
 from eyeserver.hardware.registry import DriverContext, create_device
@@ -380,11 +381,7 @@ def _valid_id(value: str) -> str:
 DeviceId = Annotated[str, AfterValidator(_valid_id)]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class DeviceConfig(_Strict):
+class DeviceConfig(StrictModel):
     """A camera or projector: its id, driver and the driver's options."""
 
     kind: Literal["camera", "projector"]
@@ -394,7 +391,7 @@ class DeviceConfig(_Strict):
                                        description="keyword arguments for the driver")
 
 
-class TriggerConfig(_Strict):
+class TriggerConfig(StrictModel):
     """The trigger/strobe controller: its id, driver and the driver's options."""
 
     id: DeviceId
@@ -403,7 +400,7 @@ class TriggerConfig(_Strict):
                                        description="keyword arguments for the driver")
 
 
-class UnitConfig(_Strict):
+class UnitConfig(StrictModel):
     """An optical unit: one projector and its cameras, by device id."""
 
     id: DeviceId
@@ -411,7 +408,7 @@ class UnitConfig(_Strict):
     cameras: list[DeviceId] = Field(min_length=1)
 
 
-class HardwareConfig(_Strict):
+class HardwareConfig(StrictModel):
     """Which devices exist, which driver runs each, and how they group into units.
 
     Device ids are unique across cameras, projectors and the trigger; every camera and projector

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from eyeserver.core.types import Image
 from eyeserver.errors import FormatError
 from eyeserver.io._validate import (
     as_array,
@@ -52,7 +53,6 @@ __all__ = [
     "BundleFrameData",
     "BundleKind",
     "ChessboardSpec",
-    "Image",
     "bundle_hash",
     "read_bundle",
     "write_bundle",
@@ -71,9 +71,6 @@ BUNDLE_KINDS: tuple[BundleKind, ...] = get_args(BundleKind)
 
 BIT_DEPTHS = (8, 10, 12)
 """Legal values of the optional top-level ``bit_depth``."""
-
-Image: TypeAlias = npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
-"""A single-channel camera image of shape ``(height, width)``."""
 
 _Z_KINDS: tuple[BundleKind, ...] = ("plate", "reference")
 _KNOWN_KEYS = frozenset({"format", "kind", "rig", "created", "frames", "chessboard", "bit_depth"})

@@ -53,8 +53,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.fft
 
-F32 = npt.NDArray[np.float32]
-F64 = npt.NDArray[np.float64]
+from eyeserver.core.types import F32, F64
 
 __all__ = ["Carrier", "Demodulated", "demodulate", "measure_carrier", "phase_difference"]
 

@@ -50,12 +50,9 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from eyeserver.core.types import F32, F64, Bool
 from eyeserver.pipeline.demodulate import checked_image
 from eyeserver.pipeline.geometry import undistorted_normalised
-
-F64 = npt.NDArray[np.float64]
-F32 = npt.NDArray[np.float32]
-Bool = npt.NDArray[np.bool_]
 
 __all__ = ["detect_fiducials", "match_stereo", "surface_position", "triangulate"]
 

@@ -22,8 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-F32 = npt.NDArray[np.float32]
-F64 = npt.NDArray[np.float64]
+from eyeserver.core.types import F32, F64
 
 SEAM_RADIUS_MM = 0.25
 """Another unit's point in the same X, Y cell of this size describes the same part of the

@@ -9,9 +9,8 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import numpy.typing as npt
 
-F64 = npt.NDArray[np.float64]
+from eyeserver.core.types import F64
 
 
 def undistorted_normalised(u: F64, v: F64, K: F64, dist: F64) -> tuple[F64, F64]:

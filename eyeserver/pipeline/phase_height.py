@@ -45,7 +45,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import least_squares
 
-F64 = npt.NDArray[np.float64]
+from eyeserver.core.types import F64
+
 ArrayLike = npt.ArrayLike
 
 MODEL_NAME = "du-wang-2007-reference-subtracted"

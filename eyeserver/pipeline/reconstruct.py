@@ -52,6 +52,7 @@ import numpy.typing as npt
 from scipy import ndimage
 from skimage.restoration import unwrap_phase
 
+from eyeserver.core.types import F32, F64, Bool
 from eyeserver.pipeline.demodulate import Carrier, border_mask, demodulate, phase_difference
 from eyeserver.pipeline.geometry import (
     intersect_plane_z,
@@ -62,9 +63,6 @@ from eyeserver.pipeline.geometry import (
 )
 from eyeserver.pipeline.phase_height import PhaseHeightModel
 
-F32 = npt.NDArray[np.float32]
-F64 = npt.NDArray[np.float64]
-Bool = npt.NDArray[np.bool_]
 Int = npt.NDArray[np.int64]
 
 TWO_PI = 2 * np.pi

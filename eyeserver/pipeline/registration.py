@@ -41,7 +41,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy.spatial import cKDTree
 
-F64 = npt.NDArray[np.float64]
+from eyeserver.core.types import F64
 
 __all__ = ["Registration", "estimate_normals", "icp_point_to_plane", "nearest_distances"]
 

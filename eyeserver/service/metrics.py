@@ -37,7 +37,9 @@ metric                                         type     labels / meaning
 Counts the service keeps are plain numbers here, read at scrape time together with the live
 figures (state, devices, queues), so that every camera and unit of the rig is listed from the
 start with 0 rather than appearing at its first frame. Each service has a registry of its own
-(never the library's global one): tests run several daemons in one process.
+(never the library's global one): tests run several daemons in one process. What a scrape reads
+from the daemon is stated here (:class:`MeasuredService`): this module does not import
+:mod:`eyeserver.service.core`, which imports it.
 """
 
 from __future__ import annotations
@@ -45,20 +47,19 @@ from __future__ import annotations
 import threading
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from prometheus_client import CollectorRegistry, Histogram, ProcessCollector, generate_latest
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
 import eyeserver
 from eyeserver.errors import EyeserverError
-from eyeserver.hardware.rig import AcquiredStep
-
-if TYPE_CHECKING:
-    from eyeserver.service.core import Service
+from eyeserver.hardware.rig import AcquiredStep, Rig
+from eyeserver.service.events import EventBus
 
 __all__ = ["CONTENT_TYPE", "RECONSTRUCTION_BUCKETS_S", "SERVICE_STATES", "TRACKING_OUTCOMES",
-           "ServiceMetrics", "TrackingFigures"]
+           "DeviceReading", "MeasuredService", "QueueReading", "ServiceMetrics",
+           "TrackingFigures"]
 
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
 """The media type of :meth:`ServiceMetrics.render`: the classic text format, which every
@@ -82,8 +83,72 @@ and each of :data:`TRACKING_OUTCOMES`, summed over every session so far."""
 SERVICE_STATES = ("idle", "capturing", "calibrating", "tracking", "fault")
 
 
+class DeviceReading(Protocol):
+    """What a scrape reads of one device (:class:`~eyeserver.service.core.DeviceStatus`)."""
+
+    @property
+    def id(self) -> str: ...
+
+    @property
+    def kind(self) -> str: ...
+
+    @property
+    def unit(self) -> str | None: ...
+
+    @property
+    def health(self) -> str:
+        """``ok`` or ``fault``."""
+        ...
+
+    @property
+    def details(self) -> Mapping[str, object]:
+        """The driver's figures; a camera's ``dropped_frames`` is read."""
+        ...
+
+
+class QueueReading(Protocol):
+    """What a scrape reads of one job queue (:class:`~eyeserver.service.workers.BoundedWorker`)."""
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def capacity(self) -> int: ...
+
+    @property
+    def waiting(self) -> int: ...
+
+
+class MeasuredService(Protocol):
+    """What :class:`ServiceMetrics` reads from the daemon at a scrape
+    (:class:`~eyeserver.service.core.Service`)."""
+
+    @property
+    def state(self) -> str:
+        """One of :data:`SERVICE_STATES`."""
+        ...
+
+    @property
+    def events(self) -> EventBus: ...
+
+    @property
+    def rig(self) -> Rig:
+        """The open rig; raises an :class:`~eyeserver.errors.EyeserverError` while closed."""
+        ...
+
+    @property
+    def acquisition_worker(self) -> QueueReading: ...
+
+    @property
+    def reconstruction_worker(self) -> QueueReading: ...
+
+    def devices(self) -> Sequence[DeviceReading]:
+        """Every device of the open rig; raises like :attr:`rig`."""
+        ...
+
+
 class ServiceMetrics:
-    """The counters of one :class:`~eyeserver.service.core.Service` and their exposition.
+    """The counters of one daemon (:class:`MeasuredService`) and their exposition.
 
     The service calls :meth:`capture_stored`, :meth:`frames_read` and
     :meth:`reconstruction_done`, live tracking :meth:`tracking_latency` and registers its
@@ -91,7 +156,7 @@ class ServiceMetrics:
     time. Thread-safe.
     """
 
-    def __init__(self, service: Service) -> None:
+    def __init__(self, service: MeasuredService) -> None:
         self._service = service
         self._lock = threading.Lock()
         self._frames: Counter[str] = Counter()
@@ -212,7 +277,7 @@ def _tracking(figures: TrackingFigures) -> Iterator[Metric]:
     yield stalls
 
 
-def _queues(service: Service) -> Iterator[Metric]:
+def _queues(service: MeasuredService) -> Iterator[Metric]:
     waiting = GaugeMetricFamily("eyeserver_queue_waiting", "Jobs waiting in the worker's "
                                 "queue.", labels=["queue"])
     capacity = GaugeMetricFamily("eyeserver_queue_capacity", "Jobs that may wait in the "

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -11,6 +11,7 @@ from typing import Any
 import numpy as np
 
 from eyeserver.calibration.artefact import load_calibration
+from eyeserver.core.types import Progress, quiet
 from eyeserver.errors import EyeserverError
 from eyeserver.eye import LimbusView
 from eyeserver.io import Bundle, PointCloud, read_bundle
@@ -26,15 +27,9 @@ from eyeserver.pipeline.reconstruct import (
     unit_clouds,
 )
 
-Progress = Callable[[str], None]
-
 
 class ReconstructionError(EyeserverError):
     """A bundle cannot be reconstructed with the calibration given."""
-
-
-def _quiet(_: str) -> None:
-    pass
 
 
 @dataclass(frozen=True)
@@ -167,7 +162,7 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
                        frames: Sequence[int] | None = None, cameras: Sequence[str] | None = None,
                        method: str = "multi-view", depth_prior_mm: float | None = None,
                        region: Region | None = None, min_quality: float = 0.0,
-                       progress: Progress = _quiet) -> tuple[PointCloud, dict[str, Any]]:
+                       progress: Progress = quiet) -> tuple[PointCloud, dict[str, Any]]:
     """The fused point cloud of a measurement bundle, and a summary per camera.
 
     ``frames`` and ``cameras`` restrict the views used (default: every fringe image). A camera's

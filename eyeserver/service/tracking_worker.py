@@ -4,8 +4,8 @@ The daemon's process also drives the rig (the simulated room renders there), ser
 feeds the WebSocket clients. Reconstruction and fit are numpy and SciPy work with many short
 Python steps between the array operations; in the daemon's process they would hold the GIL
 against acquisition and the event loop, and neither could use the machine's other core while
-the other runs. So :class:`PoseWorker` runs :class:`~eyeserver.service.tracking.PoseFinder`
-(:class:`~eyeserver.service.tracking.RigReconstructor` of the active calibration,
+the other runs. So :class:`PoseWorker` runs :class:`~eyeserver.service.frame_pose.PoseFinder`
+(:class:`~eyeserver.service.frame_pose.RigReconstructor` of the active calibration,
 :func:`~eyeserver.eye.track.track_eye`, :func:`~eyeserver.eye.fit.fit_eye`)
 in a child process (started with ``spawn``: the daemon has threads, and a forked child would
 inherit their locks):
@@ -48,6 +48,7 @@ from threadpoolctl import threadpool_limits
 from eyeserver.errors import EyeserverError
 from eyeserver.eye import EyeModel, EyePose, PoseError, fit_eye, track_eye
 from eyeserver.io import RigSpec
+from eyeserver.service.frame_pose import FrameSet, PoseFinder, RigReconstructor
 from eyeserver.service.reconstruction import ReconstructionError
 
 __all__ = ["FRAME_TIMEOUT_S", "START_TIMEOUT_S", "PoseWorker", "TrackingWorkerError"]
@@ -150,9 +151,6 @@ def _keep_memory() -> None:
 
 def _serve(connection: _Channel, calibration: str, rig: RigSpec, model: EyeModel) -> None:
     """The child: load the calibration, then answer frame sets until told to stop."""
-    # Imported here: eyeserver.service.tracking imports this module.
-    from eyeserver.service.tracking import PoseFinder, RigReconstructor
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # One thread: a frame's arrays are small, and the BLAS's and OpenCV's own threads fight
     # the other workers and the rig for the cores. Measured on 2 cores: two workers with a
@@ -205,7 +203,7 @@ def _failure(exc: Exception) -> tuple[str, str]:
 
 
 class PoseWorker:
-    """:class:`~eyeserver.service.tracking.FindPose` in a child process (see the module).
+    """:class:`~eyeserver.service.frame_pose.FindPose` in a child process (see the module).
 
     Parameters
     ----------
@@ -275,7 +273,7 @@ class PoseWorker:
                 f"{process.exitcode})") from None
         return reply
 
-    def __call__(self, frame_set: Any, previous: EyePose | None) -> EyePose:
+    def __call__(self, frame_set: FrameSet, previous: EyePose | None) -> EyePose:
         """The frame set's pose from the child.
 
         Raises
@@ -297,10 +295,10 @@ class PoseWorker:
         if kind == "unreconstructable":
             raise ReconstructionError(detail)
         raise TrackingWorkerError(f"the tracking worker failed on frame "
-                                  f"{getattr(frame_set, 'frame', '?')}: {self._failed(detail)}")
+                                  f"{frame_set.frame}: {self._failed(detail)}")
 
-    def warm(self, frame_set: Any, expected: EyePose) -> None:
-        """:meth:`PoseFinder.warm <eyeserver.service.tracking.PoseFinder.warm>` in the child.
+    def warm(self, frame_set: FrameSet, expected: EyePose) -> None:
+        """:meth:`PoseFinder.warm <eyeserver.service.frame_pose.PoseFinder.warm>` in the child.
 
         Raises
         ------
@@ -312,7 +310,7 @@ class PoseWorker:
             raise TrackingWorkerError(f"the tracking worker failed to warm up: "
                                       f"{self._failed(detail)}")
 
-    def _ask(self, kind: str, frame_set: Any, pose: EyePose | None) -> tuple[str, Any]:
+    def _ask(self, kind: str, frame_set: FrameSet, pose: EyePose | None) -> tuple[str, Any]:
         """Send the child a frame set with a pose; its answer."""
         if self._connection is None:
             raise TrackingWorkerError("the tracking worker is not running")

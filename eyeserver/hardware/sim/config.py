@@ -25,10 +25,11 @@ import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 from pydantic_core import PydanticCustomError
 
 from eyeserver.core.frames import is_valid_id
+from eyeserver.core.validation import StrictModel
 from eyeserver.errors import FormatError
 
 Vec3 = tuple[float, float, float]
@@ -39,11 +40,7 @@ def _room_error(field: str, message: str) -> PydanticCustomError:
     return PydanticCustomError("room", "{message}", {"field": field, "message": message})
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class PlacementConfig(_Strict):
+class PlacementConfig(StrictModel):
     """Where a device stands and where it looks."""
 
     distance_mm: Annotated[float, Field(gt=0, description="distance from look_at_mm")] = 250.0
@@ -92,7 +89,7 @@ class ProjectorConfig(PlacementConfig):
         "diameter of the projector lens's exit pupil: what a wet eye mirrors as a glint"))] = 10.0
 
 
-class UnitConfig(_Strict):
+class UnitConfig(StrictModel):
     """An optical unit: one projector and its cameras."""
 
     id: str
@@ -100,7 +97,7 @@ class UnitConfig(_Strict):
     cameras: list[CameraConfig]
 
 
-class LightingConfig(_Strict):
+class LightingConfig(StrictModel):
     """Light that does not come from the projectors (8-bit DN on a white surface)."""
 
     ambient_dn: Annotated[float, Field(ge=0)] = 20.0
@@ -110,7 +107,7 @@ class LightingConfig(_Strict):
         "exposure at which the DN figures hold; brightness scales linearly"))] = 10_000.0
 
 
-class RenderConfig(_Strict):
+class RenderConfig(StrictModel):
     """Numerical choices of the renderer."""
 
     supersample: Annotated[int, Field(ge=1, le=12, description=(
@@ -121,7 +118,7 @@ class RenderConfig(_Strict):
         "the same for a moving eye (the live path: 1 = one ray per pixel)"))] = 1
 
 
-class RoomConfig(_Strict):
+class RoomConfig(StrictModel):
     """The whole simulated room."""
 
     seed: int = 0

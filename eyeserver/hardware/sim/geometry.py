@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
+from eyeserver.core.types import F64
 from eyeserver.hardware.sim.optics import rotation_x, rotation_y, rotation_z
 
-F64 = npt.NDArray[np.float64]
 AlbedoFn = Callable[[F64], F64]
 
 _EPS = 1e-9

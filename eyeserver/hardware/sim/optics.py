@@ -15,9 +15,8 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from eyeserver.core.types import F64
 from eyeserver.hardware.sim.config import CameraConfig, PlacementConfig, ProjectorConfig
-
-F64 = npt.NDArray[np.float64]
 
 
 def rotation_x(angle: float) -> F64:

@@ -22,14 +22,11 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from eyeserver.core.types import F32, F64, Image
 from eyeserver.hardware.sim.config import RoomConfig
 from eyeserver.hardware.sim.geometry import Scene
 from eyeserver.hardware.sim.optics import CameraModel, ProjectorModel, blurred_square_wave
 from eyeserver.hardware.sim.scenes import BuiltScene
-
-F32 = npt.NDArray[np.float32]
-F64 = npt.NDArray[np.float64]
-
 
 AMBIENT = "ambient"
 """Name of the diffuse (room or ambient) light source in :class:`Components`."""
@@ -532,7 +529,7 @@ class Renderer:
 
     def expose(self, camera_id: str, components: Components, *, ambient_dn: float,
                projectors: Mapping[str, float], exposure_us: float, gain_db: float,
-               rng: np.random.Generator) -> npt.NDArray[np.uint8] | npt.NDArray[np.uint16]:
+               rng: np.random.Generator) -> Image:
         """Turn light components into one noisy, quantised exposure.
 
         Shot noise is drawn as a Gaussian with the Poisson variance of the collected electrons

@@ -18,15 +18,14 @@ import threading
 from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
-import numpy.typing as npt
 
 from eyeserver.core.clock import Clock, MonotonicClock
+from eyeserver.core.types import Image
 from eyeserver.hardware.sim.config import RoomConfig, load_room
 from eyeserver.hardware.sim.motion import EyeMotion
 from eyeserver.hardware.sim.render import Components, Renderer
 from eyeserver.hardware.sim.scenes import SceneSpec, build_scene
 
-Image = npt.NDArray[np.uint8] | npt.NDArray[np.uint16]
 _RecordKey = tuple[int, tuple[tuple[str, float], ...], float, float]
 
 

@@ -22,6 +22,7 @@ import numpy.typing as npt
 from pydantic import ConfigDict, Field, model_validator
 from scipy.spatial import cKDTree
 
+from eyeserver.core.types import F64
 from eyeserver.core.validation import NumbersOnly
 from eyeserver.hardware.sim.geometry import (
     AlbedoFn,
@@ -40,7 +41,6 @@ from eyeserver.hardware.sim.geometry import (
 from eyeserver.hardware.sim.motion import EyeMotion, GazeAngle, MotionSpec
 from eyeserver.hardware.sim.optics import rotation_x, rotation_y
 
-F64 = npt.NDArray[np.float64]
 Vec3 = tuple[float, float, float]
 
 RoomCoordinate = Annotated[float, Field(ge=-500.0, le=500.0)]

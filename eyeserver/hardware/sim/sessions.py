@@ -9,12 +9,13 @@ and the measurement path never opens.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from eyeserver.core.clock import ManualClock
+from eyeserver.core.types import Progress, quiet
 from eyeserver.hardware.bundling import bundle_frames
 from eyeserver.hardware.rig import Rig
 from eyeserver.hardware.sim.config import RoomConfig
@@ -33,11 +34,6 @@ from eyeserver.io import (
 )
 
 TRUTH_FILE = "truth.json"
-Progress = Callable[[str], None]
-
-
-def _quiet(_: str) -> None:
-    pass
 
 
 def bundle_kind(spec: SceneSpec) -> BundleKind:
@@ -162,7 +158,7 @@ def plate_heights(z_min: float = -10.0, z_max: float = 25.0, step: float = 1.0) 
 
 def write_calibration_set(session: SimSession, out: Path, *, z_values: Sequence[float] | None
                           = None, reference_z: float = 10.0, overwrite: bool = False,
-                          progress: Progress = _quiet) -> dict[str, Any]:
+                          progress: Progress = quiet) -> dict[str, Any]:
     """Write ``rig.json``, ``chessboard_NN/``, ``plate/`` and ``reference/`` under ``out``.
 
     Returns a summary (what was written). The plate bundle repeats each Z once per projector,

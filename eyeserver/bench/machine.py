@@ -1,0 +1,38 @@
+"""The machine a bench ran on, and how fast it ran right then (for the reports of the benches)."""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from typing import Any
+
+import numpy as np
+import scipy.fft
+
+__all__ = ["machine", "reference_ms"]
+
+
+def machine() -> dict[str, Any]:
+    """Where the figures came from."""
+    return {"python": platform.python_version(), "numpy": np.__version__,
+            "platform": platform.platform(), "processor": platform.processor() or "unknown",
+            "cpu_count": os.cpu_count()}
+
+
+def reference_ms(repeats: int = 50) -> float:
+    """How fast the machine runs right now: the median time of one FFT of a 640 × 512 image
+    (``scipy.fft.rfft2``, one thread), a fixed piece of the pipeline's own work.
+
+    Timings are only comparable at similar values: on the shared 2-core virtual machine of
+    docs/benchmarks.md the same code's figures moved by up to 2× within an hour, with the load
+    average near zero throughout (a tracked frame alone 10–22 ms, NumPy's FFT of this image
+    4.4–8.7 ms).
+    """
+    image = np.random.default_rng(0).random((512, 640), dtype=np.float32)
+    samples = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        scipy.fft.rfft2(image, workers=1)
+        samples.append(time.perf_counter() - started)
+    return float(np.median(samples) * 1e3)
