@@ -36,7 +36,7 @@ from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec, build_scene
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.hardware.sim.truth import truth_scene
 from eyeserver.io import PointCloud
-from eyeserver.service.reconstruction import reconstruct_bundle
+from eyeserver.reconstruction import reconstruct_bundle
 
 CASES: dict[str, SceneSpec] = {
     "eye": SceneSpec(kind="eye"),

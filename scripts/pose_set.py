@@ -49,7 +49,7 @@ def fit(args: argparse.Namespace) -> None:
     from eyeserver.errors import EyeserverError
     from eyeserver.eye.fit import EyeModel, fit_eye
     from eyeserver.eye.limbus import LimbusNotFoundError, find_limbus
-    from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
+    from eyeserver.reconstruction import limbus_views, reconstruct_bundle
 
     def off(pose_centre: Any, pose_gaze: Any, eye: dict[str, Any], key: str = "centre_mm"
             ) -> str:
@@ -94,7 +94,7 @@ def oracle(args: argparse.Namespace) -> None:
     from eyeserver.eye.fit import checked_cloud
     from eyeserver.eye.limbus import Limbus, globe_on_limbus
     from eyeserver.eye.sclera import refit
-    from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
+    from eyeserver.reconstruction import limbus_views, reconstruct_bundle
 
     for bundle in sorted(args.setdir.glob("eye_*")):
         truth = json.loads((bundle / "truth.json").read_text())

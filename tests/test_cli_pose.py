@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from eyeserver import eye
+from eyeserver import eye, reconstruction
 from eyeserver.cli import main
 from eyeserver.commands import pose as pose_command
 from eyeserver.errors import EyeserverError
@@ -20,7 +20,6 @@ from eyeserver.eye import EyeModel, EyePose
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.scenes import SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
-from eyeserver.service import reconstruction
 
 POPULATION = EyeModel.population()
 

@@ -21,7 +21,7 @@ from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 from eyeserver.hardware.sim.scoring import score_by_surface
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.io import PointCloud
-from eyeserver.service.reconstruction import reconstruct_bundle
+from eyeserver.reconstruction import reconstruct_bundle
 
 pytestmark = pytest.mark.slow  # every test here takes over a second
 

@@ -35,10 +35,10 @@ from eyeserver.pipeline.reconstruct import (
     strong_modulation,
     unit_clouds,
 )
+from eyeserver.reconstruction import calibrated_cameras, z_range
 from eyeserver.service.events import EventBus
 from eyeserver.service.frame_pose import FrameSet, PoseFinder, TrackedCloud
 from eyeserver.service.patients import Tolerances
-from eyeserver.service.reconstruction import calibrated_cameras, z_range
 from eyeserver.service.tracking import TrackingSession
 
 CENTRE = np.array([0.4, -0.3, -10.0])

@@ -27,8 +27,8 @@ from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.optics import ProjectorModel
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
+from eyeserver.reconstruction import limbus_views, reconstruct_bundle
 from eyeserver.service.patients import DEFAULT_MIN_CONFIDENCE, Tolerances
-from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
 from eyeserver.service.verification import deviation, judge
 from tests.conftest import ROOMS
 

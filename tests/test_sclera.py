@@ -27,7 +27,7 @@ from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.pipeline.demodulate import Carrier, demodulate
-from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
+from eyeserver.reconstruction import limbus_views, reconstruct_bundle
 from tests.conftest import ROOMS
 
 

@@ -32,11 +32,11 @@ from eyeserver.hardware.sim.truth import room_truth
 from eyeserver.io import RigSpec
 from eyeserver.io.rig_file import rig_from_dict
 from eyeserver.pipeline.reconstruct import strong_modulation
+from eyeserver.reconstruction import ReconstructionError
 from eyeserver.service import frame_pose
 from eyeserver.service.events import EventBus
 from eyeserver.service.frame_pose import FrameSet, PoseFinder, RigReconstructor
 from eyeserver.service.patients import Tolerances
-from eyeserver.service.reconstruction import ReconstructionError
 from eyeserver.service.tracking import TrackingSession, start_pose
 from eyeserver.service.tracking_worker import (
     PIPE_BYTES,

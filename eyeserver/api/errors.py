@@ -56,10 +56,10 @@ from eyeserver.errors import (
     StateConflictError,
 )
 from eyeserver.eye import PoseError
+from eyeserver.reconstruction import ReconstructionError
 from eyeserver.service.capture_files import CaptureDataNotFoundError
 from eyeserver.service.core import NoCloudError, UnknownUnitError
 from eyeserver.service.patients import NoReferenceError, UnknownPatientError
-from eyeserver.service.reconstruction import ReconstructionError
 from eyeserver.service.storage import UnknownIdError
 from eyeserver.service.uploads import UploadTooLargeError
 from eyeserver.service.workers import QueueFullError

@@ -50,7 +50,7 @@ from eyeserver.pipeline.fiducials import (
 )
 from eyeserver.pipeline.reconstruct import unit_clouds
 from eyeserver.pipeline.registration import icp_point_to_plane
-from eyeserver.service.reconstruction import (
+from eyeserver.reconstruction import (
     calibrated_cameras,
     reconstruct_bundle,
     unit_pairs,

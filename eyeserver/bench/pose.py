@@ -55,6 +55,7 @@ from eyeserver.hardware.sim import population
 from eyeserver.hardware.sim.config import RoomConfig
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
+from eyeserver.reconstruction import limbus_views, reconstruct_bundle
 from eyeserver.service.patients import (
     DEFAULT_MIN_CONFIDENCE,
     DEFAULT_TOLERANCE_MM,
@@ -62,7 +63,6 @@ from eyeserver.service.patients import (
     EyeModelSpec,
     Tolerances,
 )
-from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
 from eyeserver.service.verification import shape_reason, turned_shape_sd_mm
 
 FORMAT = "eyeserver.bench.pose/2"

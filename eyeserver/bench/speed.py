@@ -202,7 +202,7 @@ def record_frameset(config: RoomConfig, calibration: Path, work: Path) -> Record
     from eyeserver.calibration.artefact import load_calibration
     from eyeserver.hardware.sim.sessions import SimSession
     from eyeserver.io import read_bundle
-    from eyeserver.service.reconstruction import (
+    from eyeserver.reconstruction import (
         calibrated_cameras,
         saturation_dn,
         unit_pairs,

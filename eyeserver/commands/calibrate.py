@@ -121,7 +121,7 @@ def add_reconstruct_parser(subparsers: Subparsers) -> None:
 def _reconstruct(args: argparse.Namespace) -> int:
     from eyeserver.io import write_ply
     from eyeserver.pipeline.fusion import Region
-    from eyeserver.service.reconstruction import reconstruct_bundle
+    from eyeserver.reconstruction import reconstruct_bundle
 
     frames = None
     if args.frames:

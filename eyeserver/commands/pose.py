@@ -139,7 +139,7 @@ def _check_limbus_fits(model: EyeModel, given: dict[str, float]) -> None:
 
 def _pose(args: argparse.Namespace) -> int:
     from eyeserver.eye import fit_eye
-    from eyeserver.service.reconstruction import limbus_views, reconstruct_bundle
+    from eyeserver.reconstruction import limbus_views, reconstruct_bundle
 
     # Checked before the reconstruction's seconds are spent.
     model, model_record = eye_model(args)

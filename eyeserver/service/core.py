@@ -66,6 +66,11 @@ from eyeserver.io import (
 )
 from eyeserver.pipeline.demodulate import Carrier
 from eyeserver.pipeline.reconstruct import MIN_FRINGE_CONTRAST, fringe_check
+from eyeserver.reconstruction import (
+    ReconstructionOptions,
+    camera_carriers,
+    reconstruct_bundle,
+)
 from eyeserver.service.audit import SALT_FILE, AuditTrail, audit_log_path
 from eyeserver.service.calibration_files import input_capture_ids
 from eyeserver.service.device_control import apply_settings, check_settings
@@ -73,11 +78,6 @@ from eyeserver.service.events import EventBus
 from eyeserver.service.jobs import Jobs
 from eyeserver.service.metrics import ServiceMetrics
 from eyeserver.service.preview import height_map_png
-from eyeserver.service.reconstruction import (
-    ReconstructionOptions,
-    camera_carriers,
-    reconstruct_bundle,
-)
 from eyeserver.service.storage import CalibrationRecord, CaptureRecord, Store
 from eyeserver.service.uploads import UploadTooLargeError, unpack_calibration_zip
 from eyeserver.service.workers import BoundedWorker, RetryLoop, RetryWait, wait_on_event
@@ -786,7 +786,7 @@ class Service:
         Returns
         -------
         dict
-            The summary of :func:`~eyeserver.service.reconstruction.reconstruct_bundle` with
+            The summary of :func:`~eyeserver.reconstruction.reconstruct_bundle` with
             ``capture_id``, ``calibration_id``, ``options`` (all of them, defaults filled in),
             ``reconstructed`` (UTC, ISO 8601) and ``duration_s`` added, as stored.
 

@@ -51,7 +51,7 @@ from eyeserver.pipeline.reconstruct import (
     strong_modulation,
     unit_clouds,
 )
-from eyeserver.service.reconstruction import ReconstructionError, calibrated_cameras, z_range
+from eyeserver.reconstruction import ReconstructionError, calibrated_cameras, z_range
 from eyeserver.service.verification import FitFunction, unit_shortfalls
 
 __all__ = ["WINDOW_DECIMATION", "FindPose", "FocusingReconstructor", "FrameSet", "PoseFinder",
@@ -141,7 +141,7 @@ class FocusingReconstructor(Protocol):
 class FindPose(Protocol):
     """Frame set and the last frame's pose (None: none yet, or the eye was lost) → this frame's
     pose; raises :class:`~eyeserver.eye.fit.PoseError`,
-    :class:`~eyeserver.service.reconstruction.ReconstructionError` or :class:`ValueError` for
+    :class:`~eyeserver.reconstruction.ReconstructionError` or :class:`ValueError` for
     a frame without an eye (lost). :meth:`close` frees what it holds (a worker process)."""
 
     def __call__(self, frame_set: FrameSet, previous: EyePose | None, /) -> EyePose: ...

@@ -56,13 +56,13 @@ from eyeserver.core.clock import Clock, MonotonicClock
 from eyeserver.errors import DeviceError, EyeserverError, StateConflictError
 from eyeserver.eye import LIMBUS_FROM_IMAGES, EyeModel, EyePose, PoseError
 from eyeserver.hardware.rig import AcquiredStep, Rig
+from eyeserver.reconstruction import ReconstructionError
 from eyeserver.service.beamhold import BeamHold, BeamHoldConfig, EyeSeen, FrameObservation
 from eyeserver.service.core import NoActiveCalibrationError, Service
 from eyeserver.service.events import EventBus
 from eyeserver.service.frame_pose import FindPose, FrameSet
 from eyeserver.service.metrics import TRACKING_OUTCOMES, TrackingFigures
 from eyeserver.service.patients import Patients, Tolerances
-from eyeserver.service.reconstruction import ReconstructionError
 from eyeserver.service.tracking_worker import PoseWorker
 from eyeserver.service.verification import (
     deviation,

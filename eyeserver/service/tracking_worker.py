@@ -48,8 +48,8 @@ from threadpoolctl import threadpool_limits
 from eyeserver.errors import EyeserverError
 from eyeserver.eye import EyeModel, EyePose, PoseError, fit_eye, track_eye
 from eyeserver.io import RigSpec
+from eyeserver.reconstruction import ReconstructionError
 from eyeserver.service.frame_pose import FrameSet, PoseFinder, RigReconstructor
-from eyeserver.service.reconstruction import ReconstructionError
 
 __all__ = ["FRAME_TIMEOUT_S", "START_TIMEOUT_S", "PoseWorker", "TrackingWorkerError"]
 

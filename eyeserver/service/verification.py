@@ -38,6 +38,7 @@ from typing import Any, Literal, Protocol
 from eyeserver.errors import EyeserverError
 from eyeserver.eye import CloudLike, EyeModel, EyePose, LimbusView, PoseError, fit_eye
 from eyeserver.io import RigSpec, read_ply
+from eyeserver.reconstruction import limbus_views
 from eyeserver.service.core import NoActiveCalibrationError, Service
 from eyeserver.service.patients import (
     EyeModelVersion,
@@ -46,7 +47,6 @@ from eyeserver.service.patients import (
     ReferencePose,
     Tolerances,
 )
-from eyeserver.service.reconstruction import limbus_views
 from eyeserver.service.storage import UnknownIdError
 
 __all__ = ["MIN_UNIT_POINTS", "MODEL_SD_SHARE", "Deviation", "FitFunction", "PoseVerification",
@@ -227,7 +227,7 @@ an eye in view gives each unit thousands."""
 def unit_contributions(summary: dict[str, Any], rig: RigSpec, unit_ids: Sequence[str]
                        ) -> dict[str, dict[str, Any]]:
     """Each unit of ``unit_ids``: the points each of its cameras gave to a reconstruction
-    (:func:`~eyeserver.service.reconstruction.reconstruct_bundle`'s ``summary``; a camera
+    (:func:`~eyeserver.reconstruction.reconstruct_bundle`'s ``summary``; a camera
     missing there gave none) and their sum."""
     cameras = summary.get("cameras", {})
     out: dict[str, dict[str, Any]] = {}

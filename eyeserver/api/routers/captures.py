@@ -25,8 +25,8 @@ from eyeserver.api.schemas import (
     ReconstructionResponse,
 )
 from eyeserver.io import BundleKind
+from eyeserver.reconstruction import ReconstructionOptions
 from eyeserver.service.capture_files import bundle_archive, bundle_image
-from eyeserver.service.reconstruction import ReconstructionOptions
 from eyeserver.service.storage import CaptureRecord, UnknownIdError, is_capture_id
 
 __all__ = ["router"]

@@ -1,4 +1,9 @@
-"""Reconstruct a capture bundle with a calibration: the glue between files and the pipeline."""
+"""Reconstruct a capture bundle with a calibration: the glue between files and the pipeline.
+
+The command line, the benches and the daemon share it, so it sits below the daemon
+(:mod:`eyeserver.service`) and above what it joins (calibration, io, pipeline, the eye); like
+them it never imports the simulator (an import contract in ``pyproject.toml``).
+"""
 
 from __future__ import annotations
 
