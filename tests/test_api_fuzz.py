@@ -23,13 +23,13 @@ from hypothesis import HealthCheck, Phase, settings
 from schemathesis.specs.openapi.checks import negative_data_rejection, positive_data_acceptance
 
 from eyeserver.api import create_app
+from eyeserver.bench.reliability import FUZZ_LEFT_OUT
 from tests.apiclient import API, OPERATOR_TOKEN, PHYSICIST_TOKEN, test_settings
 from tests.liveserver import live_server
 
 pytestmark = pytest.mark.slow  # every test here takes over a second
 
 EXAMPLES = 6
-LEFT_OUT = ("/sim/eye/prerender", "/tracking/start")
 
 @schemathesis.serializer("application/zip")
 def _zip_body(ctx: object, value: object) -> bytes:
@@ -52,7 +52,7 @@ def base_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
 
 @pytest.mark.parametrize("token", [OPERATOR_TOKEN, PHYSICIST_TOKEN],
                          ids=["operator", "physicist"])
-@schema.exclude(path_regex="|".join(f"^{API}{path}$" for path in LEFT_OUT)).parametrize()
+@schema.exclude(path_regex="|".join(f"^{API}{path}$" for path in FUZZ_LEFT_OUT)).parametrize()
 @settings(max_examples=EXAMPLES, derandomize=True, deadline=None, database=None,
           phases=[Phase.explicit, Phase.generate],
           suppress_health_check=list(HealthCheck))

@@ -22,25 +22,16 @@ from typing import Any
 
 import httpx
 
-from eyeserver.bench.daemon import DaemonError, DaemonProcess, zip_directory
+from eyeserver.bench.daemon import API, DaemonProcess, checked, zip_directory
 
 __all__ = ["api_latency"]
-
-API = "/api/v1"
-
-
-def _checked(response: httpx.Response, what: str) -> dict[str, Any]:
-    if response.status_code >= 300:
-        raise DaemonError(f"{what}: HTTP {response.status_code}: {response.text[:300]}")
-    body: dict[str, Any] = response.json()
-    return body
 
 
 def _timed(call: Callable[[], httpx.Response], what: str) -> tuple[float, dict[str, Any]]:
     started = time.perf_counter()
     response = call()
     elapsed = time.perf_counter() - started
-    return elapsed, _checked(response, what)
+    return elapsed, checked(response, what)
 
 
 def api_latency(calibration: Path, work: Path, requests: int = 10,
@@ -60,11 +51,11 @@ def api_latency(calibration: Path, work: Path, requests: int = 10,
     with DaemonProcess(work / "daemon-data", log=work / "daemon.log", env=env) as daemon:
         client = daemon.client
         progress("API latency: importing the calibration into a daemon on loopback")
-        imported = _checked(client.post(f"{API}/calibrations", content=zip_directory(
+        imported = checked(client.post(f"{API}/calibrations", content=zip_directory(
             calibration), headers={"content-type": "application/zip"}), "calibration import")
-        _checked(client.post(f"{API}/calibrations/{imported['id']}/activate"), "activation")
-        units = [u["id"] for u in _checked(client.get(f"{API}/status"), "status")["units"]]
-        _checked(client.post(f"{API}/captures", json={"unit": "all"}), "warm-up capture")
+        checked(client.post(f"{API}/calibrations/{imported['id']}/activate"), "activation")
+        units = [u["id"] for u in checked(client.get(f"{API}/status"), "status")["units"]]
+        checked(client.post(f"{API}/captures", json={"unit": "all"}), "warm-up capture")
         captures: dict[str, list[float]] = {}
         last: dict[str, str] = {}
         for unit in [*units, "all"]:

@@ -23,13 +23,16 @@ import time
 import zipfile
 from pathlib import Path
 from types import TracebackType
-from typing import IO
+from typing import IO, Any
 
 import httpx
 
 from eyeserver.errors import EyeserverError
 
-__all__ = ["DaemonError", "DaemonProcess", "free_port", "zip_directory"]
+__all__ = ["API", "DaemonError", "DaemonProcess", "checked", "free_port", "zip_directory"]
+
+API = "/api/v1"
+"""The versioned API's prefix."""
 
 STARTUP_S = 60.0
 """How long the daemon may take to answer its health check (it opens and renders the room)."""
@@ -37,6 +40,20 @@ STARTUP_S = 60.0
 
 class DaemonError(EyeserverError):
     """The daemon process did not start or stop as expected; the message quotes its log."""
+
+
+def checked(response: httpx.Response, what: str) -> Any:
+    """The JSON body of a successful answer (None when it has none).
+
+    Raises
+    ------
+    DaemonError
+        The answer was not a success; the message names ``what``, the status and the start of
+        the body.
+    """
+    if response.status_code >= 300:
+        raise DaemonError(f"{what}: HTTP {response.status_code}: {response.text[:300]}")
+    return response.json() if response.content else None
 
 
 def free_port() -> int:

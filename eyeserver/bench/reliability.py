@@ -63,7 +63,7 @@ import httpx
 import numpy as np
 from websockets.sync.client import ClientConnection, connect
 
-from eyeserver.bench.daemon import DaemonError, DaemonProcess
+from eyeserver.bench.daemon import API, DaemonProcess, checked
 from eyeserver.bench.machine import machine, reference_ms
 from eyeserver.core.types import Progress, quiet
 from eyeserver.errors import EyeserverError, FormatError
@@ -73,11 +73,10 @@ if TYPE_CHECKING:  # a dev dependency: the fuzz imports it when it runs
     import schemathesis
     import schemathesis.core.failures
 
-__all__ = ["FORMAT", "STATUS_P99_GOAL_MS", "check_bundle", "findings", "format_text", "run",
-           "stream_losses", "tally_captures"]
+__all__ = ["FORMAT", "FUZZ_LEFT_OUT", "STATUS_P99_GOAL_MS", "check_bundle", "findings",
+           "format_text", "run", "stream_losses", "tally_captures"]
 
 FORMAT = "eyeserver.bench.reliability/1"
-API = "/api/v1"
 STATUS_P99_GOAL_MS = 100.0
 """Issue 35's goal: ``GET /status`` answered within 100 ms at the 99th percentile under load."""
 REQUEST_TIMEOUT_S = 120.0
@@ -121,12 +120,6 @@ DOCUMENTED_5XX = frozenset({"503", "504", "507"})
 any other 5xx is a bug."""
 KEPT_IDS = 20
 """Lost or corrupted ids listed in the report (all are counted)."""
-
-
-def _checked(response: httpx.Response, what: str) -> Any:
-    if response.status_code >= 300:
-        raise DaemonError(f"{what}: HTTP {response.status_code}: {response.text[:300]}")
-    return response.json() if response.content else None
 
 
 def _detail(response: httpx.Response) -> str | None:
@@ -358,7 +351,7 @@ def list_captures(client: httpx.Client) -> dict[str, dict[str, Any]]:
     listed: dict[str, dict[str, Any]] = {}
     offset = 0
     while True:
-        page = _checked(client.get(f"{API}/captures", params={"limit": 1000, "offset": offset}),
+        page = checked(client.get(f"{API}/captures", params={"limit": 1000, "offset": offset}),
                         "capture list")
         for item in page["items"]:
             listed[item["id"]] = item
@@ -479,13 +472,13 @@ def _reasons(answers: Iterable[_Answer]) -> dict[str, str]:
 
 
 def _units(client: httpx.Client) -> list[str]:
-    return [unit["id"] for unit in _checked(client.get(f"{API}/status"), "status")["units"]]
+    return [unit["id"] for unit in checked(client.get(f"{API}/status"), "status")["units"]]
 
 
 def _warm_up(client: httpx.Client, units: Iterable[str]) -> list[dict[str, Any]]:
     """A capture of each of ``units``: a daemon's first capture of a unit renders the room's
     geometry (seconds), which is start-up, not what the parts measure. The 201 answers."""
-    return [_checked(client.post(f"{API}/captures", json={"unit": unit}),
+    return [checked(client.post(f"{API}/captures", json={"unit": unit}),
                      f"warm-up capture of {unit}") for unit in units]
 
 
@@ -528,7 +521,7 @@ def kill_during_captures(work: Path, cycles: int, rng: random.Random, *,
         acknowledged = _acknowledged(answers)
         report = verify_store(daemon.client, acknowledged,
                               no_answer=sum(a.status is None and a.sent for a in answers))
-        report["state_after_restart"] = _checked(daemon.client.get(f"{API}/status"),
+        report["state_after_restart"] = checked(daemon.client.get(f"{API}/status"),
                                                  "status")["state"]
     finally:
         daemon.stop()
@@ -544,7 +537,7 @@ def kill_during_captures(work: Path, cycles: int, rng: random.Random, *,
 
 
 def _status(client: httpx.Client) -> dict[str, Any]:
-    body: dict[str, Any] = _checked(client.get(f"{API}/status"), "status")
+    body: dict[str, Any] = checked(client.get(f"{API}/status"), "status")
     return body
 
 
@@ -655,7 +648,7 @@ def unplug_devices(work: Path, *, rounds: int = 1, devices: Sequence[str] | None
     work.mkdir(parents=True, exist_ok=True)
     with DaemonProcess(work / "data", log=work / "daemon.log", env=dict(env or {})) as daemon:
         client = daemon.client
-        chosen = choose_devices(_checked(client.get(f"{API}/devices"), "devices"), devices)
+        chosen = choose_devices(checked(client.get(f"{API}/devices"), "devices"), devices)
         units = {str(d["unit"]) for d in chosen if d["unit"] is not None}
         if any(d["unit"] is None for d in chosen):  # the trigger's captures take every unit
             units.update(_units(client))
@@ -843,7 +836,7 @@ def load(work: Path, seconds: float, *, status_clients: int = 100, capture_clien
         idle: list[float] = []
         for _ in range(IDLE_STATUS_REQUESTS):
             started = time.perf_counter()
-            _checked(client.get(f"{API}/status"), "status")
+            checked(client.get(f"{API}/status"), "status")
             idle.append(time.perf_counter() - started)
         progress(f"load: {status_clients} status readers and {capture_clients} capture posters "
                  f"for {seconds:g} s")
@@ -1030,7 +1023,7 @@ def fuzz(work: Path, examples: int, *, operations: str | None = None, seed: int 
 
     tally = _FuzzTally()
     with DaemonProcess(work / "data", log=work / "daemon.log", env=dict(env or {})) as daemon:
-        document = _checked(daemon.client.get(f"{API}/openapi.json"), "OpenAPI document")
+        document = checked(daemon.client.get(f"{API}/openapi.json"), "OpenAPI document")
         schema = schemathesis.openapi.from_dict(document).exclude(
             path_regex="|".join(f"^{re.escape(API + path)}$" for path in FUZZ_LEFT_OUT))
         chosen = []

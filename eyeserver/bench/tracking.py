@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 from websockets.sync.client import ClientConnection, connect
 
-from eyeserver.bench.daemon import DaemonError, DaemonProcess, zip_directory
+from eyeserver.bench.daemon import API, DaemonProcess, checked, zip_directory
 from eyeserver.bench.machine import reference_ms
 from eyeserver.bench.simcal import calibrate_room
 from eyeserver.core.clock import MonotonicClock
@@ -61,7 +61,6 @@ from eyeserver.service.tracking_worker import PoseWorker
 
 __all__ = ["format_replayed", "format_text", "replayed", "run"]
 
-API = "/api/v1"
 RATE_HZ = 25.0
 PATIENT = "P-BENCH-TRACK"
 SACCADE_DEG = 8.0
@@ -73,13 +72,6 @@ UNIT = "left"
 """The patient's unit: the one that tracks (and whose frames are rendered ahead)."""
 PRERENDER_MARGIN_S = 10.0
 """Script rendered ahead beyond the tracked seconds: the start (workers, warm-up) and stop."""
-
-
-def _checked(response: Any, what: str) -> dict[str, Any]:
-    if response.status_code >= 300:
-        raise DaemonError(f"{what}: HTTP {response.status_code}: {response.text}")
-    body: dict[str, Any] = response.json() if response.content else {}
-    return body
 
 
 class _Reader:
@@ -173,20 +165,20 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: 
          eyes: str, seed: int, unit: str, progress: Progress) -> dict[str, Any]:
     client = daemon.client
     progress("importing the calibration, placing the eye, capturing the reference at rest")
-    imported = _checked(client.post(f"{API}/calibrations", content=zip_directory(calibration),
+    imported = checked(client.post(f"{API}/calibrations", content=zip_directory(calibration),
                                     headers={"content-type": "application/zip"}), "import")
-    _checked(client.post(f"{API}/calibrations/{imported['id']}/activate"), "activation")
-    _checked(client.put(f"{API}/patients/{PATIENT}", json={
+    checked(client.post(f"{API}/calibrations/{imported['id']}/activate"), "activation")
+    checked(client.put(f"{API}/patients/{PATIENT}", json={
         "eye": "right", "unit": unit, "tolerance_mm": TOLERANCE_MM,
         "tolerance_gaze_deg": TOLERANCE_GAZE_DEG}), "patient")
     drawn = None
     if eyes == "patient":
         drawn = population.draw(np.random.default_rng(seed), "patient")
-        _checked(client.put(f"{API}/sim/scene", json=SceneSpec(kind="eye", eye=drawn)
+        checked(client.put(f"{API}/sim/scene", json=SceneSpec(kind="eye", eye=drawn)
                             .model_dump(mode="json")), "patient eye")
-    _checked(client.put(f"{API}/sim/eye", json={"motion": None, "gaze_deg": [0.0, 0.0]}),
+    checked(client.put(f"{API}/sim/eye", json={"motion": None, "gaze_deg": [0.0, 0.0]}),
              "still eye")
-    reference = _checked(client.post(f"{API}/patients/{PATIENT}/fractions/1/reference/capture",
+    reference = checked(client.post(f"{API}/patients/{PATIENT}/fractions/1/reference/capture",
                                      timeout=120), "reference")
     # The script's clock starts at this PUT: the saccade comes half-way through tracking and
     # the eye returns to the reference gaze one second later.
@@ -199,16 +191,16 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: 
                          {"t_s": saccade_s + 1.0, "kind": "saccade", "gaze_deg": [0.0, 0.0],
                           "duration_s": 0.03},
                          {"t_s": blink_s, "kind": "blink", "duration_s": BLINK_S}]}
-    _checked(client.put(f"{API}/sim/eye", json={"motion": motion}), "eye motion")
+    checked(client.put(f"{API}/sim/eye", json={"motion": motion}), "eye motion")
     ahead = None
     if prerendered:
         script_s = lead_s + seconds + PRERENDER_MARGIN_S
         progress(f"rendering {script_s:g} s of the moving eye ahead (unit {unit}'s cameras; "
                  "≈ 0.3–0.5 s a second of script)")
-        ahead = _checked(client.post(f"{API}/sim/eye/prerender", json={
+        ahead = checked(client.post(f"{API}/sim/eye/prerender", json={
             "unit": unit, "seconds": script_s}, timeout=3600), "rendering ahead")
     before = time.monotonic_ns()
-    eye = _checked(client.get(f"{API}/sim/eye"), "eye truth")
+    eye = checked(client.get(f"{API}/sim/eye"), "eye truth")
     after = time.monotonic_ns()
     # The daemon and this process share CLOCK_MONOTONIC: the script's start on it.
     epoch_ns = (before + after) // 2 - round(float(eye["t_s"]) * 1e9)
@@ -239,14 +231,14 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: 
     report["eyes"] = eyes
     report["unit"] = unit
     report["eye"] = None if drawn is None else {"seed": seed, **population.describe(drawn)}
-    scene = SceneSpec.model_validate(_checked(client.get(f"{API}/sim/scene"), "scene"))
+    scene = SceneSpec.model_validate(checked(client.get(f"{API}/sim/scene"), "scene"))
     report["accuracy"] = tracked_accuracy(
         [m for _, m in readers[0].messages if m.get("type") == "pose"], scene, epoch_ns,
         [(saccade_s, 0.03), (saccade_s + 1.0, 0.03), (blink_s, BLINK_S)])
     report["prerendered"] = None if ahead is None else {
         "seconds": ahead["seconds"], "took_s": ahead["took_s"],
         "megabytes": ahead["megabytes"],
-        "cameras": _checked(client.get(f"{API}/sim/eye/prerender"), "rendered ahead")}
+        "cameras": checked(client.get(f"{API}/sim/eye/prerender"), "rendered ahead")}
     return report
 
 
@@ -338,14 +330,14 @@ def _track(client: Any, seconds: float, saccade_s: float, lead_s: float, silent:
         progress(f"tracking for {seconds:g} s with {CLIENTS} clients on /ws/pose "
                  f"(saccade of {SACCADE_DEG:g}° at {saccade_s - lead_s:g} s)")
         start_ns = time.monotonic_ns()
-        started = _checked(client.post(f"{API}/tracking/start", json={
+        started = checked(client.post(f"{API}/tracking/start", json={
             "patient_id": PATIENT, "fraction": 1}), "tracking start")
         t0 = time.monotonic()
         remaining = seconds - (time.monotonic() - t0)
         while remaining > 0:
             time.sleep(min(remaining, 1.0))
             remaining = seconds - (time.monotonic() - t0)
-        status = _checked(client.post(f"{API}/tracking/stop"), "tracking stop")
+        status = checked(client.post(f"{API}/tracking/stop"), "tracking stop")
         elapsed_s = time.monotonic() - t0
         time.sleep(0.5)  # the last messages reach the readers
         silent.drain()
