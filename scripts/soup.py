@@ -25,6 +25,7 @@ PURPOSE = {
                                       "filtering and remapping",
     "fastapi": "the REST API and its OpenAPI document",
     "uvicorn": "the HTTP and WebSocket server",
+    "httptools": "uvicorn's compiled HTTP/1.1 parser (fast status reads under load)",
     "websockets": "the WebSocket protocol of /ws/events and /ws/pose (server and clients)",
     "httpx": "HTTP client of the command line, the benches and the Python client",
     "pydantic": "validation of every request body, settings and file format",

@@ -14,10 +14,12 @@ from typing import Annotated, Any
 from fastapi import Depends, FastAPI
 from fastapi.responses import JSONResponse
 from starlette.concurrency import run_in_threadpool
+from starlette.types import Receive, Scope, Send
 
 import eyeserver
 from eyeserver.api.auth import Caller, TokenTable, require
 from eyeserver.api.errors import AUTH_RESPONSES, install_error_handlers
+from eyeserver.api.fastpath import ReadFastPath
 from eyeserver.api.routers import (
     audit,
     calibration_sessions,
@@ -91,6 +93,19 @@ def _lifespan(settings: Settings) -> Callable[[FastAPI], AbstractAsyncContextMan
     return lifespan
 
 
+class _Daemon(FastAPI):
+    """FastAPI with :class:`ReadFastPath` in front of everything, its middleware included:
+    health and status reads are answered before any of FastAPI's per-request machinery
+    (issue 35, item 13)."""
+
+    def __init__(self, **options: Any) -> None:
+        super().__init__(**options)
+        self._reads = ReadFastPath(super().__call__, state=self.state, prefix=API_PREFIX)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        await self._reads(scope, receive, send)
+
+
 def create_app(settings: Settings) -> FastAPI:
     """Build the eyeserver API for ``settings``.
 
@@ -101,7 +116,7 @@ def create_app(settings: Settings) -> FastAPI:
     served at ``/api/v1/openapi.json`` and its interactive view at ``/api/v1/docs``, without a
     token unless ``public_api_docs`` is off (then the document needs one and the view is off).
     """
-    app = FastAPI(
+    app = _Daemon(
         title="eyeserver",
         summary="Eye surface and pose by single-shot fringe projection.",
         version=eyeserver.__version__,
