@@ -19,6 +19,7 @@ traceback); 130 after Ctrl-C.
 from __future__ import annotations
 
 import argparse
+import gc
 import sys
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
@@ -86,8 +87,14 @@ def _serve(args: argparse.Namespace) -> int:
     # Fail here with a one-line message rather than inside uvicorn's lifespan with a traceback.
     settings.ensure_data_dir()
     ssl_options = uvicorn_ssl_options(settings)  # {} for plain HTTP
+    app = create_app(settings)
+    # Everything imported so far lives as long as the daemon: out of the cyclic collector's
+    # full passes, which otherwise stopped every thread for 40-90 ms a few times a minute
+    # under load (the status p99; docs/notes/hardening.md).
+    gc.collect()
+    gc.freeze()
     uvicorn.run(
-        create_app(settings),
+        app,
         host=settings.host,
         port=settings.port,
         # No uvicorn logging config: its loggers propagate to our root handler (JSON lines).
