@@ -7,6 +7,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -21,6 +22,7 @@ from eyeserver.errors import (
     DeviceNotOpenError,
     DeviceTimeoutError,
     DeviceValueError,
+    FormatError,
 )
 from eyeserver.hardware import registry
 from eyeserver.hardware.base import Camera, Projector, Trigger, TriggerPulse, TriggerStep
@@ -31,6 +33,7 @@ from eyeserver.hardware.registry import (
     register_driver,
 )
 from eyeserver.hardware.rig import HardwareConfig, Rig, Unit, build_rig
+from eyeserver.hardware.room import room_hardware
 from eyeserver.hardware.sim.drivers import (
     LINK_BYTES_PER_S,
     SIM_WIRING,
@@ -42,6 +45,7 @@ from eyeserver.hardware.sim.drivers import (
     sim_driver_context,
     sim_hardware_config,
 )
+from eyeserver.hardware.sim.room import SimRoom
 from tests.hardware.contract import (
     MISSING_TIMEOUT_S,
     READ_TIMEOUT_S,
@@ -259,6 +263,23 @@ def test_sim_driver_needs_the_wiring() -> None:
     wrong = DriverContext(resources={SIM_WIRING: object()})
     with pytest.raises(ConfigError, match="not a SimWiring"):
         create_device("trigger", "SimTrigger", "T1", {}, wrong)
+
+
+def test_the_simulated_room_is_found_by_name_with_its_stage_and_lights(tmp_path: Path) -> None:
+    hardware = room_hardware("sim")
+
+    assert isinstance(hardware.simulation, SimRoom)
+    assert hardware.simulation.scene.kind == "eye"
+    assert [u.id for u in hardware.rig.units] == [u[0] for u in hardware.simulation.units()]
+    assert not any(d.is_open for d in hardware.rig.devices)
+    assert hardware.stage is not None and not hardware.stage.is_open
+    assert hardware.lights is not None
+    with pytest.raises(ConfigError, match="unknown room 'basler'; known rooms: sim"):
+        room_hardware("basler")
+    broken = tmp_path / "room.toml"
+    broken.write_text("units = 3\n")
+    with pytest.raises(FormatError, match=r"room\.toml"):
+        room_hardware("sim", broken)
 
 
 @pytest.mark.usefixtures("scratch_registry")

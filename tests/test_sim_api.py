@@ -77,8 +77,8 @@ def test_the_truth_is_the_placed_scenes(client: Client, service: Service) -> Non
         {k: v for k, v in expected.items() if k != "t_s"}
     assert body["t_s"] >= 0
     assert body["eye"]["globe_radius_mm"] == 12.4
-    room = service.sim_room
-    assert room is not None
+    room = service.simulation
+    assert isinstance(room, SimRoom)
     assert set(body["devices"]["cameras"]) == set(room.camera_ids())
     assert set(body["devices"]["projectors"]) == set(room.projector_ids())
 

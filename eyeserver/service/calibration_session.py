@@ -300,7 +300,7 @@ class CalibrationSessions:
                 "chessboard", service.rig_spec(), frames, unit="all", calibration_id=None,
                 bit_depth=bit_depth, chessboard=board,
                 extra={"calibration_session": session.id,
-                       "simulated": service.sim_room is not None})
+                       "simulated": service.simulated})
             found: dict[str, bool] = {}
             rig = service.rig_spec()
             for camera_id in rig.camera_ids:
@@ -346,7 +346,7 @@ class CalibrationSessions:
                 "reference" if reference else "plate", service.rig_spec(), frames, unit="all",
                 calibration_id=None, bit_depth=bit_depth,
                 extra={"calibration_session": session.id,
-                       "simulated": service.sim_room is not None})
+                       "simulated": service.simulated})
             step = PlateStep(record.id, float(z_mm), move_stage)
             if reference:
                 session.reference = step

@@ -50,11 +50,7 @@ from eyeserver.errors import (
 from eyeserver.hardware.base import Device, Stage
 from eyeserver.hardware.bundling import bundle_bit_depth, bundle_frames
 from eyeserver.hardware.rig import AcquiredStep, Rig
-from eyeserver.hardware.sim.config import load_room
-from eyeserver.hardware.sim.drivers import build_sim_rig
-from eyeserver.hardware.sim.room import SimRoom
-from eyeserver.hardware.sim.scenes import SceneSpec
-from eyeserver.hardware.sim.stage import SimStage
+from eyeserver.hardware.room import RoomHardware, room_hardware
 from eyeserver.io import (
     BundleFrameData,
     RigSpec,
@@ -187,7 +183,7 @@ class Service:
         room). The simulated scene is an eye (``SceneSpec(kind="eye")``), so captures show one.
     rig : Rig, optional
         A rig (not yet open) to drive instead of building the simulated room's; the daemon then
-        has no :attr:`sim_room`, as on real hardware (tests of a non-simulated daemon).
+        has no :attr:`simulation`, as on real hardware (tests of a non-simulated daemon).
     retry_wait : RetryWait, optional
         How the background recovery waits between retries of failed devices (default: real
         time, :func:`~eyeserver.service.workers.wait_on_event`); tests step it by hand.
@@ -219,7 +215,7 @@ class Service:
                                    attempt=self._retry_faults, wait=retry_wait)
         self._settings = settings
         self._given_rig = rig
-        self._sim_room: SimRoom | None = None
+        self._hardware: RoomHardware | None = None
         self._lock = threading.Lock()
         self._results_lock = threading.Lock()  # a capture's cloud and summary change together
         self._state: ServiceState = "idle"
@@ -260,29 +256,25 @@ class Service:
         except BaseException:
             self.audit.close()
             raise
-        room: SimRoom | None = None
         try:
-            if self._given_rig is not None:
-                rig = self._given_rig
-            else:
-                room = SimRoom(load_room(self._settings.room_file))
-                room.set_scene(SceneSpec(kind="eye"))
-                rig = build_sim_rig(room)
-            rig.open()
+            # The simulated room unless a rig is given: found by name, never imported here.
+            hardware = room_hardware("sim", self._settings.room_file) \
+                if self._given_rig is None else RoomHardware(rig=self._given_rig)
+            hardware.rig.open()
         except BaseException:
             store.close()
             self.audit.close()
             raise
-        self._store, self._rig, self._sim_room = store, rig, room
-        if room is not None:  # the simulated room has a motorised stage under its plate
-            self._stage = SimStage("Z1", room)
+        self._store, self._rig, self._hardware = store, hardware.rig, hardware
+        self._stage = hardware.stage
+        if self._stage is not None:
             self._stage.open()
         self._started = time.monotonic()
         self.acquisition_worker.start()
         self.reconstruction_worker.start()
         self.jobs.start()
         self._recovery.start()
-        _log.info("service open", extra={"units": [u.id for u in rig.units]})
+        _log.info("service open", extra={"units": [u.id for u in hardware.rig.units]})
 
     def close(self) -> None:
         """Stop the background recovery and the workers (jobs already queued finish), then
@@ -293,7 +285,7 @@ class Service:
         self.reconstruction_worker.stop()
         rig, store = self._rig, self._store
         self._rig = self._store = None
-        self._sim_room = None
+        self._hardware = None
         if self._stage is not None:
             self._stage.close()
             self._stage = None
@@ -333,13 +325,21 @@ class Service:
         return self._stage
 
     @property
-    def sim_room(self) -> SimRoom | None:
-        """The simulated room the open rig images; None on real hardware (or when closed).
+    def simulated(self) -> bool:
+        """Whether the open rig images a simulated room."""
+        hardware = self._hardware
+        return hardware is not None and hardware.simulation is not None
 
-        For people and tests only (:mod:`eyeserver.service.simroom`): the measurement path
-        never sees it.
+    @property
+    def simulation(self) -> object | None:
+        """The simulated room the open rig images, as an opaque handle; None on real hardware
+        (or when closed).
+
+        For people and tests only (:mod:`eyeserver.service.simroom` opens it): the measurement
+        path never sees it.
         """
-        return self._sim_room
+        hardware = self._hardware
+        return None if hardware is None else hardware.simulation
 
     # --- the state machine ------------------------------------------------------------------
 
@@ -545,7 +545,7 @@ class Service:
             frames = bundle_frames(steps)
             active = store.active_calibration()
             checks, dark = self._fringe_checks(active, steps)
-            extra: dict[str, object] = {"simulated": self._sim_room is not None}
+            extra: dict[str, object] = {"simulated": self.simulated}
             if checks is not None:
                 extra["fringe_check"] = checks
             record = store.add_capture(
@@ -683,18 +683,19 @@ class Service:
                 except DeviceError as exc:
                     self._mark_fault(exc)
                     raise
-            room = self._sim_room
+            hardware = self._hardware
+            lights = None if hardware is None else hardware.lights
             try:
                 if lit:
                     steps = rig.acquire([u.id for u in rig.units])
                 else:
-                    if room is not None:  # a real room is simply lit for the board
-                        room.set_room_lights(True)
+                    if lights is not None:  # a room without a switch is simply lit for the board
+                        lights(True)
                     try:
                         steps = [rig.acquire_unlit()]
                     finally:
-                        if room is not None:
-                            room.set_room_lights(False)
+                        if lights is not None:
+                            lights(False)
             except DeviceError as exc:
                 self._mark_fault(exc)
                 self._reset_cameras(rig.cameras, exc.device_id)

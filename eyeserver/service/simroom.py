@@ -56,7 +56,7 @@ class SimRoomControl:
     service : Service
         The open daemon; scene changes go through its state machine.
     room : SimRoom
-        Its :attr:`Service.sim_room`.
+        Its :attr:`Service.simulation`.
 
     Notes
     -----
@@ -71,8 +71,8 @@ class SimRoomControl:
     @classmethod
     def of(cls, service: Service) -> SimRoomControl | None:
         """The control of ``service``'s simulated room, or None when it drives real hardware."""
-        room = service.sim_room
-        return None if room is None else cls(service, room)
+        room = service.simulation
+        return cls(service, room) if isinstance(room, SimRoom) else None
 
     @property
     def scene(self) -> SceneSpec:
