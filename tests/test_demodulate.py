@@ -419,6 +419,29 @@ def test_measure_carrier_rejects_bad_input() -> None:
         measure_carrier(fringes, max_period_px=1.0)
 
 
+def test_measure_carrier_refuses_noise_with_the_reason() -> None:
+    """Noise alone has a largest bin too (4-5 times the median): no carrier is guessed from it,
+    as a dark projector's frame once gave a period of 1.75 px."""
+    noise = np.random.default_rng(3).normal(100.0, 2.0, (HEIGHT, WIDTH))
+    with pytest.raises(ValueError, match=r"no fringe carrier: .* stands \d+\.\d× above"):
+        measure_carrier(noise)
+    faint = noise + 0.5 * np.cos(2 * np.pi * 0.042 * _grid()[1])  # a quarter of the noise's sd
+    assert measure_carrier(faint).period_px == pytest.approx(1 / 0.042, rel=0.01)
+
+
+def test_measure_carrier_refuses_two_carriers_of_similar_strength() -> None:
+    _, j = _grid()
+    two = 100 + 30 * np.cos(2 * np.pi * 0.042 * j) + 25 * np.cos(2 * np.pi * 0.07 * j)
+    with pytest.raises(ValueError, match=r"no single fringe carrier: components of periods "
+                                         r"23\.\d and 14\.\d px"):
+        measure_carrier(two)
+    one_strong = 100 + 30 * np.cos(2 * np.pi * 0.042 * j) + 15 * np.cos(2 * np.pi * 0.07 * j)
+    assert measure_carrier(one_strong).period_px == pytest.approx(1 / 0.042, rel=0.01)
+    # A Ronchi grating's harmonics (a square wave: 3f at a third) are the same carrier's.
+    square = 100 + 30 * np.sign(np.cos(2 * np.pi * 0.042 * j + 0.3))
+    assert measure_carrier(square).period_px == pytest.approx(1 / 0.042, rel=0.01)
+
+
 def test_phase_difference_rejects_bad_input() -> None:
     with pytest.raises(ValueError, match="wrapped_object and wrapped_reference"):
         phase_difference(np.zeros((4, 4)), np.zeros((4, 5)))

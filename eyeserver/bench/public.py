@@ -187,7 +187,11 @@ def score_ftm(data_dir: Path = DATA_DIR, frequency: Literal["hf", "lf"] = "hf", 
 
     four_object = _four_step(objects)
     four_reference = _four_step(references)
-    carrier = measure_carrier(references[0])
+    try:
+        carrier = measure_carrier(references[0])
+    except ValueError as exc:  # lf: about two fringes across the image
+        raise ValueError(f"frequency {frequency!r}: {exc}; Fourier-transform demodulation "
+                         "needs several fringes per image") from exc
 
     # Sign convention, checked on this set: the images step by +π/2 (I_n ∝ cos(φ + n·π/2)), so
     # atan2(I3 − I1, I0 − I2) is the phase of image 0 in demodulate's convention (growing along
@@ -195,7 +199,8 @@ def score_ftm(data_dir: Path = DATA_DIR, frequency: Literal["hf", "lf"] = "hf", 
     # to 1e-4 rad (median; 0.002 rad median deviation), its negative differs by π/2 typically.
     # A set stepping the other way would give the negative; the sign is taken from the
     # four-step phase's own slope, and a slope matching neither sign means the carrier
-    # measure_carrier found is not the fringe (lf: ≈ 500 px against a spurious 32 px).
+    # measure_carrier found is not the fringe (lf gave ≈ 500 px against a spurious 32 px before
+    # measure_carrier refused spectra without a single peak).
     four_carrier = np.asarray(_local_carrier(four_reference))
     found = np.asarray(carrier.frequency)
     scale = carrier.cycles_per_px * _CARRIER_TOLERANCE

@@ -400,8 +400,10 @@ def measure_carrier(image: npt.ArrayLike, mask: npt.ArrayLike | None = None, *,
     Raises
     ------
     ValueError
-        If ``image``, ``mask`` or ``max_period_px`` is invalid, or if ``image`` holds no
-        fringe (a flat spectrum above ``max_period_px``).
+        If ``image``, ``mask`` or ``max_period_px`` is invalid; if ``image`` holds no fringe
+        (no peak :data:`MIN_CARRIER_STRENGTH` times above the spectrum's median); or if no
+        single carrier stands out (:data:`MIN_CARRIER_DOMINANCE`), as on a surface whose phase
+        spreads the fringe: the message says which.
 
     References
     ----------
@@ -456,10 +458,9 @@ def measure_carrier(image: npt.ArrayLike, mask: npt.ArrayLike | None = None, *,
     # Half of the kx = 0 column duplicates the other (Hermitian symmetry): keep fy > 0 there.
     spectrum[(fy_bins[:, 0] < 0), 0] = 0.0
     peak = np.unravel_index(int(np.argmax(spectrum)), spectrum.shape)
-    if not spectrum[peak] > 0.0 or not spectrum[peak] > 4.0 * float(np.median(spectrum)):
-        raise ValueError("image holds no fringe carrier (no spectral peak above the background)")
     fy0 = float(fy_bins[peak[0], 0])
     fx0 = float(fx_bins[0, peak[1]])
+    _check_single_carrier(spectrum, fy_bins, fx_bins, (fy0, fx0), (height, width))
 
     # Zoomed DTFT over ±1 bin in steps of 1/8 bin: a separable matrix product, cheap.
     steps = np.linspace(-1.0, 1.0, 17)
@@ -484,6 +485,59 @@ def measure_carrier(image: npt.ArrayLike, mask: npt.ArrayLike | None = None, *,
     if 0 < n < len(steps) - 1:
         fx += step_x * vertex(log_zoom[m, n - 1], log_zoom[m, n], log_zoom[m, n + 1])
     return Carrier((fy, fx))
+
+
+MIN_CARRIER_STRENGTH = 20.0
+"""Least ratio of the carrier's spectral peak to the spectrum's median for
+:func:`measure_carrier` to call it a fringe: noise alone reaches 4–5 (the largest of some 10⁵
+Rayleigh-distributed bins), a plate lit at 5 % about 150 (docs/notes/demodulation.md)."""
+
+MIN_CARRIER_DOMINANCE = 1.5
+"""Least ratio of the carrier's peak to the strongest other component of the spectrum (outside
+the peak's main lobe, its harmonics and their mirror images) for :func:`measure_carrier` to
+name it the carrier: a plate gives ≈ 5; a surface's phase spreads the fringe over several
+frequencies of similar strength, between which the largest is a guess
+(docs/notes/demodulation.md)."""
+
+_LOBE_BINS = 3.0  # the Hann window's main lobe spans ±2 bins; a bin more for the peak's offset
+
+
+def _check_single_carrier(spectrum: npt.NDArray[np.floating[Any]],
+                          fy_bins: npt.NDArray[np.floating[Any]],
+                          fx_bins: npt.NDArray[np.floating[Any]],
+                          peak: tuple[float, float], shape: tuple[int, int]) -> None:
+    """Raise a ValueError with the reason unless the spectrum's peak at ``peak`` (cycles/px) is
+    a fringe carrier: far above the noise (:data:`MIN_CARRIER_STRENGTH`) and alone
+    (:data:`MIN_CARRIER_DOMINANCE`). ``spectrum`` is the magnitude of the windowed image's
+    ``rfft2`` with the frequencies below the longest period zeroed."""
+    height, width = shape
+    strongest = float(spectrum[np.unravel_index(int(np.argmax(spectrum)), spectrum.shape)])
+    kept = spectrum[spectrum > 0.0]
+    median = float(np.median(kept)) if kept.size else 0.0
+    period = 1.0 / max(math.hypot(*peak), 1e-12)
+    if not strongest > MIN_CARRIER_STRENGTH * median:
+        ratio = strongest / median if median > 0.0 else 0.0
+        raise ValueError(
+            f"image holds no fringe carrier: its strongest component (period {period:.1f} px) "
+            f"stands {ratio:.1f}× above the spectrum's median, and noise alone reaches 4–5× "
+            f"(a fringe needs {MIN_CARRIER_STRENGTH:g}×)")
+    others = np.ones(spectrum.shape, dtype=bool)
+    for harmonic in (1.0, 2.0, 3.0):
+        for sign in (1.0, -1.0):
+            distance = np.hypot((fy_bins - sign * harmonic * peak[0]) * height,
+                                (fx_bins - sign * harmonic * peak[1]) * width)
+            others &= distance > _LOBE_BINS
+    rivals = np.where(others, spectrum, 0.0)
+    rival = np.unravel_index(int(np.argmax(rivals)), rivals.shape)
+    runner_up = float(rivals[rival])
+    if runner_up > 0.0 and strongest < MIN_CARRIER_DOMINANCE * runner_up:
+        other = 1.0 / max(math.hypot(float(fy_bins[rival[0], 0]), float(fx_bins[0, rival[1]])),
+                          1e-12)
+        raise ValueError(
+            f"image has no single fringe carrier: components of periods {period:.1f} and "
+            f"{other:.1f} px are within {strongest / runner_up:.2f}× of each other (a surface's "
+            "phase spreads the fringe over several frequencies; measure the carrier on the flat "
+            "reference plate)")
 
 
 BANDWIDTH = 0.9
