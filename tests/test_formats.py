@@ -702,8 +702,6 @@ def _replace_image(bundle: Bundle, name: str, pixels: Any) -> Path:
 
 
 IMAGE_RULES: list[tuple[str, Callable[[], Any], str]] = [
-    ("colour", lambda: np.zeros((HEIGHT, WIDTH, 3), np.uint8), "single-channel, got 3"),
-    ("grey with alpha", lambda: np.zeros((HEIGHT, WIDTH, 4), np.uint16), "single-channel, got 4"),
     ("wrong size", lambda: np.zeros((HEIGHT, WIDTH * 2), np.uint8), "24×8 pixels"),
     ("transposed", lambda: np.zeros((WIDTH, HEIGHT), np.uint16), "delivers 12×8"),
 ]
@@ -720,6 +718,22 @@ def test_load_image_rule(
     with pytest.raises(FormatError, match=reason) as caught:
         read_bundle(bundle.path).load_image(0, "S2")
     assert_names(caught.value, path, None)
+
+
+@pytest.mark.parametrize("channels", [3, 4], ids=["colour", "colour with alpha"])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_a_colour_image_is_read_as_the_mean_of_its_colour_channels(
+        tmp_path: Path, rig: RigSpec, channels: int, dtype: type[np.unsignedinteger[Any]]) -> None:
+    bundle = make_bundle(tmp_path / "bundle", rig)
+    rng = np.random.default_rng(channels)
+    pixels = rng.integers(0, np.iinfo(dtype).max, (HEIGHT, WIDTH, channels), dtype=dtype)
+    _replace_image(bundle, "S2_0000.png", pixels)
+
+    loaded = read_bundle(bundle.path).load_image(0, "S2")
+
+    assert loaded.dtype == dtype and loaded.shape == (HEIGHT, WIDTH)
+    expected = pixels[..., :3].astype(np.float64).mean(axis=2)  # alpha plays no part
+    assert np.abs(loaded - expected).max() <= 0.5 + 1e-9
 
 
 def test_load_image_missing_or_not_png(tmp_path: Path, rig: RigSpec) -> None:

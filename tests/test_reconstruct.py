@@ -7,9 +7,11 @@ calibration set; the scene's truth is used only to score the result.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 
@@ -89,6 +91,29 @@ def test_two_views_reconstruct_too(calibrated_rooms: Any, tmp_path: Path) -> Non
     score = _measure(calibrated_rooms, "default", "pyramid", tmp_path, cameras="S1,S2")
     assert set(score["coverage"]) == {"S1", "S2"}
     assert score["median_mm"] < 0.05
+
+
+def test_a_colour_bundle_reconstructs_as_its_grey_one(calibrated_rooms: Any,
+                                                      tmp_path: Path) -> None:
+    """A colour camera's PNGs (channels of different strength, their mean the grey image) give
+    the grey bundle's surface: docs/FORMATS.md reads them as the mean of their channels."""
+    grey_score = _measure(calibrated_rooms, "default", "plate_+3", tmp_path)
+    colour = tmp_path / "colour" / "plate_+3"
+    shutil.copytree(tmp_path / "plate_+3", colour)
+    for path in colour.glob("*.png"):
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.int32)
+        assert image.ndim == 2
+        spread = np.minimum(np.minimum(image, np.iinfo(np.uint8).max - image), 20)
+        bgr = np.stack([image - spread, image, image + spread], axis=2)  # mean: the grey image
+        assert cv2.imwrite(str(path), bgr.astype(np.uint8))
+
+    colour_score = _measure(calibrated_rooms, "default", "plate_+3", tmp_path / "colour")
+
+    assert colour_score["median_mm"] < 0.05, colour_score
+    assert colour_score["beyond_1mm"] < 0.001, colour_score
+    for camera_id, coverage in colour_score["coverage"].items():
+        assert coverage["share"] == pytest.approx(grey_score["coverage"][camera_id]["share"],
+                                                  abs=0.01)
 
 
 def test_bad_requests_are_explained(calibrated_rooms: Any, tmp_path: Path,

@@ -4,11 +4,24 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
 
 from eyeserver.core.types import Image
 
 ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]+$")
 """Device and unit ids: short strings of letters, digits, ``-`` and ``_`` (FORMATS.md)."""
+
+
+def grey(image: npt.NDArray[Any]) -> npt.NDArray[np.float32]:
+    """A colour image ``(H, W, 3)`` or ``(H, W, 4)`` as grey: the mean of its three colour
+    channels, the fourth (alpha) ignored. The mean, not a luminance weighting: the fringe of a
+    white or near-infrared projector is in every channel, and the mean is the same whatever
+    their order (OpenCV's BGR or RGB)."""
+    colour: npt.NDArray[np.float32] = np.asarray(image[..., :3], dtype=np.float32)
+    return np.asarray(colour.mean(axis=2), dtype=np.float32)
 
 
 def is_valid_id(value: str) -> bool:

@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from eyeserver.core.frames import grey
 from eyeserver.core.types import Image
 from eyeserver.errors import FormatError
 from eyeserver.io._validate import (
@@ -269,15 +270,17 @@ class Bundle:
         Returns
         -------
         ndarray of uint8 or uint16, shape (height, width)
-            Pixel values as stored (10- and 12-bit data are not shifted).
+            Pixel values as stored (10- and 12-bit data are not shifted); a colour image's the
+            mean of its colour channels, rounded.
 
         Raises
         ------
         KeyError
             When the bundle has no such frame or the frame no image of that camera.
         FormatError
-            Naming the image file, when it is missing, not a PNG, not single-channel 8- or
-            16-bit, not the camera's size, or holds values beyond ``bit_depth``.
+            Naming the image file, when it is missing, not a PNG, not 8- or 16-bit, neither
+            single-channel nor colour (3 or 4 channels, read as their mean), not the camera's
+            size, or holds values beyond ``bit_depth``.
         """
         position = self._position(frame_index)
         path = self.image_path(frame_index, camera_id)
@@ -298,11 +301,15 @@ class Bundle:
         if decoded is None:
             raise FormatError(path, None, "cannot decode the PNG")
         image = np.asarray(decoded)
-        if image.ndim != 2:
-            channels = image.shape[2] if image.ndim == 3 else image.ndim
-            raise FormatError(path, None, f"must be single-channel, got {channels} channels")
         if image.dtype not in (np.uint8, np.uint16):
             raise FormatError(path, None, f"must be an 8- or 16-bit PNG, got {image.dtype}")
+        if image.ndim == 3 and image.shape[2] in (3, 4):
+            # A colour PNG: the mean of its colour channels (docs/FORMATS.md), in its own type.
+            image = np.rint(grey(image)).astype(image.dtype)
+        elif image.ndim != 2:
+            channels = image.shape[2] if image.ndim == 3 else image.ndim
+            raise FormatError(path, None, f"must be single-channel or colour (3 or 4 "
+                              f"channels), got {channels} channels")
         camera = self.rig.camera(camera_id)
         height, width = image.shape
         if (height, width) != (camera.height, camera.width):

@@ -53,6 +53,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.fft
 
+from eyeserver.core.frames import grey
 from eyeserver.core.types import F32, F64
 
 __all__ = ["Carrier", "Demodulated", "demodulate", "measure_carrier", "phase_difference"]
@@ -165,11 +166,16 @@ class Demodulated:
 
 def checked_image(image: npt.ArrayLike, name: str = "image", min_size: int = _MIN_SIZE,
                   ) -> npt.NDArray[Any]:
-    """``image`` as a 2-D real finite array (its own dtype) of at least ``min_size`` pixels a
-    side, or a ValueError naming ``name``."""
+    """``image`` as a 2-D real finite array (its own dtype; a colour image
+    made :func:`~eyeserver.core.frames.grey`)
+    of at least ``min_size`` pixels a side, or a ValueError naming ``name``."""
     array = np.asarray(image)
+    if array.ndim == 3 and array.shape[2] in (3, 4) and array.dtype != np.bool_ and (
+            np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating)):
+        array = grey(array)
     if array.ndim != 2:
-        raise ValueError(f"{name} must be a 2-D array, not {array.ndim}-D")
+        raise ValueError(f"{name} must be a 2-D array (or a colour image of 3 or 4 channels), "
+                         f"not {array.ndim}-D of shape {array.shape}")
     if array.dtype == np.bool_ or not (np.issubdtype(array.dtype, np.integer)
                                        or np.issubdtype(array.dtype, np.floating)):
         raise ValueError(f"{name} must hold real numbers (integer or float), not {array.dtype}")
