@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from eyeserver.calibration.artefact import load_calibration
+from eyeserver.calibration.phase_height import MARGIN_WARNING_RAD
 from eyeserver.core.types import Progress, quiet
 from eyeserver.errors import EyeserverError
 from eyeserver.eye import LimbusView
@@ -37,14 +38,53 @@ class ReconstructionError(EyeserverError):
     """A bundle cannot be reconstructed with the calibration given."""
 
 
+RECONSTRUCTION_METHODS = ("auto", *METHODS)
+"""The fringe-order methods a reconstruction may be asked for: ``auto`` (the default) picks one
+per unit with :func:`unit_method`."""
+
+BLIND_MARGIN_RAD = 0.01
+"""A unit whose calibrated fringe-order margin is below this (rad) gets no evidence of the order
+from its other camera at all, below the phase's own noise: its cameras at one azimuth
+(examples/rooms/blind.toml, 6e-8 rad) picked orders two fringes off with every method that
+trusts that camera, so ``auto`` asks for a depth prior instead."""
+
+
+def unit_method(document: dict[str, Any], unit_id: str, method: str) -> tuple[str, str]:
+    """The fringe-order method a unit is reconstructed with, and why.
+
+    ``auto`` takes the multi-view order where the calibration found the unit's two cameras
+    discriminate fringe orders (their margin at least ``MARGIN_WARNING_RAD``; it is fast and
+    every point is confirmed by both cameras), the spatial order where they do a little (one
+    order per region, voted by all its pixels), and ``"blind"`` where the margin is below
+    :data:`BLIND_MARGIN_RAD`: only a depth prior can fix that unit's orders. Any other method is
+    kept.
+    """
+    if method != "auto":
+        return method, "asked for"
+    units = (document.get("phase_to_height") or {}).get("units") or {}
+    section = units.get(unit_id)
+    margin = section.get("margin_rad") if isinstance(section, dict) else None
+    if not isinstance(margin, (int, float)):
+        return "spatial", "the calibration gives no fringe-order margin for this unit"
+    if margin >= MARGIN_WARNING_RAD:
+        return "multi-view", (f"fringe-order margin {margin:.2f} rad, at least "
+                              f"{MARGIN_WARNING_RAD} rad")
+    if margin >= BLIND_MARGIN_RAD:
+        return "spatial", (f"fringe-order margin {margin:.2f} rad, below {MARGIN_WARNING_RAD} "
+                           "rad: too blind for the multi-view order")
+    return "blind", (f"fringe-order margin {margin:.3f} rad: its other camera cannot tell the "
+                     "fringe orders apart (its cameras see the same depth per fringe)")
+
+
 @dataclass(frozen=True)
 class ReconstructionOptions:
     """The choices of a reconstruction, as ``eyeserver reconstruct`` offers them.
 
     Attributes
     ----------
-    method : {"multi-view", "spatial"}
-        How fringe orders are fixed (see :mod:`eyeserver.pipeline.reconstruct`).
+    method : {"auto", "multi-view", "spatial"}
+        How fringe orders are fixed (see :mod:`eyeserver.pipeline.reconstruct`); ``auto`` per
+        unit from its calibration (:func:`unit_method`).
     depth_prior_mm : float or None
         Height (mm) the surface lies near, within half a fringe's depth.
     roi : tuple of 6 floats or None
@@ -59,15 +99,15 @@ class ReconstructionOptions:
         other or a quality outside 0 to 1 (the message names the option).
     """
 
-    method: str = "multi-view"
+    method: str = "auto"
     depth_prior_mm: float | None = None
     roi: tuple[float, ...] | None = None
     min_quality: float = 0.0
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
+        if self.method not in RECONSTRUCTION_METHODS:
             raise ReconstructionError(f"method: unknown fringe-order method {self.method!r} "
-                                      f"(one of {', '.join(METHODS)})")
+                                      f"(one of {', '.join(RECONSTRUCTION_METHODS)})")
         if self.depth_prior_mm is not None and not math.isfinite(self.depth_prior_mm):
             raise ReconstructionError(f"depth_prior_mm must be finite, not {self.depth_prior_mm}")
         if self.roi is not None:
@@ -165,19 +205,21 @@ def limbus_views(calibration: str | Path, bundle_path: str | Path) -> list[Limbu
 
 def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
                        frames: Sequence[int] | None = None, cameras: Sequence[str] | None = None,
-                       method: str = "multi-view", depth_prior_mm: float | None = None,
+                       method: str = "auto", depth_prior_mm: float | None = None,
                        region: Region | None = None, min_quality: float = 0.0,
                        progress: Progress = quiet) -> tuple[PointCloud, dict[str, Any]]:
     """The fused point cloud of a measurement bundle, and a summary per camera.
 
     ``frames`` and ``cameras`` restrict the views used (default: every fringe image). A camera's
     fringe order is fixed with its unit's other camera in the same frame (``method``: see
-    :mod:`eyeserver.pipeline.reconstruct`); a camera alone in its frame needs
-    ``depth_prior_mm``. ``region`` and ``min_quality`` crop the fused cloud.
+    :mod:`eyeserver.pipeline.reconstruct`, ``auto`` chosen per unit by :func:`unit_method`); a
+    camera alone in its frame needs ``depth_prior_mm``. ``region`` and ``min_quality`` crop the
+    fused cloud. Each camera's summary says the method its unit used and why, the pixels that
+    saw a fringe (``fringe_pixels``) and the share of them that gave a point (``coverage``).
     """
-    if method not in METHODS:
+    if method not in RECONSTRUCTION_METHODS:
         raise ReconstructionError(f"unknown fringe-order method {method!r} (one of "
-                                  f"{', '.join(METHODS)})")
+                                  f"{', '.join(RECONSTRUCTION_METHODS)})")
     bundle = read_bundle(bundle_path)
     document = load_calibration(calibration, bundle.rig)
     calibrated = calibrated_cameras(document)
@@ -200,12 +242,16 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
                                   "projector is lit)")
     summary: dict[str, Any] = {"cameras": {}, "method": method}
     done: dict[tuple[int, str], tuple[CameraCloud, str | None]] = {}
+    fringe_pixels: dict[tuple[int, str], int] = {}
+    methods = {unit.id: unit_method(document, unit.id, method) for unit in rig.units}
     for index, camera_id in views:
         if (index, camera_id) in done:
             continue
         unit = rig.unit_of_camera(camera_id)
         partners = [c for c in unit.cameras if c != camera_id and (index, c) in views]
-        image = bundle.load_image(index, camera_id)
+        cam = calibrated[camera_id]
+        phase = camera_phase(cam, bundle.load_image(index, camera_id), saturation)
+        fringe_pixels[(index, camera_id)] = int(np.count_nonzero(phase.valid))
         if not partners:
             if depth_prior_mm is None:
                 raise ReconstructionError(
@@ -213,25 +259,46 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
                     f"camera {camera_id}'s fringe order; give a depth prior (the surface's "
                     "height within half a fringe's depth) to use the camera alone")
             progress(f"frame {index}: camera {camera_id} alone, order from the depth prior")
-            cam = calibrated[camera_id]
-            alone = camera_cloud(cam, camera_phase(cam, image, saturation), None, None, limits,
-                                 depth_prior_mm=depth_prior_mm)
+            alone = camera_cloud(cam, phase, None, None, limits, depth_prior_mm=depth_prior_mm)
             done[(index, camera_id)] = (alone, None)
             continue
         partner = partners[0]
-        progress(f"frame {index}: cameras {camera_id} and {partner} of unit {unit.id}")
-        cloud_a, cloud_b = unit_clouds(
-            calibrated[camera_id], image, calibrated[partner], bundle.load_image(index, partner),
-            limits, method=method, depth_prior_mm=depth_prior_mm, saturation_dn=saturation)
+        chosen, why = methods[unit.id]
+        if chosen == "blind":
+            if depth_prior_mm is None:
+                raise ReconstructionError(
+                    f"{bundle.path}: unit {unit.id} is blind to the fringe order ({why}); give "
+                    "a depth prior (the surface's height within half a fringe's depth) or move "
+                    "one of its cameras to another azimuth and calibrate again")
+            progress(f"frame {index}: camera {camera_id} of blind unit {unit.id}, order from "
+                     "the depth prior")
+            done[(index, camera_id)] = (camera_cloud(cam, phase, None, None, limits,
+                                                     depth_prior_mm=depth_prior_mm), None)
+            continue
+        progress(f"frame {index}: cameras {camera_id} and {partner} of unit {unit.id} "
+                 f"({chosen} fringe order)")
+        partner_phase = camera_phase(calibrated[partner], bundle.load_image(index, partner),
+                                     saturation)
+        fringe_pixels[(index, partner)] = int(np.count_nonzero(partner_phase.valid))
+        cloud_a, cloud_b = unit_clouds(cam, None, calibrated[partner], None, limits,
+                                       method=chosen, depth_prior_mm=depth_prior_mm,
+                                       phases=(phase, partner_phase))
         done[(index, camera_id)] = (cloud_a, partner)
         done[(index, partner)] = (cloud_b, camera_id)
     parts = []
     for (index, camera_id), (camera_points, partner_id) in done.items():
+        unit_id = rig.unit_of_camera(camera_id).id
         parts.append(Part(camera_points.points, camera_points.quality,
-                          rig.camera_index(camera_id), rig.unit_of_camera(camera_id).id))
-        summary["cameras"][camera_id] = {"frame": index, "points": len(camera_points.points),
-                                         "fringe_order": camera_points.order_counts,
-                                         "partner": partner_id}
+                          rig.camera_index(camera_id), unit_id))
+        seen = fringe_pixels[(index, camera_id)]
+        chosen, why = methods[unit_id] if partner_id is not None else (
+            "depth prior", "blind unit" if methods[unit_id][0] == "blind" else
+            "no partner camera")
+        summary["cameras"][camera_id] = {
+            "frame": index, "points": len(camera_points.points),
+            "fringe_order": camera_points.order_counts, "partner": partner_id,
+            "method": chosen, "method_reason": why, "fringe_pixels": seen,
+            "coverage": round(len(camera_points.points) / seen, 4) if seen else 0.0}
     fused = fuse(parts, region=region, min_quality=min_quality)
     cloud = PointCloud(fused.points.astype(np.float32), fused.quality, fused.camera)
     summary["points"] = len(cloud)

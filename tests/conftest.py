@@ -21,6 +21,7 @@ ROOMS: dict[str, Path | None] = {
     "default": None,
     "wide": ROOT / "examples" / "rooms" / "wide.toml",
     "horizontal": ROOT / "examples" / "rooms" / "horizontal.toml",
+    "blind": ROOT / "examples" / "rooms" / "blind.toml",
 }
 
 

@@ -240,9 +240,15 @@ def test_the_summary_is_kept_and_read_back(client: Client, service: Service,
     assert response.status_code == 200
     assert response.json() == summary
     assert summary["calibration_id"] == active_id and summary["points"] > 100_000
-    assert summary["options"] == {"method": "multi-view", "depth_prior_mm": None, "roi": None,
+    assert summary["options"] == {"method": "auto", "depth_prior_mm": None, "roi": None,
                                   "min_quality": 0.0}
-    assert summary["method"] == "multi-view" and summary["duration_s"] > 0
+    assert summary["method"] == "auto" and summary["duration_s"] > 0
+    for camera in summary["cameras"].values():  # the default room's units discriminate orders
+        assert camera["method"] == "multi-view", camera
+        assert camera["method_reason"].startswith("fringe-order margin 0.")
+        assert 0.3 < camera["coverage"] <= 1.0
+        assert camera["coverage"] == pytest.approx(camera["points"] / camera["fringe_pixels"],
+                                                   abs=5e-5)  # rounded to 4 places
     assert summary["reconstructed"].endswith("Z")
     on_disk = json.loads((service.store.capture_path(capture_id) / SUMMARY_FILE).read_text())
     assert on_disk["points"] == summary["points"]

@@ -223,6 +223,15 @@ class CameraSurface(BaseModel):
     fringe_order: dict[str, int] = Field(
         description="Points per source that fixed their fringe order.",
         examples=[{"multi-view": 118000, "spatial + multi-view": 2000}])
+    method: str | None = Field(None, description="The fringe-order method its unit used "
+                               "(null in reconstructions made before it was recorded).",
+                               examples=["multi-view"])
+    method_reason: str | None = Field(None, description="Why that method.", examples=[
+        "fringe-order margin 0.69 rad, at least 0.5 rad"])
+    fringe_pixels: int | None = Field(None, description="Its pixels that see a fringe.",
+                                      examples=[160000])
+    coverage: float | None = Field(None, description="The share of those that gave a point.",
+                                   examples=[0.75])
 
 
 class ReconstructionRequest(BaseModel):
@@ -230,10 +239,12 @@ class ReconstructionRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    method: Literal["multi-view", "spatial"] = Field(
-        default="multi-view", description="Fringe order per pixel from the unit's other camera "
-        "(fast), or spatial unwrapping with one order per region voted by the other camera "
-        "(slower, keeps more of what only one camera sees).")
+    method: Literal["auto", "multi-view", "spatial"] = Field(
+        default="auto", description="Fringe order per pixel from the unit's other camera "
+        "(multi-view: fast, needs a unit whose calibration found a clear fringe-order margin), "
+        "spatial unwrapping with one order per region voted by the other camera (spatial: "
+        "slower, keeps more of what only one camera sees), or auto: multi-view where the "
+        "unit's margin allows it, spatial elsewhere.")
     depth_prior_mm: float | None = Field(
         default=None, allow_inf_nan=False, description="Height (mm) the surface lies near, "
         "within half a fringe's depth; fixes the order of a camera alone in its unit and of "
@@ -273,7 +284,8 @@ class ReconstructionResponse(BaseModel):
     dropped: dict[str, int] = Field(
         description="Points removed during fusion, by reason.",
         examples=[{"seam_conflict": 120, "low_quality": 0, "outside_region": 0}])
-    method: str = Field(description="How fringe orders were fixed.", examples=["multi-view"])
+    method: str = Field(description="The fringe-order method asked for (auto: chosen per "
+                        "unit, each camera says which and why).", examples=["auto"])
     options: ReconstructionRequest = Field(description="The options it was made with, "
                                            "defaults filled in.")
     reconstructed: str = Field(description="UTC time it finished, ISO 8601 with milliseconds.",

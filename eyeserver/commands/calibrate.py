@@ -102,10 +102,13 @@ def add_reconstruct_parser(subparsers: Subparsers) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="CLOUD.ply")
     parser.add_argument("--frames", metavar="I,J", help="frame indices to use (default: all)")
     parser.add_argument("--cameras", metavar="S1,S2", help="cameras to use (default: all)")
-    parser.add_argument("--method", choices=("multi-view", "spatial"), default="multi-view",
-                        help="fringe order: per pixel from the unit's other camera (fast, the "
-                        "default) or spatial unwrapping with one order per region voted by the "
-                        "other camera (slower, keeps more of what only one camera sees)")
+    parser.add_argument("--method", choices=("auto", "multi-view", "spatial"), default="auto",
+                        help="fringe order: per pixel from the unit's other camera (multi-view: "
+                        "fast, needs a unit whose calibration found a clear fringe-order "
+                        "margin), spatial unwrapping with one order per region voted by the "
+                        "other camera (spatial: slower, keeps more of what only one camera "
+                        "sees), or, the default, auto: multi-view where the unit's margin "
+                        "allows it, spatial elsewhere")
     parser.add_argument("--depth-prior", type=float, metavar="Z_MM",
                         help="height (mm) the surface lies near, within half a fringe's depth: "
                         "fixes the order of a camera alone in its unit and of spatial regions "
@@ -149,8 +152,9 @@ def _reconstruct(args: argparse.Namespace) -> int:
     for cid, cam in summary["cameras"].items():
         orders = ", ".join(f"{n} {name}" for name, n in cam["fringe_order"].items()) or "none"
         partner = f"checked with {cam['partner']}" if cam["partner"] else "alone"
-        print(f"  {cid}: {cam['points']} points (frame {cam['frame']}, {partner}; fringe order "
-              f"from {orders})")
+        print(f"  {cid}: {cam['points']} points, {cam['coverage']:.0%} of the "
+              f"{cam['fringe_pixels']} pixels that see a fringe (frame {cam['frame']}, "
+              f"{partner}; {cam['method']}: {cam['method_reason']}; fringe order from {orders})")
     dropped = {k: v for k, v in summary["dropped"].items() if v}
     if dropped:
         print("  dropped: " + ", ".join(f"{n} {k.replace('_', ' ')}" for k, n in dropped.items()))

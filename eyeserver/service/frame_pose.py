@@ -51,7 +51,12 @@ from eyeserver.pipeline.reconstruct import (
     strong_modulation,
     unit_clouds,
 )
-from eyeserver.reconstruction import ReconstructionError, calibrated_cameras, z_range
+from eyeserver.reconstruction import (
+    ReconstructionError,
+    calibrated_cameras,
+    unit_method,
+    z_range,
+)
 from eyeserver.service.verification import FitFunction, unit_shortfalls
 
 __all__ = ["WINDOW_DECIMATION", "FindPose", "FocusingReconstructor", "FrameSet", "PoseFinder",
@@ -232,12 +237,13 @@ def _views(cloud: CloudLike) -> tuple[LimbusView, ...]:
 class RigReconstructor:
     """Reconstructs frame sets of a rig with one calibration, its cameras loaded once.
 
-    Each unit's first two cameras fix each other's fringe order (the default method); the
-    clouds of the units are fused. Raises :class:`ReconstructionError` for a calibration
-    without phase-to-height models, and for a frame set in which a unit gave fewer than
-    :data:`~eyeserver.service.verification.MIN_UNIT_POINTS` points (counted as the pixels they
-    stand for): its projector dark, its view blocked. The frame is then lost, the beam held
-    with that reason, rather than posed from the other unit alone.
+    Each unit's first two cameras fix each other's fringe order, by the method the calibration
+    allows the unit (:func:`~eyeserver.reconstruction.unit_method`'s ``auto``); the clouds of
+    the units are fused. Raises :class:`ReconstructionError` for a calibration without
+    phase-to-height models or with a unit blind to the fringe order, and for a frame set in
+    which a unit gave fewer than :data:`~eyeserver.service.verification.MIN_UNIT_POINTS` points
+    (counted as the pixels they stand for): its projector dark, its view blocked. The frame is
+    then lost, the beam held with that reason, rather than posed from the other unit alone.
 
     After :meth:`focus` on a pose, each camera's image is reconstructed only inside the window
     around that eye (:func:`~eyeserver.eye.track.pose_window`), a few times fewer pixels
@@ -258,6 +264,14 @@ class RigReconstructor:
         self._cameras: dict[str, CalibratedCamera] = calibrated_cameras(document)
         self._limits = z_range(document)
         self._rig = rig
+        self._methods: dict[str, str] = {}
+        for unit in rig.units:
+            chosen, why = unit_method(document, unit.id, "auto")
+            if chosen == "blind":
+                raise ReconstructionError(f"unit {unit.id} is blind to the fringe order ({why}): "
+                                          "move one of its cameras to another azimuth and "
+                                          "calibrate again")
+            self._methods[unit.id] = chosen
         self._saturation = None if bit_depth is None else float(2 ** bit_depth - 1)
         self._pose: EyePose | None = None
         self._cropped: dict[tuple[str, tuple[int, int, int, int]],
@@ -324,6 +338,7 @@ class RigReconstructor:
                 factor_a = points_a.spacing_px // camera_a.spacing_px
                 factor_b = points_b.spacing_px // camera_b.spacing_px
                 cloud_a, cloud_b = unit_clouds(points_a, None, points_b, None, self._limits,
+                                               method=self._methods[unit_id],
                                                phases=(phases[0].decimated(factor_a),
                                                        phases[1].decimated(factor_b)))
                 # The limbus is looked for in the same demodulation, not in one of its own.
