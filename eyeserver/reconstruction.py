@@ -241,8 +241,9 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
                                   "cameras (a camera's image counts only when its own unit's "
                                   "projector is lit)")
     summary: dict[str, Any] = {"cameras": {}, "method": method}
-    done: dict[tuple[int, str], tuple[CameraCloud, str | None]] = {}
-    fringe_pixels: dict[tuple[int, str], int] = {}
+    # Per view: its points, the partner that fixed its orders (None: the depth prior did), the
+    # method and why, and its pixels that see a fringe.
+    done: dict[tuple[int, str], tuple[CameraCloud, str | None, str, str, int]] = {}
     methods = {unit.id: unit_method(document, unit.id, method) for unit in rig.units}
     for index, camera_id in views:
         if (index, camera_id) in done:
@@ -251,49 +252,40 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
         partners = [c for c in unit.cameras if c != camera_id and (index, c) in views]
         cam = calibrated[camera_id]
         phase = camera_phase(cam, bundle.load_image(index, camera_id), saturation)
-        fringe_pixels[(index, camera_id)] = int(np.count_nonzero(phase.valid))
-        if not partners:
+        seen = int(np.count_nonzero(phase.valid))
+        chosen, why = methods[unit.id]
+        if not partners or chosen == "blind":
             if depth_prior_mm is None:
                 raise ReconstructionError(
                     f"{bundle.path}: frame {index} has no other camera of unit {unit.id} to fix "
                     f"camera {camera_id}'s fringe order; give a depth prior (the surface's "
-                    "height within half a fringe's depth) to use the camera alone")
-            progress(f"frame {index}: camera {camera_id} alone, order from the depth prior")
-            alone = camera_cloud(cam, phase, None, None, limits, depth_prior_mm=depth_prior_mm)
-            done[(index, camera_id)] = (alone, None)
-            continue
-        partner = partners[0]
-        chosen, why = methods[unit.id]
-        if chosen == "blind":
-            if depth_prior_mm is None:
-                raise ReconstructionError(
+                    "height within half a fringe's depth) to use the camera alone"
+                    if not partners else
                     f"{bundle.path}: unit {unit.id} is blind to the fringe order ({why}); give "
                     "a depth prior (the surface's height within half a fringe's depth) or move "
                     "one of its cameras to another azimuth and calibrate again")
-            progress(f"frame {index}: camera {camera_id} of blind unit {unit.id}, order from "
-                     "the depth prior")
+            alone_why = "no partner camera" if not partners else "blind unit"
+            progress(f"frame {index}: camera {camera_id} ({alone_why}), order from the depth "
+                     "prior")
             done[(index, camera_id)] = (camera_cloud(cam, phase, None, None, limits,
-                                                     depth_prior_mm=depth_prior_mm), None)
+                                                     depth_prior_mm=depth_prior_mm),
+                                        None, "depth prior", alone_why, seen)
             continue
+        partner = partners[0]
         progress(f"frame {index}: cameras {camera_id} and {partner} of unit {unit.id} "
                  f"({chosen} fringe order)")
         partner_phase = camera_phase(calibrated[partner], bundle.load_image(index, partner),
                                      saturation)
-        fringe_pixels[(index, partner)] = int(np.count_nonzero(partner_phase.valid))
         cloud_a, cloud_b = unit_clouds(cam, None, calibrated[partner], None, limits,
                                        method=chosen, depth_prior_mm=depth_prior_mm,
                                        phases=(phase, partner_phase))
-        done[(index, camera_id)] = (cloud_a, partner)
-        done[(index, partner)] = (cloud_b, camera_id)
+        done[(index, camera_id)] = (cloud_a, partner, chosen, why, seen)
+        done[(index, partner)] = (cloud_b, camera_id, chosen, why,
+                                  int(np.count_nonzero(partner_phase.valid)))
     parts = []
-    for (index, camera_id), (camera_points, partner_id) in done.items():
-        unit_id = rig.unit_of_camera(camera_id).id
+    for (index, camera_id), (camera_points, partner_id, chosen, why, seen) in done.items():
         parts.append(Part(camera_points.points, camera_points.quality,
-                          rig.camera_index(camera_id), unit_id))
-        seen = fringe_pixels[(index, camera_id)]
-        chosen, why = methods[unit_id] if partner_id is not None else (
-            "depth prior", "blind unit" if methods[unit_id][0] == "blind" else
-            "no partner camera")
+                          rig.camera_index(camera_id), rig.unit_of_camera(camera_id).id))
         summary["cameras"][camera_id] = {
             "frame": index, "points": len(camera_points.points),
             "fringe_order": camera_points.order_counts, "partner": partner_id,
