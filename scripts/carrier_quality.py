@@ -5,43 +5,21 @@
 
 For one camera of each unit of the room, a plate lit at 100, 30 and 5 %, a dark projector, the
 eye, the pyramid and the empty room: the spectral peak over the spectrum's median, over the
-strongest other component (outside its main lobe and harmonics), and what measure_carrier says.
+strongest other component (outside its main lobe and harmonics: ``carrier_ratios``, the
+pipeline's own judgement), and what measure_carrier says.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 import numpy as np
-import scipy.fft
 
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.room import SimRoom
 from eyeserver.hardware.sim.scenes import SceneSpec
-from eyeserver.pipeline.demodulate import measure_carrier
-
-
-def _ratios(image: np.ndarray) -> tuple[float, float]:
-    """(peak / median, peak / strongest other component) of the windowed image's spectrum."""
-    values = image.astype(np.float32)
-    height, width = values.shape
-    window = np.hanning(height + 2)[1:-1, None] * np.hanning(width + 2)[None, 1:-1]
-    spectrum = np.abs(scipy.fft.rfft2((values - values.mean()) * window))
-    fy = np.fft.fftfreq(height)[:, None]
-    fx = np.fft.rfftfreq(width)[None, :]
-    spectrum[np.hypot(fy, fx) < 4.0 / min(height, width)] = 0.0
-    spectrum[fy[:, 0] < 0, 0] = 0.0
-    peak = np.unravel_index(int(np.argmax(spectrum)), spectrum.shape)
-    f0 = (float(fy[peak[0], 0]), float(fx[0, peak[1]]))
-    others = np.ones(spectrum.shape, dtype=bool)
-    for k in (1, 2, 3):
-        for sign in (1, -1):
-            others &= np.hypot((fy - sign * k * f0[0]) * height,
-                               (fx - sign * k * f0[1]) * width) > 3
-    top = float(spectrum[peak])
-    return top / float(np.median(spectrum[spectrum > 0])), top / float(spectrum[others].max())
+from eyeserver.pipeline.demodulate import carrier_ratios, measure_carrier
 
 
 def main() -> None:
@@ -61,13 +39,12 @@ def main() -> None:
             room.set_scene(scene)
             image = room.render(camera, t_s=0.0, projectors={projector: level} if level else {},
                                 exposure_us=10_000, gain_db=0.0, rng=rng)
-            strength, dominance = _ratios(image)
+            strength, dominance = carrier_ratios(image)
             try:
                 said = f"{measure_carrier(image).period_px:.2f} px"
             except ValueError as exc:
                 said = f"refused: {str(exc).split(':')[0]}"
-            print(f"| {unit} | {camera} | {name} | {strength:.1f} | "
-                  f"{dominance if math.isfinite(dominance) else 0:.2f} | {said} |")
+            print(f"| {unit} | {camera} | {name} | {strength:.1f} | {dominance:.2f} | {said} |")
 
 
 if __name__ == "__main__":

@@ -18,8 +18,11 @@ import pytest
 from eyeserver.core.types import F64
 from eyeserver.pipeline import demodulate as demodulate_module
 from eyeserver.pipeline.demodulate import (
+    MIN_CARRIER_DOMINANCE,
+    MIN_CARRIER_STRENGTH,
     Carrier,
     Demodulated,
+    carrier_ratios,
     demodulate,
     measure_carrier,
     phase_difference,
@@ -438,6 +441,8 @@ def test_measure_carrier_refuses_noise_with_the_reason() -> None:
         measure_carrier(noise)
     faint = noise + 0.5 * np.cos(2 * np.pi * 0.042 * _grid()[1])  # a quarter of the noise's sd
     assert measure_carrier(faint).period_px == pytest.approx(1 / 0.042, rel=0.01)
+    # The same judgement, as figures: noise under the strength needed, the faint fringe over.
+    assert carrier_ratios(noise)[0] < MIN_CARRIER_STRENGTH < carrier_ratios(faint)[0]
 
 
 def test_measure_carrier_refuses_two_carriers_of_similar_strength() -> None:
@@ -448,6 +453,7 @@ def test_measure_carrier_refuses_two_carriers_of_similar_strength() -> None:
         measure_carrier(two)
     one_strong = 100 + 30 * np.cos(2 * np.pi * 0.042 * j) + 15 * np.cos(2 * np.pi * 0.07 * j)
     assert measure_carrier(one_strong).period_px == pytest.approx(1 / 0.042, rel=0.01)
+    assert carrier_ratios(two)[1] < MIN_CARRIER_DOMINANCE < carrier_ratios(one_strong)[1]
     # A Ronchi grating's harmonics (a square wave: 3f at a third) are the same carrier's.
     square = 100 + 30 * np.sign(np.cos(2 * np.pi * 0.042 * j + 0.3))
     assert measure_carrier(square).period_px == pytest.approx(1 / 0.042, rel=0.01)

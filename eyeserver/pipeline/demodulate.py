@@ -56,7 +56,8 @@ import scipy.fft
 from eyeserver.core.frames import grey
 from eyeserver.core.types import F32, F64
 
-__all__ = ["Carrier", "Demodulated", "demodulate", "measure_carrier", "phase_difference"]
+__all__ = ["Carrier", "Demodulated", "carrier_ratios", "demodulate", "measure_carrier",
+           "phase_difference"]
 
 _TWO_PI = 2.0 * math.pi
 _PI32 = np.float32(math.pi)
@@ -446,23 +447,7 @@ def measure_carrier(image: npt.ArrayLike, mask: npt.ArrayLike | None = None, *,
     elif not (math.isfinite(max_period_px) and max_period_px > 2.0):
         raise ValueError(f"max_period_px must be a finite number above 2, not {max_period_px}")
 
-    # Hann window: its side lobes fall fast, so the DC and the image borders do not leak a
-    # false peak, and its main lobe is nearly Gaussian (ref. 2) for the refinement.
-    window = (np.hanning(height + 2)[1:-1, None] * np.hanning(width + 2)[None, 1:-1])
-    if weights is None:
-        centred = values - np.float32(values.mean())
-    else:
-        centred = np.where(weights, values - np.float32(values[weights].mean()), 0.0)
-        window = window * weights
-    windowed = (centred * window).astype(np.float32)
-
-    spectrum = np.abs(scipy.fft.rfft2(windowed, workers=1))
-    fy_bins = _signed_frequencies(height)[:, None]
-    fx_bins = np.fft.rfftfreq(width)[None, :]
-    radius = np.hypot(fy_bins, fx_bins)
-    spectrum[radius < 1.0 / max_period_px] = 0.0
-    # Half of the kx = 0 column duplicates the other (Hermitian symmetry): keep fy > 0 there.
-    spectrum[(fy_bins[:, 0] < 0), 0] = 0.0
+    windowed, spectrum, fy_bins, fx_bins = _band_spectrum(values, weights, max_period_px)
     peak = np.unravel_index(int(np.argmax(spectrum)), spectrum.shape)
     fy0 = float(fy_bins[peak[0], 0])
     fx0 = float(fx_bins[0, peak[1]])
@@ -508,25 +493,45 @@ frequencies of similar strength, between which the largest is a guess
 _LOBE_BINS = 3.0  # the Hann window's main lobe spans ±2 bins; a bin more for the peak's offset
 
 
-def _check_single_carrier(spectrum: npt.NDArray[np.floating[Any]],
-                          fy_bins: npt.NDArray[np.floating[Any]],
-                          fx_bins: npt.NDArray[np.floating[Any]],
-                          peak: tuple[float, float], shape: tuple[int, int]) -> None:
-    """Raise a ValueError with the reason unless the spectrum's peak at ``peak`` (cycles/px) is
-    a fringe carrier: far above the noise (:data:`MIN_CARRIER_STRENGTH`) and alone
-    (:data:`MIN_CARRIER_DOMINANCE`). ``spectrum`` is the magnitude of the windowed image's
-    ``rfft2`` with the frequencies below the longest period zeroed."""
+def _band_spectrum(values: npt.NDArray[np.float32], weights: npt.NDArray[np.bool_] | None,
+                   max_period_px: float,
+                   ) -> tuple[npt.NDArray[np.float32], npt.NDArray[Any],
+                              npt.NDArray[np.floating[Any]], npt.NDArray[np.floating[Any]]]:
+    """The Hann-windowed image less its mean (times ``weights``); the magnitude of its
+    ``rfft2`` with periods longer than ``max_period_px`` and the duplicate half of the
+    ``fx = 0`` column zeroed; the bins' frequencies ``fy`` (H, 1) and ``fx`` (1, W//2 + 1)."""
+    height, width = values.shape
+    # Hann window: its side lobes fall fast, so the DC and the image borders do not leak a
+    # false peak, and its main lobe is nearly Gaussian (ref. 2 of measure_carrier) for the
+    # refinement.
+    window = (np.hanning(height + 2)[1:-1, None] * np.hanning(width + 2)[None, 1:-1])
+    if weights is None:
+        centred = values - np.float32(values.mean())
+    else:
+        centred = np.where(weights, values - np.float32(values[weights].mean()), 0.0)
+        window = window * weights
+    windowed = (centred * window).astype(np.float32)
+    spectrum = np.abs(scipy.fft.rfft2(windowed, workers=1))
+    fy_bins = _signed_frequencies(height)[:, None]
+    fx_bins = np.fft.rfftfreq(width)[None, :]
+    spectrum[np.hypot(fy_bins, fx_bins) < 1.0 / max_period_px] = 0.0
+    # Half of the kx = 0 column duplicates the other (Hermitian symmetry): keep fy > 0 there.
+    spectrum[(fy_bins[:, 0] < 0), 0] = 0.0
+    return windowed, spectrum, fy_bins, fx_bins
+
+
+def _peak_ratios(spectrum: npt.NDArray[np.floating[Any]], fy_bins: npt.NDArray[np.floating[Any]],
+                 fx_bins: npt.NDArray[np.floating[Any]], peak: tuple[float, float],
+                 shape: tuple[int, int]) -> tuple[float, float, float | None]:
+    """The spectrum's peak at ``peak`` (cycles/px) over the spectrum's median (its strength),
+    over the strongest other component outside its main lobe, its harmonics and their mirror
+    images (its dominance; inf without one), and that component's period (px; None).
+    ``shape`` is the image's (H, W)."""
     height, width = shape
-    strongest = float(spectrum[np.unravel_index(int(np.argmax(spectrum)), spectrum.shape)])
+    strongest = float(np.max(spectrum))
     kept = spectrum[spectrum > 0.0]
     median = float(np.median(kept)) if kept.size else 0.0
-    period = 1.0 / max(math.hypot(*peak), 1e-12)
-    if not strongest > MIN_CARRIER_STRENGTH * median:
-        ratio = strongest / median if median > 0.0 else 0.0
-        raise ValueError(
-            f"image holds no fringe carrier: its strongest component (period {period:.1f} px) "
-            f"stands {ratio:.1f}× above the spectrum's median, and noise alone reaches 4–5× "
-            f"(a fringe needs {MIN_CARRIER_STRENGTH:g}×)")
+    strength = strongest / median if median > 0.0 else 0.0
     others = np.ones(spectrum.shape, dtype=bool)
     for harmonic in (1.0, 2.0, 3.0):
         for sign in (1.0, -1.0):
@@ -536,12 +541,45 @@ def _check_single_carrier(spectrum: npt.NDArray[np.floating[Any]],
     rivals = np.where(others, spectrum, 0.0)
     rival = np.unravel_index(int(np.argmax(rivals)), rivals.shape)
     runner_up = float(rivals[rival])
-    if runner_up > 0.0 and strongest < MIN_CARRIER_DOMINANCE * runner_up:
-        other = 1.0 / max(math.hypot(float(fy_bins[rival[0], 0]), float(fx_bins[0, rival[1]])),
-                          1e-12)
+    if runner_up <= 0.0:
+        return strength, math.inf, None
+    rival_period = 1.0 / max(math.hypot(float(fy_bins[rival[0], 0]),
+                                        float(fx_bins[0, rival[1]])), 1e-12)
+    return strength, strongest / runner_up, rival_period
+
+
+def carrier_ratios(image: npt.ArrayLike) -> tuple[float, float]:
+    """How clearly ``image`` shows one fringe carrier, as :func:`measure_carrier` judges it:
+    the strength and the dominance of its spectrum's peak (see :data:`MIN_CARRIER_STRENGTH`
+    and :data:`MIN_CARRIER_DOMINANCE`), over periods up to a quarter of the smaller side."""
+    values = np.asarray(checked_image(image), dtype=np.float32)
+    _, spectrum, fy_bins, fx_bins = _band_spectrum(values, None, min(values.shape) / 4.0)
+    peak = np.unravel_index(int(np.argmax(spectrum)), spectrum.shape)
+    strength, dominance, _ = _peak_ratios(
+        spectrum, fy_bins, fx_bins, (float(fy_bins[peak[0], 0]), float(fx_bins[0, peak[1]])),
+        values.shape)
+    return strength, dominance
+
+
+def _check_single_carrier(spectrum: npt.NDArray[np.floating[Any]],
+                          fy_bins: npt.NDArray[np.floating[Any]],
+                          fx_bins: npt.NDArray[np.floating[Any]],
+                          peak: tuple[float, float], shape: tuple[int, int]) -> None:
+    """Raise a ValueError with the reason unless the spectrum's peak at ``peak`` (cycles/px) is
+    a fringe carrier: far above the noise (:data:`MIN_CARRIER_STRENGTH`) and alone
+    (:data:`MIN_CARRIER_DOMINANCE`). ``spectrum`` is :func:`_band_spectrum`'s of an image of
+    ``shape``."""
+    strength, dominance, rival_period = _peak_ratios(spectrum, fy_bins, fx_bins, peak, shape)
+    period = 1.0 / max(math.hypot(*peak), 1e-12)
+    if not strength > MIN_CARRIER_STRENGTH:
+        raise ValueError(
+            f"image holds no fringe carrier: its strongest component (period {period:.1f} px) "
+            f"stands {strength:.1f}× above the spectrum's median, and noise alone reaches 4–5× "
+            f"(a fringe needs {MIN_CARRIER_STRENGTH:g}×)")
+    if dominance < MIN_CARRIER_DOMINANCE:
         raise ValueError(
             f"image has no single fringe carrier: components of periods {period:.1f} and "
-            f"{other:.1f} px are within {strongest / runner_up:.2f}× of each other (a surface's "
+            f"{rival_period:.1f} px are within {dominance:.2f}× of each other (a surface's "
             "phase spreads the fringe over several frequencies; measure the carrier on the flat "
             "reference plate)")
 
