@@ -1,8 +1,9 @@
 """Device drivers selected by name from the configuration.
 
-A driver is a :class:`~eyeserver.hardware.base.Camera`, :class:`~eyeserver.hardware.base.Projector`
-or :class:`~eyeserver.hardware.base.Trigger` subclass registered under its kind and a name of the
-form ``<Vendor><Kind>`` (``SimCamera``, ``BaslerCamera``, ``ArduinoTrigger``)::
+A driver is a :class:`~eyeserver.hardware.base.Camera`,
+:class:`~eyeserver.hardware.base.Projector`, :class:`~eyeserver.hardware.base.Trigger` or
+:class:`~eyeserver.hardware.base.Stage` subclass registered under its kind and a name of the form
+``<Vendor><Kind>`` (``SimCamera``, ``BaslerCamera``, ``ArduinoTrigger``, ``ZaberStage``)::
 
     @register_driver("camera", "SimCamera")
     class SimCamera(Camera):
@@ -26,7 +27,7 @@ from typing import Final, Literal, TypeVar
 
 from eyeserver.core.clock import Clock, MonotonicClock
 from eyeserver.errors import ConfigError
-from eyeserver.hardware.base import Camera, Device, Projector, Trigger
+from eyeserver.hardware.base import Camera, Device, Projector, Stage, Trigger
 
 __all__ = [
     "DEVICE_KINDS",
@@ -38,19 +39,24 @@ __all__ = [
     "register_driver",
 ]
 
-DeviceKind = Literal["camera", "projector", "trigger"]
+DeviceKind = Literal["camera", "projector", "trigger", "stage"]
 
 # Typed as plain classes because mypy rejects abstract classes where type[Device] is expected.
 DEVICE_KINDS: Final[dict[str, type[object]]] = {
     "camera": Camera,
     "projector": Projector,
     "trigger": Trigger,
+    "stage": Stage,
 }
 """Each device kind and the base class its drivers derive from."""
 
 # Modules whose import registers the drivers that ship with eyeserver. They are imported on the
 # first lookup rather than here so that importing the registry has no side effects and no cycle.
-_BUILTIN_DRIVER_MODULES: Final[tuple[str, ...]] = ("eyeserver.hardware.sim.drivers",)
+_BUILTIN_DRIVER_MODULES: Final[tuple[str, ...]] = (
+    "eyeserver.hardware.sim.drivers",
+    "eyeserver.hardware.drivers.gardasoft",
+    "eyeserver.hardware.drivers.zaber",
+)
 
 _T = TypeVar("_T")
 _D = TypeVar("_D", bound=Device)
@@ -112,7 +118,7 @@ def register_driver(kind: DeviceKind, name: str) -> Callable[[type[_D]], type[_D
 
     Parameters
     ----------
-    kind : {"camera", "projector", "trigger"}
+    kind : {"camera", "projector", "trigger", "stage"}
         The device kind; the class must derive from the matching base class.
     name : str
         ``<Vendor><Kind>``, e.g. ``"SimCamera"``; unique within the kind.
@@ -217,7 +223,7 @@ def create_device(kind: str, driver: str, device_id: str, options: Mapping[str, 
 
     Parameters
     ----------
-    kind : {"camera", "projector", "trigger"}
+    kind : {"camera", "projector", "trigger", "stage"}
         The device kind.
     driver : str
         Registered driver name, e.g. ``"SimCamera"``.
