@@ -2,8 +2,10 @@
 # Make .venv ready to run eyeserver and its tests; cheap when nothing changed.
 #
 # Creates .venv with a Python >= 3.11 if it is missing (set PYTHON to choose the interpreter),
-# then runs `pip install -e '.[dev]'` only when pyproject.toml, the repository's location or the
-# venv's Python changed since the last successful install (recorded in .venv/.eyeserver-setup).
+# installs the Debian packages the project needs (scripts/system-packages.sh, as root), then
+# runs `pip install -e '.[dev,genicam]'` only when pyproject.toml, the repository's location,
+# the venv's Python or the extras changed since the last successful install (recorded in
+# .venv/.eyeserver-setup).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
@@ -35,13 +37,27 @@ if [[ ! -x "$venv/bin/python" ]] || ! is_recent_python "$venv/bin/python"; then
     "$python" -m venv "$venv"
 fi
 
+# The Debian packages of the GenICam driver (Aravis, its fake camera, and the headers PyGObject
+# builds against): installed when run as root (CI, the room PC's installer), only checked
+# otherwise. A root that cannot install them stops here; without root the venv goes without
+# PyGObject and the GenICam tests skip, saying why.
+extras="dev"
+if bash scripts/system-packages.sh; then
+    extras="dev,genicam"
+elif [[ "$(id -u)" -eq 0 ]]; then
+    say "the system packages above could not be installed" && exit 1
+else
+    say "continuing without the genicam extra (PyGObject): the GenICam tests will skip"
+fi
+
 # What the installed state depends on: the project's metadata, where the repository is (an
-# editable install points at it) and which Python the venv has.
+# editable install points at it), which Python the venv has and which extras it gets.
 wanted="$(
     {
         cat pyproject.toml
         pwd
         "$venv/bin/python" --version 2>&1
+        echo "$extras"
     } | sha256sum | cut -d' ' -f1
 )"
 if [[ -f "$stamp" && "$(cat "$stamp")" == "$wanted" ]]; then
@@ -59,7 +75,7 @@ if "$venv/bin/python" -m pip show opencv-python-headless >/dev/null 2>&1; then
         opencv-contrib-python-headless >"$venv/setup.log" 2>&1
 fi
 # The build backend's chatter goes to the log; it is shown only when the install fails.
-if ! "$venv/bin/python" -m pip install -e '.[dev]' >"$venv/setup.log" 2>&1; then
+if ! "$venv/bin/python" -m pip install -e ".[$extras]" >"$venv/setup.log" 2>&1; then
     tail -n 60 "$venv/setup.log" >&2
     say "pip install failed; the whole log is in $venv/setup.log"
     exit 1

@@ -311,7 +311,7 @@ def test_stage_from_configuration(zaber: ZaberEmulator) -> None:
     assert driver_class("stage", "ZaberStage") is ZaberStage
     device = create_device("stage", "ZaberStage", "Z1", options, DriverContext())
     assert isinstance(device, ZaberStage) and not device.is_open
-    with pytest.raises(ConfigError, match="'Z1'.*unexpected option.*speed"):
+    with pytest.raises(ConfigError, match=r"'Z1'.*unexpected option.*speed"):
         create_device("stage", "ZaberStage", "Z1", {**options, "speed": 3}, DriverContext())
 
 

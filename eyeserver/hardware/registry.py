@@ -55,6 +55,7 @@ DEVICE_KINDS: Final[dict[str, type[object]]] = {
 _BUILTIN_DRIVER_MODULES: Final[tuple[str, ...]] = (
     "eyeserver.hardware.sim.drivers",
     "eyeserver.hardware.drivers.gardasoft",
+    "eyeserver.hardware.drivers.genicam",
     "eyeserver.hardware.drivers.zaber",
 )
 

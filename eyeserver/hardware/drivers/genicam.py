@@ -1,0 +1,857 @@
+"""GenICam cameras (GigE Vision, USB3 Vision) through Aravis, behind the :class:`Camera` interface.
+
+Aravis (``gir1.2-aravis-0.8``) is reached through PyGObject, imported when a camera is opened, so
+this module imports, type-checks and registers its driver on machines without either; opening a
+camera there raises a :class:`~eyeserver.errors.DeviceError` that says what to install. Every
+Aravis call goes through :class:`_AravisLink`, the one place that holds untyped gi objects and
+turns GLib errors into eyeserver's (``raise … from``):
+
+=================================================  ================================
+what Aravis reports                                raised (:mod:`eyeserver.errors`)
+=================================================  ================================
+no device at the address, no answer (GVCP          ``DeviceDisconnectedError``
+timeout), transfer error, control lost
+a feature or enumeration entry the camera lacks,   ``DeviceValueError``
+a value it refuses
+anything else                                      ``DeviceError``
+=================================================  ================================
+
+Acquisition. ``open()`` sets the pixel format, the region of interest, the exposure and gain
+last asked for, and the hardware trigger (``TriggerMode On`` for ``FrameStart`` with the
+configured ``TriggerSource``), starts acquisition and a thread that pops buffers from the Aravis
+stream (Aravis has no Python stream callback, so the thread polls
+``ArvStream.timeout_pop_buffer``), copies each complete image out, pushes the buffer back and
+queues the frame for :meth:`~GenicamCamera.read_frame`. A buffer that is not complete (missing
+packets, timed out, wrong size) and every GVSP frame id skipped between two buffers (a frame
+lost whole, or with no free buffer) is a dropped frame: counted in
+:attr:`~GenicamCamera.dropped_frames` and ``describe()``, never returned.
+
+Time. GigE Vision cameras stamp each frame with their own tick counter; Aravis converts the ticks
+to nanoseconds with the camera's ``GevTimestampTickFrequency`` (the tick rate in hertz, shown in
+``describe()``), so a device timestamp here is nanoseconds on the camera's clock, taken as the
+start of the exposure (the SFNC's frame-start latch). It is put onto the rig clock
+(``context.clock``) with one offset fixed on the first buffer after each ``open()``::
+
+    offset_ns = rig_now_at_first_pop - device_ts_first - exposure_first
+    t_ns      = device_ts + offset_ns + exposure / 2          (mid-exposure, rig clock)
+
+that is, the first frame is taken to have ended its exposure when it was popped. The error of
+that guess (readout, transfer and the poll's latency, a few milliseconds at 640 × 512) is the
+same for every frame of the session, so intervals between frames are the camera's own, to its
+tick. The two clocks drift apart by the camera oscillator's error (tens of ppm) until the next
+``open()``. A camera without timestamps (0 in every buffer) gets ``t_ns`` from the pop time
+minus half the exposure.
+
+Disconnection. A camera that goes away (power, cable, the fake killed) is noticed three ways:
+Aravis's heartbeat emits ``control-lost``; a control call (a setting, a software trigger) gets
+no answer; or, when no buffer has come for ``liveness_s``, the acquisition thread reads the
+camera's control-privilege register (GigE Vision only), which fails when nobody answers and
+reads 0 when a restarted camera no longer knows us as its controller. Then waiting and later
+reads raise :class:`~eyeserver.errors.DeviceDisconnectedError` (queued frames are still handed
+out first); ``close()`` and ``open()`` recover once the camera is back, in the same process.
+With Aravis 0.8's GVCP timing (5 tries of 500 ms, not settable) a dead camera is noticed within
+``liveness_s`` + 2.5 s, and opening an address where nothing answers fails after 2.5 s.
+``close()`` of a camera known to be gone returns at once and leaves Aravis's teardown, whose
+GVCP writes each wait out that timeout, to a thread (:meth:`GenicamCamera.wait_released`).
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import importlib
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any, Final, TypeVar
+
+import numpy as np
+
+from eyeserver.core.frames import Frame, FrameMeta
+from eyeserver.core.types import Image
+from eyeserver.errors import (
+    DeviceDisconnectedError,
+    DeviceError,
+    DeviceTimeoutError,
+    DeviceValueError,
+)
+from eyeserver.hardware.base import Camera
+from eyeserver.hardware.registry import DriverContext, register_driver
+
+__all__ = ["INSTALL_HINT", "PIXEL_FORMATS", "GenicamCamera", "image_from_payload"]
+
+_log = logging.getLogger(__name__)
+
+_T = TypeVar("_T")
+
+PIXEL_FORMATS: Final[dict[str, int]] = {"Mono8": 8, "Mono10": 10, "Mono12": 12}
+"""The pixel formats the driver takes and their significant bits. Mono10 and Mono12 are the
+unpacked ones: one little-endian 16-bit word per pixel, the value in its low bits."""
+
+INSTALL_HINT: Final[str] = (
+    "install the Debian packages gir1.2-aravis-0.8 and libgirepository1.0-dev "
+    "(scripts/system-packages.sh) and PyGObject into the venv (pip install -e '.[genicam]')")
+"""What a machine needs for this driver; named in the error raised without it."""
+
+_CONTROL_CHANNEL_PRIVILEGE_REGISTER: Final[int] = 0x0A00
+"""GigE Vision bootstrap register of the control channel privilege: bit 1 (control) or bit 0
+(exclusive) set while this host is the camera's controller."""
+
+_POLL_S: Final[float] = 0.05
+"""How long one ``timeout_pop_buffer`` waits: bounds how long ``close()`` waits for the thread."""
+
+_GVSP_MAX_BLOCK_ID: Final[int] = 0xFFFF
+"""GigE Vision 1.x frame ids are 16 bits and skip 0 when they wrap."""
+
+
+@dataclass(frozen=True)
+class _Buffer:
+    """What the link copies out of one Aravis buffer before handing it back to the stream."""
+
+    complete: bool
+    status: str
+    block_id: int
+    timestamp_ns: int
+    width: int
+    height: int
+    pixel_format: int
+    data: bytes
+
+
+def _load_aravis() -> tuple[Any, Any]:
+    """Import PyGObject's ``Aravis`` 0.8 and ``GLib`` namespaces; ImportError names the gap."""
+    try:
+        gi = importlib.import_module("gi")
+    except ImportError as exc:
+        raise ImportError(f"PyGObject (the 'gi' module) is not installed: {INSTALL_HINT}") from exc
+    try:
+        gi.require_version("Aravis", "0.8")
+    except ValueError as exc:  # gi's way of saying the typelib is missing
+        raise ImportError(f"Aravis 0.8's GObject introspection data is missing: "
+                          f"{INSTALL_HINT}") from exc
+    # gi.repository's namespaces come from an import hook, not attributes of the package.
+    return (importlib.import_module("gi.repository.Aravis"),
+            importlib.import_module("gi.repository.GLib"))
+
+
+class _AravisLink:
+    """One opened camera and its stream: the only code that calls Aravis.
+
+    Control calls (GenICam features, commands) are serialised by a lock, because Aravis's
+    GenICam tree is not thread-safe; the stream's queue and the raw register read of
+    :meth:`probe` are, and are used by the acquisition thread without it.
+    """
+
+    def __init__(self, device_id: str, address: str) -> None:
+        self.device_id = device_id
+        self.address = address
+        try:
+            self._aravis, glib = _load_aravis()
+        except ImportError as exc:
+            raise DeviceError(device_id, str(exc)) from exc
+        self._gerror: type[Exception] = glib.GError
+        device_errors = self._aravis.DeviceError
+        self._lost_codes = {int(code) for code in (
+            device_errors.NOT_CONNECTED, device_errors.TRANSFER_ERROR, device_errors.TIMEOUT,
+            device_errors.NOT_FOUND, device_errors.NOT_CONTROLLER)}
+        self._value_codes = {int(code) for code in (
+            device_errors.WRONG_FEATURE, device_errors.FEATURE_NOT_FOUND,
+            device_errors.INVALID_PARAMETER)}
+        self._lock = threading.Lock()
+        self._stream: Any = None
+        self._signal_id: int | None = None
+        with self._translated(f"opening the camera at {address!r}"):
+            self._camera: Any = self._aravis.Camera.new(address)
+        self._device: Any = self._camera.get_device()
+        self.is_gv = bool(self._camera.is_gv_device())
+
+    @contextlib.contextmanager
+    def _translated(self, doing: str) -> Iterator[None]:
+        try:
+            yield
+        except self._gerror as exc:
+            domain = str(getattr(exc, "domain", ""))
+            code = int(getattr(exc, "code", -1))
+            message = str(getattr(exc, "message", exc))
+            reason = f"{doing}: {message}"
+            if domain == "arv-device-error-quark" and code in self._lost_codes:
+                raise DeviceDisconnectedError(self.device_id, reason) from exc
+            if domain == "arv-gc-error-quark" or (
+                    domain == "arv-device-error-quark" and code in self._value_codes):
+                raise DeviceValueError(self.device_id, reason) from exc
+            raise DeviceError(self.device_id, reason) from exc
+
+    def _call(self, doing: str, call: Callable[[], _T]) -> _T:
+        with self._lock, self._translated(doing):
+            return call()
+
+    # --- identity ---------------------------------------------------------------------------
+
+    def identity(self) -> dict[str, object]:
+        """Vendor, model, serial number and GenICam device id, as the camera reports them."""
+        camera = self._camera
+        return self._call("reading the camera's identity", lambda: {
+            "vendor": camera.get_vendor_name(), "model": camera.get_model_name(),
+            "serial_number": camera.get_device_serial_number(),
+            "genicam_id": camera.get_device_id()})
+
+    def tick_frequency_hz(self) -> int | None:
+        """The camera's timestamp tick rate (GigE Vision), or None when it has none."""
+        if not self.is_gv:
+            return None
+        frequency = self._call("reading the timestamp tick frequency",
+                               self._device.get_timestamp_tick_frequency)
+        return int(frequency) or None
+
+    # --- settings ---------------------------------------------------------------------------
+
+    def pixel_formats(self) -> list[str]:
+        """The pixel formats the camera offers."""
+        return [str(name) for name in self._call(
+            "listing pixel formats", self._camera.dup_available_pixel_formats_as_strings)]
+
+    def set_pixel_format(self, name: str) -> tuple[str, int]:
+        """Set the pixel format; return it as read back, by name and PFNC code."""
+        camera = self._camera
+        self._call(f"setting PixelFormat {name}",
+                   lambda: camera.set_pixel_format_from_string(name))
+        return self._call("reading PixelFormat", lambda: (
+            str(camera.get_pixel_format_as_string()), int(camera.get_pixel_format())))
+
+    def set_packet_size(self, packet_size: int | None) -> int | None:
+        """GigE Vision only: set the GVSP packet size (bytes), or negotiate the largest that
+        passes when None; return the size in use."""
+        if not self.is_gv:
+            return None
+        camera = self._camera
+        if packet_size is None:
+            return int(self._call("negotiating the packet size", camera.gv_auto_packet_size))
+        self._call(f"setting the packet size to {packet_size}",
+                   lambda: camera.gv_set_packet_size(packet_size))
+        return int(self._call("reading the packet size", camera.gv_get_packet_size))
+
+    def sensor_size(self) -> tuple[int, int]:
+        """Width and height of the whole sensor, pixels."""
+        size = self._call("reading the sensor size", self._camera.get_sensor_size)
+        return int(size[0]), int(size[1])
+
+    def set_region(self, x: int, y: int, width: int, height: int) -> tuple[int, int, int, int]:
+        """Set the region of interest; return it as read back (x, y, width, height)."""
+        camera = self._camera
+        self._call(f"setting the region {width}x{height}+{x}+{y}",
+                   lambda: camera.set_region(x, y, width, height))
+        region = self._call("reading the region", camera.get_region)
+        return int(region[0]), int(region[1]), int(region[2]), int(region[3])
+
+    def exposure_bounds_us(self) -> tuple[float, float]:
+        """The exposure times the camera takes, microseconds."""
+        low, high = self._call("reading the exposure bounds", self._camera.get_exposure_time_bounds)
+        return float(low), float(high)
+
+    def set_exposure_us(self, value: float) -> float:
+        """Set the exposure time; return the camera's value, microseconds."""
+        camera = self._camera
+        self._call(f"setting the exposure to {value} us", lambda: camera.set_exposure_time(value))
+        return float(self._call("reading the exposure", camera.get_exposure_time))
+
+    def gain_feature(self) -> str:
+        """``Gain`` (SFNC, decibels) where the camera has it; else ``GainRaw``, in its own
+        units, which is what Aravis then uses."""
+        camera = self._camera
+        return "Gain" if self._call("looking for Gain",
+                                    lambda: camera.is_feature_available("Gain")) else "GainRaw"
+
+    def gain_bounds(self) -> tuple[float, float]:
+        """The gains the camera takes (decibels for ``Gain``)."""
+        low, high = self._call("reading the gain bounds", self._camera.get_gain_bounds)
+        return float(low), float(high)
+
+    def set_gain(self, value: float) -> float:
+        """Set the gain; return the camera's value (an integer ``GainRaw`` truncates)."""
+        camera = self._camera
+        self._call(f"setting the gain to {value}", lambda: camera.set_gain(value))
+        return float(self._call("reading the gain", camera.get_gain))
+
+    def trigger_sources(self) -> list[str]:
+        """The trigger sources the camera offers."""
+        return [str(name) for name in self._call(
+            "listing trigger sources", self._camera.dup_available_trigger_sources)]
+
+    def set_trigger(self, source: str) -> str:
+        """Trigger every frame from ``source``: every selector's TriggerMode off, then
+        FrameStart (or the camera's nearest) on from ``source`` on the rising edge. Returns the
+        source read back."""
+        camera = self._camera
+        self._call(f"setting the trigger source {source}", lambda: camera.set_trigger(source))
+        return str(self._call("reading the trigger source", camera.get_trigger_source))
+
+    def software_trigger(self) -> None:
+        """Execute TriggerSoftware."""
+        self._call("firing the software trigger", self._camera.software_trigger)
+
+    # --- streaming --------------------------------------------------------------------------
+
+    def start(self, n_buffers: int) -> None:
+        """Create the stream with ``n_buffers`` buffers of the current payload and start
+        acquiring (continuous acquisition: each trigger makes one frame)."""
+        camera = self._camera
+        aravis = self._aravis
+
+        def start() -> None:
+            camera.set_acquisition_mode(aravis.AcquisitionMode.CONTINUOUS)
+            self._stream = camera.create_stream(None, None)
+            if self._stream is None:
+                raise DeviceError(self.device_id, "Aravis could not open the stream")
+            payload = camera.get_payload()
+            for _ in range(n_buffers):
+                self._stream.push_buffer(aravis.Buffer.new_allocate(payload))
+            camera.start_acquisition()
+
+        self._call("starting acquisition", start)
+
+    def stop(self) -> None:
+        """Stop acquiring."""
+        self._call("stopping acquisition", self._camera.stop_acquisition)
+
+    def pop(self, timeout_s: float) -> _Buffer | None:
+        """Wait up to ``timeout_s`` for the next buffer; copy it out and hand it back to the
+        stream. None when none came."""
+        stream = self._stream
+        if stream is None:
+            return None
+        buffer = stream.timeout_pop_buffer(max(1, round(timeout_s * 1e6)))
+        if buffer is None:
+            return None
+        try:
+            status = buffer.get_status()
+            complete = (status == self._aravis.BufferStatus.SUCCESS
+                        and buffer.get_payload_type() == self._aravis.BufferPayloadType.IMAGE)
+            return _Buffer(complete=complete, status=str(status.value_nick),
+                           block_id=int(buffer.get_frame_id()),
+                           timestamp_ns=int(buffer.get_timestamp()),
+                           width=int(buffer.get_image_width()) if complete else 0,
+                           height=int(buffer.get_image_height()) if complete else 0,
+                           pixel_format=int(buffer.get_image_pixel_format()) if complete else 0,
+                           data=bytes(buffer.get_data()) if complete else b"")
+        finally:
+            stream.push_buffer(buffer)
+
+    def stream_statistics(self) -> dict[str, int]:
+        """Aravis's counts since the stream started: completed buffers, failures, underruns."""
+        if self._stream is None:
+            return {}
+        completed, failures, underruns = self._aravis.Stream.get_statistics(self._stream)
+        return {"completed": int(completed), "failures": int(failures),
+                "underruns": int(underruns)}
+
+    def probe(self) -> bool:
+        """GigE Vision only: whether the camera still has a controller, by a raw read of its
+        control-privilege register (no GenICam, so no lock). False after it restarted (the
+        register cannot tell which host controls it). Raises
+        :class:`DeviceDisconnectedError` when the camera does not answer."""
+        if not self.is_gv:
+            return True
+        with self._translated("asking whether the camera is still there"):
+            value = int(self._device.read_register(_CONTROL_CHANNEL_PRIVILEGE_REGISTER))
+        return bool(value & 0b11)
+
+    def on_control_lost(self, callback: Callable[[], None]) -> None:
+        """Call ``callback`` (from Aravis's heartbeat thread) when the camera drops us."""
+        self._signal_id = int(self._device.connect("control-lost", lambda _device: callback()))
+
+    def forget_control_lost(self) -> None:
+        """Stop calling the control-lost callback. Touches no network, so it never waits."""
+        with self._lock:
+            if self._signal_id is not None:
+                self._device.disconnect(self._signal_id)
+                self._signal_id = None
+
+    def release(self) -> None:
+        """Drop the stream and the camera; Aravis gives up control as they are freed (the
+        GObjects go with their last Python reference, so none may be kept elsewhere). The
+        stream resets the camera's stream channel and the device leaves control, each a GVCP
+        write: with a camera that no longer answers this takes up to 10 s."""
+        self.forget_control_lost()
+        with self._lock:
+            self._stream = None
+            self._device = None
+            self._camera = None
+
+
+def _skipped_block_ids(last: int, new: int) -> int:
+    """GVSP frame ids strictly between ``last`` and ``new``: the frames lost whole between two
+    buffers. 16-bit ids wrap from 65535 to 1 (0 is invalid); ids that go back otherwise (the
+    camera restarted its count) skip nothing we can tell."""
+    if new > last:
+        return new - last - 1
+    if last <= _GVSP_MAX_BLOCK_ID and new <= _GVSP_MAX_BLOCK_ID and last - new > 0x8000:
+        return (_GVSP_MAX_BLOCK_ID - last) + (new - 1)
+    return 0
+
+
+def image_from_payload(data: bytes, width: int, height: int, bit_depth: int) -> Image:
+    """The image in a GenICam Mono payload, as a new writable array.
+
+    Parameters
+    ----------
+    data : bytes
+        The payload: rows of ``width`` pixels, one byte each for 8 bits, else one little-endian
+        16-bit word each (Mono10/Mono12 unpacked, the value in the low bits).
+    width, height : int
+        Image size, pixels.
+    bit_depth : int
+        8, 10 or 12.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``uint8`` (8 bits) or ``uint16``, shape ``(height, width)``.
+
+    Raises
+    ------
+    ValueError
+        When ``data`` is shorter than the image.
+    """
+    dtype = np.dtype(np.uint8) if bit_depth == 8 else np.dtype("<u2")
+    needed = width * height * dtype.itemsize
+    if len(data) < needed:
+        raise ValueError(f"payload of {len(data)} bytes is short of a {width}x{height} "
+                         f"{bit_depth}-bit image ({needed} bytes)")
+    pixels = np.frombuffer(data, dtype=dtype, count=width * height).reshape(height, width)
+    if bit_depth == 8:
+        return np.array(pixels, dtype=np.uint8)
+    return np.array(pixels, dtype=np.uint16)
+
+
+@register_driver("camera", "GenicamCamera")
+class GenicamCamera(Camera):
+    """A GenICam camera (GigE Vision or USB3 Vision) through Aravis, hardware-triggered.
+
+    Parameters
+    ----------
+    device_id : str
+        The camera's id in the rig.
+    context : DriverContext
+        Its clock is the rig clock the frames' times are put on.
+    address : str
+        The camera's IP address, or its Aravis device id as ``arv-tool-0.8`` lists it:
+        ``<vendor>-<model>-<serial>`` (``Aravis-Fake-GV01``) or ``<vendor>-<serial>``
+        (``Basler-21234567``); an id is found by discovery, an address is asked directly.
+    pixel_format : {"Mono8", "Mono10", "Mono12"}
+        8 bits per pixel, or 10/12 unpacked in 16-bit words.
+    trigger_source : str
+        The camera's TriggerSource for each frame: ``Line1`` (the trigger controller's cable),
+        or ``Software`` to expose on :meth:`software_trigger` (tests, bench without a trigger).
+    offset_x, offset_y : int
+        Top-left corner of the region of interest on the sensor, pixels.
+    width, height : int or None
+        Size of the region of interest, pixels; None for the rest of the sensor from the
+        offset. Tracking narrows it to the eye to raise the frame rate. Until the first
+        ``open()`` the size reads as configured, or 1 when it comes from the sensor.
+    packet_size : int or None
+        GigE Vision packet size, bytes (at most the link's MTU); None negotiates the largest
+        that passes.
+    queue_size : int
+        Frames held for :meth:`read_frame`; frames that arrive when it is full are dropped
+        (counted in :attr:`dropped_frames`).
+    liveness_s : float
+        After this long without a buffer, the acquisition thread asks a GigE Vision camera
+        whether it is still there (see the module's notes), seconds.
+
+    Notes
+    -----
+    A frame's ``exposure_us`` and ``gain_db`` are the camera's settings when it arrived, and
+    its ``trigger_index`` is the camera's own count of exposures since ``open()``, the dropped
+    ones included (the camera cannot know the trigger controller's pulse numbers). Its
+    ``extra`` holds ``device_timestamp_ns`` (camera clock) and ``block_id`` (GVSP frame id).
+    One reader at a time.
+    """
+
+    def __init__(self, device_id: str, *, context: DriverContext, address: str,
+                 pixel_format: str = "Mono8", trigger_source: str = "Line1",
+                 offset_x: int = 0, offset_y: int = 0, width: int | None = None,
+                 height: int | None = None, packet_size: int | None = None,
+                 queue_size: int = 8, liveness_s: float = 1.0) -> None:
+        if pixel_format not in PIXEL_FORMATS:
+            raise ValueError(f"pixel_format must be one of {', '.join(PIXEL_FORMATS)}, "
+                             f"not {pixel_format!r}")
+        if not address:
+            raise ValueError("address must name the camera (IP address or GenICam device id)")
+        if not trigger_source:
+            raise ValueError("trigger_source must name one of the camera's TriggerSource values")
+        if offset_x < 0 or offset_y < 0:
+            raise ValueError(f"offsets must not be negative, not ({offset_x}, {offset_y})")
+        for name, size in (("width", width), ("height", height)):
+            if size is not None and size <= 0:
+                raise ValueError(f"{name} must be positive, not {size}")
+        if packet_size is not None and not 576 <= packet_size <= 16_384:
+            raise ValueError(f"packet_size must be in [576, 16384] bytes, not {packet_size}")
+        if queue_size < 1:
+            raise ValueError(f"queue_size must be at least 1, not {queue_size}")
+        if liveness_s <= 0:
+            raise ValueError(f"liveness_s must be positive, not {liveness_s}")
+        super().__init__(device_id, width or 1, height or 1, PIXEL_FORMATS[pixel_format])
+        self._clock = context.clock
+        self.address = address
+        self.pixel_format = pixel_format
+        self.trigger_source = trigger_source
+        self._roi = (int(offset_x), int(offset_y), width, height)
+        self._packet_size_option = packet_size
+        self._queue_size = int(queue_size)
+        self._liveness_s = float(liveness_s)
+        self._link: _AravisLink | None = None
+        self._releasing: list[threading.Thread] = []
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._cond = threading.Condition()
+        self._frames: collections.deque[Frame] = collections.deque()
+        self._lost: str | None = None
+        self._frame_counter = 0
+        self._dropped = 0
+        self._last_block_id: int | None = None
+        self._incomplete_since_whole = 0
+        self._offset_ns: int | None = None
+        self._pixel_format_code = 0
+        self._device_exposure_us = self._exposure_us
+        self._device_gain_db = self._gain_db
+        self._info: dict[str, object] = {}
+
+    # --- what the camera reports ------------------------------------------------------------
+
+    @property
+    def exposure_us(self) -> float:
+        """Exposure time as the camera reports it after the last setting, microseconds (the
+        value asked for until the first ``open()``)."""
+        return self._device_exposure_us
+
+    @property
+    def gain_db(self) -> float:
+        """Gain as the camera reports it after the last setting: decibels where the camera has
+        the SFNC ``Gain``; a camera with only ``GainRaw`` reports its own units (``describe()``
+        says which)."""
+        return self._device_gain_db
+
+    @property
+    def dropped_frames(self) -> int:
+        """Frames lost since :meth:`open`: incomplete buffers, frame ids skipped, a full queue."""
+        with self._cond:
+            return self._dropped
+
+    @property
+    def clock_offset_ns(self) -> int | None:
+        """Rig clock minus camera clock, nanoseconds, fixed on the first buffer after
+        :meth:`open` (None before it): ``t_ns = device_ts + offset + exposure / 2``."""
+        with self._cond:
+            return self._offset_ns
+
+    def software_trigger(self) -> None:
+        """Expose one frame now (TriggerSoftware); only with ``trigger_source="Software"``.
+
+        Raises
+        ------
+        DeviceValueError
+            When the camera is triggered from another source.
+        DeviceDisconnectedError
+            When the camera does not answer.
+        """
+        link = self._live_link()
+        if self.trigger_source != "Software":
+            raise DeviceValueError(self.id, f"software_trigger() needs trigger_source "
+                                            f"'Software', not {self.trigger_source!r}")
+        self._guarded(link, link.software_trigger)
+
+    # --- Device and Camera hooks ------------------------------------------------------------
+
+    def _do_open(self) -> None:
+        link = _AravisLink(self.id, self.address)
+        try:
+            self._configure(link)
+            with self._cond:
+                self._frames.clear()
+                self._lost = None
+                self._frame_counter = 0
+                self._dropped = 0
+                self._last_block_id = None
+                self._incomplete_since_whole = 0
+                self._offset_ns = None
+            link.start(n_buffers=max(4, self._queue_size))
+        except DeviceDisconnectedError:
+            self._release(link, background=True)
+            raise
+        except BaseException:
+            self._release(link, background=False)
+            raise
+        self._link = link
+        link.on_control_lost(lambda: self._mark_lost(
+            link, "Aravis lost control of the camera (no heartbeat answer)"))
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._acquire, args=(link,), daemon=True,
+                                        name=f"genicam-{self.id}")
+        self._thread.start()
+
+    def _configure(self, link: _AravisLink) -> None:
+        """Put the camera in the configured state and read back what it took."""
+        identity = link.identity()
+        # A previous controller (or a crashed daemon) may have left it streaming.
+        with contextlib.suppress(DeviceError):
+            link.stop()
+        offered = link.pixel_formats()
+        if self.pixel_format not in offered:
+            raise DeviceValueError(self.id, f"the camera offers no {self.pixel_format} "
+                                            f"(it has {', '.join(offered) or 'none'})")
+        name, self._pixel_format_code = link.set_pixel_format(self.pixel_format)
+        if name != self.pixel_format:
+            raise DeviceValueError(self.id, f"PixelFormat reads {name} after setting "
+                                            f"{self.pixel_format}")
+        packet_size = link.set_packet_size(self._packet_size_option)
+
+        x, y, width, height = self._roi
+        if width is None or height is None:
+            sensor_width, sensor_height = link.sensor_size()
+            width = width or sensor_width - x
+            height = height or sensor_height - y
+        region = link.set_region(x, y, width, height)
+        if region != (x, y, width, height):
+            raise DeviceValueError(self.id, f"region {width}x{height}+{x}+{y} reads back as "
+                                            f"{region[2]}x{region[3]}+{region[0]}+{region[1]}")
+
+        sources = link.trigger_sources()
+        if self.trigger_source not in sources:
+            raise DeviceValueError(self.id, f"the camera has no trigger source "
+                                            f"{self.trigger_source!r} (it has "
+                                            f"{', '.join(sources) or 'none'})")
+        source = link.set_trigger(self.trigger_source)
+        if source != self.trigger_source:
+            raise DeviceValueError(self.id, f"TriggerSource reads {source} after setting "
+                                            f"{self.trigger_source}")
+
+        # The rig's policy ranges (the class's) narrowed to what this camera can do.
+        self.exposure_range_us = _overlap("exposure_us", self.id, type(self).exposure_range_us,
+                                          link.exposure_bounds_us())
+        self.gain_range_db = _overlap("gain_db", self.id, type(self).gain_range_db,
+                                      link.gain_bounds())
+        # Settings asked for before (a reopen after a power cycle restores them).
+        self._device_exposure_us = link.set_exposure_us(_clamp(self._exposure_us,
+                                                               self.exposure_range_us))
+        self._device_gain_db = link.set_gain(_clamp(self._gain_db, self.gain_range_db))
+
+        self.width, self.height = region[2], region[3]
+        self.bit_depth = PIXEL_FORMATS[self.pixel_format]
+        self._info = {**identity, "offset_x": region[0], "offset_y": region[1],
+                      "packet_size": packet_size, "gain_feature": link.gain_feature(),
+                      "tick_frequency_hz": link.tick_frequency_hz(),
+                      "transport": "GigE Vision" if link.is_gv else "other"}
+
+    def _do_close(self) -> None:
+        self._stop.set()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join()
+        link, self._link = self._link, None
+        if link is None:
+            return
+        link.forget_control_lost()
+        with self._cond:
+            lost = self._lost is not None
+            self._frames.clear()
+            self._cond.notify_all()
+        if not lost:
+            with contextlib.suppress(DeviceError):
+                link.stop()
+        # A camera known to be gone is not waited for: its teardown's GVCP writes each wait
+        # out their timeout, so it runs on a thread of its own (see wait_released()).
+        self._release(link, background=lost)
+
+    def _release(self, link: _AravisLink, *, background: bool) -> None:
+        if not background:
+            link.release()
+            return
+        releasing = threading.Thread(target=link.release, name=f"genicam-{self.id}-release")
+        releasing.start()
+        self._releasing.append(releasing)
+
+    def wait_released(self, timeout_s: float = 15.0) -> bool:
+        """Wait until the connections to a lost camera that :meth:`close` (or a failed
+        :meth:`open`) left to tear down in the background are gone; True when they are.
+
+        A camera that no longer answers makes each of Aravis's goodbyes (stream channel reset,
+        control release) wait out its GVCP timeout, up to 10 s in all; ``close()`` does not
+        wait for them, and a new ``open()`` need not either: the camera refuses writes from
+        the old connection once the new one controls it. The process waits for them at exit.
+        """
+        deadline = time.monotonic() + timeout_s
+        for releasing in self._releasing:
+            releasing.join(max(0.0, deadline - time.monotonic()))
+        self._releasing = [t for t in self._releasing if t.is_alive()]
+        return not self._releasing
+
+    def _apply_exposure_us(self, value: float) -> None:
+        link = self._live_link()
+        self._device_exposure_us = self._guarded(link, lambda: link.set_exposure_us(value))
+
+    def _apply_gain_db(self, value: float) -> None:
+        link = self._live_link()
+        self._device_gain_db = self._guarded(link, lambda: link.set_gain(value))
+
+    def _read_frame(self, timeout_s: float) -> Frame:
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while not self._frames:
+                if self._lost is not None:
+                    raise DeviceDisconnectedError(self.id, self._lost)
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise DeviceTimeoutError(self.id, f"no frame within {timeout_s} s")
+                self._cond.wait(remaining)
+            return self._frames.popleft()
+
+    def describe(self) -> dict[str, object]:
+        info: dict[str, object] = {**super().describe(), "address": self.address,
+                                   "pixel_format": self.pixel_format,
+                                   "trigger_source": self.trigger_source,
+                                   "dropped_frames": self.dropped_frames}
+        link = self._link
+        if self.is_open and link is not None:
+            with self._cond:
+                info["connected"] = self._lost is None
+                info["clock_offset_ns"] = self._offset_ns
+            info.update(self._info)
+            info["stream"] = link.stream_statistics()
+        return info
+
+    # --- the acquisition thread -------------------------------------------------------------
+
+    def _acquire(self, link: _AravisLink) -> None:
+        """Pop buffers into the frame queue until close() or the camera is lost."""
+        last_sign_of_life = time.monotonic()
+        try:
+            while not self._stop.is_set():
+                buffer = link.pop(_POLL_S)
+                now = time.monotonic()
+                if buffer is not None:
+                    last_sign_of_life = now
+                    self._receive(buffer)
+                elif now - last_sign_of_life >= self._liveness_s:
+                    if not link.probe():
+                        self._mark_lost(link, "the camera answers but has no controller "
+                                              "(it restarted)")
+                    last_sign_of_life = time.monotonic()
+                with self._cond:
+                    if self._lost is not None:
+                        return
+        except DeviceDisconnectedError as exc:
+            self._mark_lost(link, exc.reason)
+        except Exception as exc:  # a thread that dies silently would leave readers timing out
+            _log.exception("camera %s: acquisition thread failed", self.id)
+            self._mark_lost(link, f"acquisition failed: {exc}")
+
+    def _receive(self, buffer: _Buffer) -> None:
+        """Account for one buffer and queue its frame if it is complete and fits.
+
+        Aravis fills a buffer's frame id and timestamp from the GVSP leader, so an incomplete
+        buffer's may be stale (a reused buffer's) and only complete buffers' ids are trusted:
+        an incomplete buffer counts one dropped frame at once, and the ids skipped between two
+        complete buffers count the frames lost whole, less the incomplete ones already counted
+        there (Aravis hands buffers over in frame order).
+        """
+        rig_now_ns = self._clock.now_ns()
+        exposure_us = self._device_exposure_us
+        image = self._image(buffer)
+        with self._cond:
+            if not buffer.complete:
+                self._dropped += 1
+                self._incomplete_since_whole += 1
+                return
+            if self._last_block_id is not None:
+                skipped = _skipped_block_ids(self._last_block_id, buffer.block_id)
+                lost_whole = max(0, skipped - self._incomplete_since_whole)
+                if lost_whole:
+                    _log.warning("camera %s: %d frame(s) lost whole before frame id %d",
+                                 self.id, lost_whole, buffer.block_id)
+                self._dropped += lost_whole
+            self._last_block_id = buffer.block_id
+            self._incomplete_since_whole = 0
+            if image is None or len(self._frames) >= self._queue_size:
+                self._dropped += 1
+                return
+            exposure_ns = round(exposure_us * 1e3)
+            if buffer.timestamp_ns == 0:
+                t_ns = rig_now_ns - exposure_ns // 2
+            else:
+                if self._offset_ns is None:
+                    self._offset_ns = rig_now_ns - buffer.timestamp_ns - exposure_ns
+                t_ns = buffer.timestamp_ns + self._offset_ns + exposure_ns // 2
+            meta = FrameMeta(camera_id=self.id, frame_counter=self._frame_counter, t_ns=t_ns,
+                             exposure_us=exposure_us, gain_db=self._device_gain_db,
+                             dropped_frames=self._dropped, bit_depth=self.bit_depth,
+                             # The camera's own count of exposures since open(), lost ones too.
+                             trigger_index=self._frame_counter + self._dropped)
+            self._frames.append(Frame(image=image, meta=meta, extra={
+                "device_timestamp_ns": buffer.timestamp_ns, "block_id": buffer.block_id}))
+            self._frame_counter += 1
+            self._cond.notify_all()
+
+    def _image(self, buffer: _Buffer) -> Image | None:
+        """The buffer's image, or None (logged) for a buffer that is not a whole frame of the
+        configured format and size."""
+        if not buffer.complete:
+            _log.warning("camera %s: incomplete frame dropped (%s)", self.id, buffer.status)
+            return None
+        if (buffer.width, buffer.height, buffer.pixel_format) != (
+                self.width, self.height, self._pixel_format_code):
+            _log.warning("camera %s: frame id %d is %dx%d format 0x%08x, not the %dx%d %s "
+                         "configured", self.id, buffer.block_id, buffer.width, buffer.height,
+                         buffer.pixel_format, self.width, self.height, self.pixel_format)
+            return None
+        try:
+            return image_from_payload(buffer.data, buffer.width, buffer.height, self.bit_depth)
+        except ValueError as exc:
+            _log.warning("camera %s: frame id %d: %s", self.id, buffer.block_id, exc)
+            return None
+
+    # --- disconnection ----------------------------------------------------------------------
+
+    def _mark_lost(self, link: _AravisLink, reason: str) -> None:
+        """Record that the camera behind ``link`` is gone and wake the reader; news about a
+        link closed since (a late heartbeat) is ignored."""
+        with self._cond:
+            if link is not self._link:
+                return
+            if self._lost is None:
+                _log.error("camera %s at %s lost: %s", self.id, self.address, reason)
+                self._lost = reason
+            self._cond.notify_all()
+
+    def _live_link(self) -> _AravisLink:
+        """The open link, or DeviceDisconnectedError once the camera is known to be gone."""
+        self._require_open()
+        with self._cond:
+            if self._lost is not None:
+                raise DeviceDisconnectedError(self.id, f"{self._lost}; close() and open() "
+                                                       "once it is back")
+        link = self._link
+        assert link is not None  # open implies a link
+        return link
+
+    def _guarded(self, link: _AravisLink, call: Callable[[], _T]) -> _T:
+        """Run a control call; a camera that does not answer is marked lost for the reader."""
+        try:
+            return call()
+        except DeviceDisconnectedError as exc:
+            self._mark_lost(link, exc.reason)
+            raise
+
+
+def _overlap(name: str, device_id: str, policy: tuple[float, float],
+             device: tuple[float, float]) -> tuple[float, float]:
+    low, high = max(policy[0], device[0]), min(policy[1], device[1])
+    if low > high:
+        raise DeviceValueError(device_id, f"the camera's {name} range {device} misses the "
+                                          f"rig's {policy}")
+    return low, high
+
+
+def _clamp(value: float, bounds: tuple[float, float]) -> float:
+    return min(max(value, bounds[0]), bounds[1])
