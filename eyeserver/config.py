@@ -126,8 +126,12 @@ class Settings(BaseSettings):
         Address the HTTP API listens on. Default ``127.0.0.1`` (this machine only).
     ``port``
         TCP port of the HTTP API. Default ``8000``.
+    ``room``
+        ``sim`` (default): the simulated room; ``devices``: a room of real devices, which
+        ``room_file`` names (docs/room-file.md).
     ``room_file``
-        TOML file describing the simulated room to run on; unset means the built-in default room.
+        TOML file describing the room: the simulated room's (unset: the built-in default room)
+        or the real devices' (required with ``room = "devices"``).
     ``log_level``
         One of ``critical``, ``error``, ``warning``, ``info``, ``debug``. Default ``info``.
     ``log_json``
@@ -218,9 +222,14 @@ class Settings(BaseSettings):
         le=65535,
         description="TCP port of the HTTP API.",
     )
+    room: Literal["sim", "devices"] = Field(
+        default="sim",
+        description="sim: the simulated room; devices: the real devices room_file names.",
+    )
     room_file: Path | None = Field(
         default=None,
-        description="TOML file describing the simulated room; unset for the built-in default room.",
+        description="TOML file describing the room: the simulated room's (unset for the built-in "
+        "default room) or the real devices' (required with room = devices).",
     )
     log_level: LogLevel = Field(
         default="info",

@@ -12,11 +12,16 @@ step; each exposed camera then returns the image from :meth:`Camera.read_frame`.
 from __future__ import annotations
 
 import abc
+import logging
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from eyeserver.core.clock import Clock
 from eyeserver.core.frames import Frame, is_valid_id
 from eyeserver.errors import DeviceNotOpenError, DeviceValueError
+
+_log = logging.getLogger(__name__)
 
 
 class Device(abc.ABC):
@@ -335,6 +340,94 @@ class Trigger(Device):
         return {**super().describe(), "rate_hz": self.rate_hz,
                 "sequence": [{"projectors": list(s.projectors), "cameras": list(s.cameras)}
                              for s in self.sequence]}
+
+
+class PacedTrigger(Trigger):
+    """A trigger whose free-running pulses a host thread fires at :attr:`rate_hz`, sleeping on
+    ``clock`` between them (a trigger with no timer of its own, or a simulated one: under a
+    :class:`~eyeserver.core.clock.ManualClock` it runs as fast as it can while the pulses' times
+    stay exactly ``1 / rate_hz`` apart)."""
+
+    _MAX_SLEEP_S = 0.02
+    """Longest single sleep, s, so that :meth:`stop` never waits long on a slow rate."""
+    _JOIN_TIMEOUT_S = 5.0
+
+    def __init__(self, device_id: str, clock: Clock) -> None:
+        super().__init__(device_id)
+        self._clock = clock
+        self._thread: threading.Thread | None = None
+        self._stop_event = threading.Event()
+        self.last_run_error: Exception | None = None
+        """Why the free-running thread stopped by itself, if it did."""
+
+    @property
+    def running(self) -> bool:
+        """Whether the free-running thread is firing pulses."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def _check_can_start(self) -> None:
+        """Raise if the device cannot fire now (a driver that knows its link is down)."""
+
+    def start(self) -> None:
+        """Fire pulses at :attr:`rate_hz` on a background thread until :meth:`stop`. Idempotent.
+
+        Raises
+        ------
+        DeviceNotOpenError
+            When the trigger is closed.
+        DeviceValueError
+            When no sequence is set.
+        DeviceError
+            When the driver knows the device cannot fire (:meth:`_check_can_start`).
+        """
+        self._require_open()
+        self._check_can_start()
+        if not self.sequence:
+            raise DeviceValueError(self.id, "no sequence set; call set_sequence() first")
+        if self.running:
+            return
+        self.last_run_error = None
+        self._stop_event = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(self._stop_event,),
+                                        name=f"trigger-{self.id}", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop free-running and wait for the thread to end. Idempotent; never raises."""
+        self._stop_event.set()
+        thread, self._thread = self._thread, None
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(self._JOIN_TIMEOUT_S)
+            if thread.is_alive():
+                _log.warning("trigger %s: free-running thread did not stop within %s s",
+                             self.id, self._JOIN_TIMEOUT_S, extra={"device_id": self.id})
+
+    def _run(self, stop: threading.Event) -> None:
+        clock = self._clock
+        next_ns = clock.now_ns()
+        while not stop.is_set():
+            try:
+                fired = self.fire()
+            except Exception as exc:
+                # A controller that vanished simply stops pulsing; the error is kept for
+                # whoever supervises the rig, and the thread must not die with a traceback.
+                self.last_run_error = exc
+                _log.warning("trigger %s stopped free-running: %s", self.id, exc,
+                             extra={"device_id": self.id})
+                return
+            # A thread that woke late fired late: the next pulse keeps a whole period from it
+            # (a controller never fires two pulses closer than its period; catching up at once
+            # put two 0.7 ms apart on a loaded machine).
+            period_ns = round(1e9 / self.rate_hz)
+            next_ns = max(next_ns + period_ns, fired.t_ns + period_ns)
+            while not stop.is_set():
+                remaining_s = (next_ns - clock.now_ns()) / 1e9
+                if remaining_s <= 0:
+                    break
+                clock.sleep(min(remaining_s, self._MAX_SLEEP_S))
+
+    def describe(self) -> dict[str, object]:
+        return {**super().describe(), "running": self.running}
 
 
 class Stage(Device):

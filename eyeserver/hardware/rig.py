@@ -16,7 +16,7 @@ import threading
 from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Annotated, Literal, Self
+from typing import Annotated, Final, Literal, Self
 
 from pydantic import AfterValidator, Field, model_validator
 
@@ -27,6 +27,7 @@ from eyeserver.hardware.base import Camera, Device, Projector, Trigger, TriggerP
 from eyeserver.hardware.registry import DriverContext, create_device
 
 __all__ = [
+    "RIG_CAMERAS",
     "RIG_FORMAT",
     "AcquiredStep",
     "DeviceConfig",
@@ -445,6 +446,11 @@ class HardwareConfig(StrictModel):
         return self
 
 
+RIG_CAMERAS: Final = "rig.cameras"
+"""The resource under which :func:`build_rig` hands the trigger the rig's cameras by id (a
+``dict[str, Camera]``), for a trigger that exposes them by software."""
+
+
 def build_rig(config: HardwareConfig, context: DriverContext) -> Rig:
     """Create every configured device through the driver registry and group them into a rig.
 
@@ -473,8 +479,11 @@ def build_rig(config: HardwareConfig, context: DriverContext) -> Rig:
         else:  # the registry checks kinds, so only a broken driver class ends up here
             raise ConfigError(f"device {entry.id!r}: driver {entry.driver} made a "
                               f"{type(device).__name__}, not a {entry.kind}")
+    # A trigger that reaches its cameras by software (no trigger line) finds them here.
+    trigger_context = DriverContext(clock=context.clock,
+                                    resources={**context.resources, RIG_CAMERAS: dict(cameras)})
     trigger = create_device("trigger", config.trigger.driver, config.trigger.id,
-                            config.trigger.options, context)
+                            config.trigger.options, trigger_context)
     if not isinstance(trigger, Trigger):
         raise ConfigError(f"device {config.trigger.id!r}: driver {config.trigger.driver} made a "
                           f"{type(trigger).__name__}, not a trigger")

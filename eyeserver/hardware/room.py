@@ -2,10 +2,11 @@
 a switch for the room lights; found by name, like the drivers, so that the daemon never imports
 the simulator.
 
-The simulated room (``"sim"``) is the only one built in today: its rig of simulated drivers, its
+Two are built in. The simulated room (``"sim"``, the default): its rig of simulated drivers, its
 motorised stage and its lights, plus the room itself as an opaque ``simulation`` handle that
-only the ``/sim`` control (:mod:`eyeserver.service.simroom`) opens. A real room's hardware will
-come from the configuration's devices through :func:`~eyeserver.hardware.rig.build_rig`.
+only the ``/sim`` control (:mod:`eyeserver.service.simroom`) opens. A room of real devices
+(``"devices"``, :mod:`eyeserver.hardware.devices`): its room file names each device's driver
+and connection, built through :func:`~eyeserver.hardware.rig.build_rig`.
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ class RoomHardware:
 
 KNOWN_ROOMS: Final[dict[str, str]] = {
     "sim": "eyeserver.hardware.sim.hardware:simulated_room",
+    "devices": "eyeserver.hardware.devices:device_room",
 }
 """Each built-in room by name, as ``module:function`` taking the room file (None: the default
 room) and returning :class:`RoomHardware`; imported only when asked for."""

@@ -179,8 +179,9 @@ class Service:
     Parameters
     ----------
     settings : Settings
-        ``data_dir`` holds the store; ``room_file`` names the simulated room (None: the default
-        room). The simulated scene is an eye (``SceneSpec(kind="eye")``), so captures show one.
+        ``data_dir`` holds the store; ``room`` and ``room_file`` name the room: the simulated
+        one (``room_file`` None: the default room), whose scene is an eye so that captures show
+        one, or real devices (:mod:`eyeserver.hardware.devices`).
     rig : Rig, optional
         A rig (not yet open) to drive instead of building the simulated room's; the daemon then
         has no :attr:`simulation`, as on real hardware (tests of a non-simulated daemon).
@@ -257,8 +258,8 @@ class Service:
             self.audit.close()
             raise
         try:
-            # The simulated room unless a rig is given: found by name, never imported here.
-            hardware = room_hardware("sim", self._settings.room_file) \
+            # The configured room unless a rig is given: found by name, never imported here.
+            hardware = room_hardware(self._settings.room, self._settings.room_file) \
                 if self._given_rig is None else RoomHardware(rig=self._given_rig)
             hardware.rig.open()
         except BaseException:

@@ -20,17 +20,14 @@ the 35 mm calibrated depth (6.6 fringes at 1.19 rad/mm). Equal azimuths would ma
 
 from __future__ import annotations
 
-import json
-import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, model_validator
 from pydantic_core import PydanticCustomError
 
 from eyeserver.core.frames import is_valid_id
-from eyeserver.core.validation import StrictModel
-from eyeserver.errors import FormatError
+from eyeserver.core.validation import StrictModel, read_table, validated
 
 Vec3 = tuple[float, float, float]
 
@@ -199,34 +196,11 @@ def room_from_dict(data: dict[str, Any], source: str = "<room>") -> RoomConfig:
     can change one camera's lens without restating the rig.
     """
     merged = _merge(default_room_dict(), data)
-    try:
-        return RoomConfig.model_validate(merged)
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        field = ".".join(str(p) for p in first["loc"]) or first.get("ctx", {}).get("field")
-        message = first["msg"]
-        if first["type"] == "extra_forbidden":
-            message = "unknown key (docs/room-file.md lists the keys)"
-        raise FormatError(source, field or None, message) from exc
+    return validated(RoomConfig, merged, source, "docs/room-file.md")
 
 
 def load_room(path: str | Path | None) -> RoomConfig:
     """Read a room file (TOML, or JSON by extension); ``None`` gives the default room."""
     if path is None:
         return room_from_dict({})
-    path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise FormatError(path, None, f"cannot read the room file ({exc.strerror})") from exc
-    try:
-        if path.suffix.lower() == ".json":
-            data = json.loads(raw)
-        else:
-            data = tomllib.loads(raw.decode("utf-8"))
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise FormatError(path, None, f"not valid {path.suffix.lstrip('.') or 'TOML'}: {exc}") \
-            from exc
-    if not isinstance(data, dict):
-        raise FormatError(path, None, "the room file must hold a table of settings")
-    return room_from_dict(data, str(path))
+    return room_from_dict(read_table(path, "room file"), str(path))

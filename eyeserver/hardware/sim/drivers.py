@@ -40,7 +40,7 @@ from eyeserver.errors import (
     DeviceTimeoutError,
     DeviceValueError,
 )
-from eyeserver.hardware.base import Camera, Projector, Trigger, TriggerPulse, TriggerStep
+from eyeserver.hardware.base import Camera, PacedTrigger, Projector, TriggerPulse, TriggerStep
 from eyeserver.hardware.registry import DriverContext, register_driver
 from eyeserver.hardware.rig import (
     DeviceConfig,
@@ -75,9 +75,6 @@ FaultKind = Literal["drop", "timeout", "disconnect"]
 
 _log = logging.getLogger(__name__)
 
-# Longest single sleep of the free-running trigger, so stop() never waits long on a slow rate.
-_MAX_SLEEP_S = 0.02
-_JOIN_TIMEOUT_S = 5.0
 
 
 class RenderSource(Protocol):
@@ -632,13 +629,11 @@ class SimProjector(_SimFaults, Projector):
 
 
 @register_driver("trigger", "SimTrigger")
-class SimTrigger(_SimFaults, Trigger):
+class SimTrigger(_SimFaults, PacedTrigger):
     """A simulated trigger/strobe controller.
 
-    Pulses are timed on the wiring's clock (the room's by default). :meth:`start` free-runs them
-    on a daemon thread that sleeps on that clock, so under a
-    :class:`~eyeserver.core.clock.ManualClock` it runs as fast as it can while the pulses' times
-    stay exactly ``1 / rate_hz`` apart.
+    Pulses are timed on the wiring's clock (the room's by default), on which :meth:`start`
+    free-runs them (:class:`~eyeserver.hardware.base.PacedTrigger`).
 
     Parameters
     ----------
@@ -649,21 +644,13 @@ class SimTrigger(_SimFaults, Trigger):
     """
 
     def __init__(self, device_id: str, *, context: DriverContext) -> None:
-        super().__init__(device_id)
+        wiring = _wiring(context)
+        super().__init__(device_id, wiring.clock)
         self._init_faults()
-        self._wiring = _wiring(context)
+        self._wiring = wiring
         self._fire_lock = threading.Lock()
         self._pulse_index = 0
         self._position = 0
-        self._thread: threading.Thread | None = None
-        self._stop_event = threading.Event()
-        self.last_run_error: Exception | None = None
-        """Why the free-running thread stopped by itself, if it did."""
-
-    @property
-    def running(self) -> bool:
-        """Whether the free-running thread is firing pulses."""
-        return self._thread is not None and self._thread.is_alive()
 
     def _do_open(self) -> None:
         self._connect()
@@ -707,66 +694,11 @@ class SimTrigger(_SimFaults, Trigger):
             self._wiring.publish(pulse)
             return pulse
 
-    def start(self) -> None:
-        """Fire pulses at :attr:`rate_hz` on a background thread until :meth:`stop`. Idempotent.
-
-        Raises
-        ------
-        DeviceNotOpenError
-            When the trigger is closed.
-        DeviceValueError
-            When no sequence is set.
-        DeviceDisconnectedError
-            When the trigger is disconnected.
-        """
-        self._require_open()
+    def _check_can_start(self) -> None:
         self._check_connected()
-        if not self.sequence:
-            raise DeviceValueError(self.id, "no sequence set; call set_sequence() first")
-        if self.running:
-            return
-        self.last_run_error = None
-        self._stop_event = threading.Event()
-        self._thread = threading.Thread(target=self._run, args=(self._stop_event,),
-                                        name=f"sim-trigger-{self.id}", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        """Stop free-running and wait for the thread to end. Idempotent; never raises."""
-        self._stop_event.set()
-        thread, self._thread = self._thread, None
-        if thread is not None and thread is not threading.current_thread():
-            thread.join(_JOIN_TIMEOUT_S)
-            if thread.is_alive():
-                _log.warning("trigger %s: free-running thread did not stop within %s s",
-                             self.id, _JOIN_TIMEOUT_S, extra={"device_id": self.id})
-
-    def _run(self, stop: threading.Event) -> None:
-        clock = self._wiring.clock
-        next_ns = clock.now_ns()
-        while not stop.is_set():
-            try:
-                fired = self.fire()
-            except Exception as exc:
-                # A real controller that vanished simply stops pulsing; the error is kept for
-                # whoever supervises the rig, and the thread must not die with a traceback.
-                self.last_run_error = exc
-                _log.warning("trigger %s stopped free-running: %s", self.id, exc,
-                             extra={"device_id": self.id})
-                return
-            # A thread that woke late fired late: the next pulse keeps a whole period from it
-            # (a controller never fires two pulses closer than its period; catching up at once
-            # put two 0.7 ms apart on a loaded machine).
-            period_ns = round(1e9 / self.rate_hz)
-            next_ns = max(next_ns + period_ns, fired.t_ns + period_ns)
-            while not stop.is_set():
-                remaining_s = (next_ns - clock.now_ns()) / 1e9
-                if remaining_s <= 0:
-                    break
-                clock.sleep(min(remaining_s, _MAX_SLEEP_S))
 
     def describe(self) -> dict[str, object]:
-        return {**super().describe(), "connected": self.connected, "running": self.running}
+        return {**super().describe(), "connected": self.connected}
 
 
 def sim_driver_context(room: RenderSource, clock: Clock | None = None) -> DriverContext:
