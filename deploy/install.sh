@@ -5,7 +5,9 @@
 #
 # Creates the system user "eyeserver", a virtual environment in /opt/eyeserver/venv with this
 # checkout installed into it, /etc/eyeserver/{eyeserver.toml,eyeserver.env} (kept if present),
-# and the unit /etc/systemd/system/eyeserver.service. Idempotent. See deploy/README.md.
+# the unit /etc/systemd/system/eyeserver.service, the Debian packages of the device drivers
+# (scripts/system-packages.sh) and the udev rules of the devices (99-eyeserver.rules).
+# Idempotent. See deploy/README.md.
 set -euo pipefail
 
 PREFIX=/opt/eyeserver
@@ -36,6 +38,12 @@ for group in video dialout; do  # cameras and serial ports
     fi
 done
 
+# Debian packages of the real devices' drivers (Aravis for the GenICam cameras, PyGObject's
+# build headers).
+bash "$source_dir/scripts/system-packages.sh"
+install -m 0644 "$here/99-eyeserver.rules" /etc/udev/rules.d/99-eyeserver.rules
+udevadm control --reload 2>/dev/null && udevadm trigger 2>/dev/null || true
+
 say "installing into $PREFIX/venv"
 install -d -m 0755 "$PREFIX"
 if [[ ! -x $PREFIX/venv/bin/python ]]; then
@@ -43,7 +51,8 @@ if [[ ! -x $PREFIX/venv/bin/python ]]; then
 fi
 "$PREFIX/venv/bin/python" -m pip install --quiet --upgrade pip
 # Exactly the versions the release was tested with (docs/soup.md, scripts/soup.py).
-"$PREFIX/venv/bin/python" -m pip install --quiet --constraint "$here/constraints.txt" "$source_dir"
+"$PREFIX/venv/bin/python" -m pip install --quiet --constraint "$here/constraints.txt" \
+    "$source_dir[genicam]"
 install -m 0644 "$source_dir/README.md" "$PREFIX/README.md"
 
 install -d -m 0750 -g "$SERVICE_USER" "$CONFIG_DIR"

@@ -36,8 +36,14 @@ PURPOSE = {
     "matplotlib": "the benches' figures (PNG)",
     "prometheus-client": "GET /metrics in the Prometheus text format",
     "threadpoolctl": "one BLAS thread per live-tracking worker process",
+    "pygobject": "the GenICam camera driver's way to Aravis (Debian's gir1.2-aravis-0.8); "
+                 "the genicam extra",
 }
-"""Why each direct runtime dependency (pyproject.toml's ``dependencies``) is there."""
+"""Why each direct runtime dependency (pyproject.toml's ``dependencies``, and those of the
+:data:`RUNTIME_EXTRAS`) is there."""
+
+RUNTIME_EXTRAS = ("genicam",)
+"""The extras a room PC installs with the daemon (deploy/install.sh): real devices' drivers."""
 
 
 def _name(requirement: str) -> str:
@@ -75,7 +81,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--check", action="store_true")
     args = parser.parse_args()
-    direct = [_name(r) for r in metadata.requires("eyeserver") or [] if "extra ==" not in r]
+    direct = [_name(r) for r in metadata.requires("eyeserver") or []
+              if "extra ==" not in r
+              or any(f'extra == "{extra}"' in r for extra in RUNTIME_EXTRAS)]
     missing = [name for name in direct if name not in PURPOSE]
     if missing:
         print(f"soup: no purpose written for {', '.join(missing)} (scripts/soup.py PURPOSE)",
