@@ -162,3 +162,6 @@ def configure_logging(level: str | int = "info", json: bool = True) -> None:
     handler.setFormatter(JsonFormatter() if json else logging.Formatter(_TEXT_FORMAT))
     root.addHandler(handler)
     root.setLevel(level)
+    # pymodbus logs an error of its own for every failed connect or missing reply, without the
+    # device's id; the driver raises (and the daemon logs) the same fault with it.
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)

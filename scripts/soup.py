@@ -31,6 +31,8 @@ PURPOSE = {
     "pydantic": "validation of every request body, settings and file format",
     "pydantic-settings": "configuration from the TOML file and the environment",
     "pyserial": "the projectors' and trigger's serial controllers (real hardware)",
+    "pymodbus": "Modbus RTU/TCP client of the Opto Engineering-style LED strobe controller "
+                "(real hardware)",
     "platformdirs": "the user's data directory when none is configured",
     "scikit-image": "quality-guided phase unwrapping (robust fringe-order path)",
     "matplotlib": "the benches' figures (PNG)",

@@ -56,6 +56,7 @@ _BUILTIN_DRIVER_MODULES: Final[tuple[str, ...]] = (
     "eyeserver.hardware.sim.drivers",
     "eyeserver.hardware.drivers.gardasoft",
     "eyeserver.hardware.drivers.genicam",
+    "eyeserver.hardware.drivers.modbus",
     "eyeserver.hardware.drivers.softtrigger",
     "eyeserver.hardware.drivers.zaber",
 )
