@@ -52,7 +52,7 @@ fi
 "$PREFIX/venv/bin/python" -m pip install --quiet --upgrade pip
 # Exactly the versions the release was tested with (docs/soup.md, scripts/soup.py).
 "$PREFIX/venv/bin/python" -m pip install --quiet --constraint "$here/constraints.txt" \
-    "$source_dir[genicam]"
+    "$source_dir[basler,genicam]"
 install -m 0644 "$source_dir/README.md" "$PREFIX/README.md"
 
 install -d -m 0750 -g "$SERVICE_USER" "$CONFIG_DIR"

@@ -28,6 +28,7 @@ import eyeserver
 from eyeserver.commands import Subparsers
 from eyeserver.commands import bench as bench_commands
 from eyeserver.commands import calibrate as calibrate_commands
+from eyeserver.commands import devices as devices_commands
 from eyeserver.commands import pose as pose_commands
 from eyeserver.commands import sim as sim_commands
 from eyeserver.errors import EyeserverError
@@ -113,7 +114,8 @@ REGISTRARS: list[Registrar] = [add_serve_parser, sim_commands.add_parser,
                                calibrate_commands.add_parser,
                                calibrate_commands.add_reconstruct_parser,
                                pose_commands.add_parser,
-                               bench_commands.add_parser]
+                               bench_commands.add_parser,
+                               devices_commands.add_parser]
 
 
 def build_parser(registrars: Iterable[Registrar] | None = None) -> argparse.ArgumentParser:

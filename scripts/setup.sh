@@ -3,7 +3,7 @@
 #
 # Creates .venv with a Python >= 3.11 if it is missing (set PYTHON to choose the interpreter),
 # installs the Debian packages the project needs (scripts/system-packages.sh, as root), then
-# runs `pip install -e '.[dev,genicam]'` only when pyproject.toml, the repository's location,
+# runs `pip install -e '.[dev,basler,genicam]'` only when pyproject.toml, the repository's location,
 # the venv's Python or the extras changed since the last successful install (recorded in
 # .venv/.eyeserver-setup).
 set -euo pipefail
@@ -41,9 +41,9 @@ fi
 # builds against): installed when run as root (CI, the room PC's installer), only checked
 # otherwise. A root that cannot install them stops here; without root the venv goes without
 # PyGObject and the GenICam tests skip, saying why.
-extras="dev"
+extras="dev,basler"
 if bash scripts/system-packages.sh; then
-    extras="dev,genicam"
+    extras="dev,basler,genicam"
 elif [[ "$(id -u)" -eq 0 ]]; then
     say "the system packages above could not be installed" && exit 1
 else

@@ -40,11 +40,12 @@ PURPOSE = {
     "threadpoolctl": "one BLAS thread per live-tracking worker process",
     "pygobject": "the GenICam camera driver's way to Aravis (Debian's gir1.2-aravis-0.8); "
                  "the genicam extra",
+    "pypylon": "the Basler camera driver: pylon's runtime (the basler extra)",
 }
 """Why each direct runtime dependency (pyproject.toml's ``dependencies``, and those of the
 :data:`RUNTIME_EXTRAS`) is there."""
 
-RUNTIME_EXTRAS = ("genicam",)
+RUNTIME_EXTRAS = ("basler", "genicam")
 """The extras a room PC installs with the daemon (deploy/install.sh): real devices' drivers."""
 
 

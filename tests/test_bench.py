@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from typing import Any
 
 import cv2
@@ -157,6 +158,19 @@ def test_speed_bench_times_the_pipeline(calibrated_rooms: Any,
     assert report["api_capture_all_ms"] == api["captures"]["all"]["median_ms"]
     page = render_speed(report)
     assert "| capture → 201 of all |" in page and "| reconstruction of left |" in page
+    # The frame path: the simulated camera, and Aravis's fake camera through the GenICam driver
+    # where this machine has it (CI does: scripts/system-packages.sh).
+    path = report["frame_path"]
+    assert path["simulated"]["frames"] == 2 and path["simulated"]["dropped_frames"] == 0
+    if shutil.which("arv-fake-gv-camera-0.8") is not None:
+        genicam = path["genicam"]
+        assert genicam["dropped_frames"] == 0 and genicam["frames_per_s"] > 0
+        # The driver's own part is small beside the fake's wait for its trigger loop.
+        assert (genicam["received_to_frame"]["median_ms"]
+                < genicam["trigger_to_frame"]["median_ms"])
+        assert "GenicamCamera, Aravis's fake GigE camera on loopback" in page
+    else:
+        assert "aravis" in path["genicam_pending"].lower()
 
     text = speed.format_text(report)
     for expected in ("≤ 10", "≤ 20", "fringe_order_grid", "fusion", "scikit-image unwrap_phase",

@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from eyeserver.bench.camera_path import frame_path_lines
 from eyeserver.bench.figures import FIGURES
 
 
@@ -90,7 +91,10 @@ def render(accuracy: dict[str, Any], speed: dict[str, Any], *poses: dict[str, An
             ("share beyond 1 mm", "beyond_1mm_4view_fraction",
              "spatial_beyond_1mm_4view_fraction"),
             ("coverage (share of the pixels seeing the scene)", "coverage_4view_fraction",
-             "spatial_coverage_4view_fraction")):
+             "spatial_coverage_4view_fraction"),
+            ("coverage (share of the pixels the projector lights; goal: 0.8 on planes, 0.6 on "
+             "other shapes)", "lit_coverage_4view_fraction",
+             "spatial_lit_coverage_4view_fraction")):
         lines.append(f"| {label} | {_value(accuracy.get(fast), 4)} | "
                      f"{_value(accuracy.get(robust), 4)} |")
     if accuracy.get("figures"):
@@ -126,6 +130,8 @@ def render_speed(speed: dict[str, Any]) -> str:
                          f"{_value(value.get('time_ratio'), 2)}")
         else:
             lines.append(f"- peer `{key}`: unavailable ({value.get('reason')})")
+    if "frame_path" in speed:
+        lines += ["", *frame_path_lines(speed["frame_path"])]
     api = speed.get("api")
     if api:
         lines += ["", f"Through the API ({api['requests']} requests each; {api['what']}):", "",

@@ -63,6 +63,7 @@ import numpy.typing as npt
 
 from eyeserver.bench import tracking
 from eyeserver.bench.api import api_latency
+from eyeserver.bench.camera_path import frame_path, frame_path_lines
 from eyeserver.bench.machine import machine, reference_ms
 from eyeserver.bench.simcal import calibrate_room
 from eyeserver.core.clock import ManualClock
@@ -845,6 +846,7 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
             progress(f"live tracking's pipeline alone, {replay_seconds} s replayed")
             alone = tracking.replayed(calibration, replay_seconds, room_file=room_file,
                                       workers=replay_workers, progress=progress)
+    cameras = frame_path(config, min(frames, 100), progress)
     rss_before_mib = peak_rss_mib()
     with _opencv_threads(1):
         reconstruction = pipeline(frameset, frames, progress)
@@ -869,6 +871,7 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
                  "are images in memory → fused cloud",
         "goals_ms": dict(GOALS_MS),
         "sim_render": render,
+        "frame_path": cameras,
         "reconstruction": reconstruction,
         "stages": stage_report,
         "parallel": threads,
@@ -961,6 +964,8 @@ def format_text(report: dict[str, Any]) -> str:
     lines.append("goal: a live 2-camera frame in ≤ 20 ms (25 Hz, sharing the cores with "
                  "reconstruction)")
     lines.append("")
+    if "frame_path" in report:
+        lines += frame_path_lines(report["frame_path"])
     goals = report.get("goals_ms", GOALS_MS)
     lines.append(f"{'frame-sets (images → fused cloud)':<44}{'median ms':>10}{'p95 ms':>10}"
                  f"{'per s':>8}{'goal ms':>9}")

@@ -54,8 +54,10 @@ DEVICE_KINDS: Final[dict[str, type[object]]] = {
 # first lookup rather than here so that importing the registry has no side effects and no cycle.
 _BUILTIN_DRIVER_MODULES: Final[tuple[str, ...]] = (
     "eyeserver.hardware.sim.drivers",
+    "eyeserver.hardware.drivers.basler",
     "eyeserver.hardware.drivers.gardasoft",
     "eyeserver.hardware.drivers.genicam",
+    "eyeserver.hardware.drivers.ids",
     "eyeserver.hardware.drivers.modbus",
     "eyeserver.hardware.drivers.softtrigger",
     "eyeserver.hardware.drivers.zaber",

@@ -44,12 +44,12 @@ from __future__ import annotations
 import logging
 import re
 
-from eyeserver.errors import DeviceError
+from eyeserver.errors import DeviceDisconnectedError, DeviceError
 from eyeserver.hardware.base import Projector
 from eyeserver.hardware.drivers.serialline import ReplyError, SerialLine
 from eyeserver.hardware.registry import DriverContext, register_driver
 
-__all__ = ["GardasoftProjector"]
+__all__ = ["PROBE_BAUDRATE", "GardasoftProjector", "probe"]
 
 _log = logging.getLogger(__name__)
 
@@ -83,6 +83,9 @@ _EVENT_MEANINGS = {
 """``Evt`` codes from the RTxxx manual (section 13.5); 1-127 are error numbers."""
 
 _HARMLESS_EVENTS = frozenset({128, 138})
+
+PROBE_BAUDRATE = 115200
+"""The baud rate :func:`probe` asks at: the RT-series RS232 models' (and the driver's default)."""
 
 
 def _number(value: float) -> str:
@@ -243,3 +246,49 @@ class GardasoftProjector(Projector):
             return lines
 
         return self._line.request(command, check)
+
+
+def probe(port: str, timeout_s: float = 0.3, *, baudrate: int = PROBE_BAUDRATE) -> str | None:
+    """The firmware version line of a Gardasoft RT-series controller on ``port``, or None when
+    nothing there answers as one.
+
+    Sends ``VR`` once, as the driver does on open: it only reads the version, so it changes
+    nothing on a controller, and other devices ignore it or answer something that is not one
+    line ended by the ``>`` prompt. The port is closed again before this returns, whatever
+    happens.
+
+    Parameters
+    ----------
+    port : str
+        Device path (``/dev/ttyUSB0``, a ``/dev/serial/by-id/...`` link) or pyserial URL.
+    timeout_s : float
+        Time allowed for the reply, seconds; silence for this long is "no controller".
+    baudrate : int
+        Bits per second (8N1).
+
+    Raises
+    ------
+    DeviceDisconnectedError
+        The port cannot be opened (missing, busy, no access) or failed while probing; its
+        cause is pyserial's error, with the ``errno`` where the system gave one.
+    """
+    line = SerialLine(f"probe of {port}", port, baudrate=baudrate, timeout_s=timeout_s,
+                      write_terminator=b"\r", reply_terminator=b">")
+
+    def version(text: str) -> str:
+        lines = _lines(text)
+        if lines and lines[0] == "VR":
+            lines = lines[1:]  # the controller echoed the command
+        if len(lines) != 1 or _ERROR.fullmatch(lines[0]) is not None:
+            raise ReplyError("not one version line")
+        return lines[0]
+
+    line.open()
+    try:
+        return line.request("VR", version)
+    except DeviceDisconnectedError:
+        raise
+    except DeviceError:  # silence, garbage or another reply: not a Gardasoft controller
+        return None
+    finally:
+        line.close()

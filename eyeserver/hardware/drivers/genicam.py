@@ -80,7 +80,8 @@ from eyeserver.errors import (
 from eyeserver.hardware.base import Camera
 from eyeserver.hardware.registry import DriverContext, register_driver
 
-__all__ = ["INSTALL_HINT", "PIXEL_FORMATS", "GenicamCamera", "image_from_payload"]
+__all__ = ["INSTALL_HINT", "PIXEL_FORMATS", "FoundCamera", "GenicamCamera", "identify_camera",
+           "image_from_payload", "list_cameras"]
 
 _log = logging.getLogger(__name__)
 
@@ -788,8 +789,11 @@ class GenicamCamera(Camera):
                              dropped_frames=self._dropped, bit_depth=self.bit_depth,
                              # The camera's own count of exposures since open(), lost ones too.
                              trigger_index=self._frame_counter + self._dropped)
+            # received_ns: the rig's clock when Aravis handed the buffer over (the driver's own
+            # latency is from there to the reader; the speed bench's frame path).
             self._frames.append(Frame(image=image, meta=meta, extra={
-                "device_timestamp_ns": buffer.timestamp_ns, "block_id": buffer.block_id}))
+                "device_timestamp_ns": buffer.timestamp_ns, "block_id": buffer.block_id,
+                "received_ns": rig_now_ns}))
             self._frame_counter += 1
             self._cond.notify_all()
 
@@ -855,3 +859,82 @@ def _overlap(name: str, device_id: str, policy: tuple[float, float],
 
 def _clamp(value: float, bounds: tuple[float, float]) -> float:
     return min(max(value, bounds[0]), bounds[1])
+
+
+# --- discovery (``eyeserver devices discover``) -----------------------------------------------
+
+_PROTOCOL_NAMES: Final[dict[str, str]] = {"GigEVision": "GigE Vision", "USB3Vision": "USB3 Vision"}
+"""Aravis's interface names as the standards spell them."""
+
+
+@dataclass(frozen=True)
+class FoundCamera:
+    """A camera as Aravis lists it, for the one writing a room file.
+
+    ``device_id`` is Aravis's id (``<vendor>-<model>-<serial>``), which names the camera to the
+    driver whatever its IP address; ``address`` is its IP address (GigE Vision) or bus address
+    (USB3 Vision); ``physical_id`` its MAC address (GigE Vision) or USB serial; ``protocol``
+    ``GigE Vision`` or ``USB3 Vision``. A field the camera did not give is None.
+    """
+
+    device_id: str | None
+    vendor: str | None
+    model: str | None
+    serial: str | None
+    address: str | None
+    physical_id: str | None
+    protocol: str | None
+
+
+def _text(value: object) -> str | None:
+    return str(value) if value else None
+
+
+def list_cameras() -> list[FoundCamera]:
+    """Every GenICam camera Aravis finds from this machine, in Aravis's order.
+
+    Aravis broadcasts a GigE Vision discovery on every network interface and waits for answers
+    (about a second), and lists the USB3 Vision cameras on the bus. Nothing is opened: a camera
+    another host (or the daemon) controls is listed too.
+
+    Raises
+    ------
+    ImportError
+        PyGObject or Aravis's introspection data is missing; the message says what to install.
+    """
+    aravis, _ = _load_aravis()
+    aravis.update_device_list()
+    return [FoundCamera(
+        device_id=_text(aravis.get_device_id(n)), vendor=_text(aravis.get_device_vendor(n)),
+        model=_text(aravis.get_device_model(n)), serial=_text(aravis.get_device_serial_nbr(n)),
+        address=_text(aravis.get_device_address(n)),
+        physical_id=_text(aravis.get_device_physical_id(n)),
+        protocol=_PROTOCOL_NAMES.get(str(aravis.get_device_protocol(n)),
+                                     _text(aravis.get_device_protocol(n))))
+        for n in range(int(aravis.get_n_devices()))]
+
+
+def identify_camera(address: str) -> FoundCamera:
+    """The camera at ``address`` (an IP address, or an Aravis device id), asked directly rather
+    than found by a broadcast -- for a camera the broadcast does not reach (another subnet
+    behind a router, and loopback on some hosts).
+
+    The camera is opened, as the driver opens it, only to read its identity, then released.
+    Its Aravis device id and MAC address come only with a broadcast's answer, so they are None.
+
+    Raises
+    ------
+    DeviceError
+        Aravis is missing (the message says what to install), or no camera answers there
+        (:class:`DeviceDisconnectedError`, after Aravis's 2.5 s of GVCP tries).
+    """
+    link = _AravisLink(f"camera at {address}", address)
+    try:
+        identity = link.identity()
+        is_gv = link.is_gv
+    finally:
+        link.release()
+    return FoundCamera(device_id=None, vendor=_text(identity["vendor"]),
+                       model=_text(identity["model"]), serial=_text(identity["serial_number"]),
+                       address=address, physical_id=None,
+                       protocol="GigE Vision" if is_gv else None)

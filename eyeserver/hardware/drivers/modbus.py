@@ -91,7 +91,7 @@ from eyeserver.errors import (
 from eyeserver.hardware.base import Projector
 from eyeserver.hardware.registry import DriverContext, register_driver
 
-__all__ = ["OptoProjector"]
+__all__ = ["PROBE_BAUDRATE", "PROBE_PARITY", "PROBE_UNIT_ID", "OptoProjector", "probe"]
 
 _log = logging.getLogger(__name__)
 
@@ -136,6 +136,29 @@ _EXCEPTION_MEANINGS = {
 """Modbus exception codes (Modbus Application Protocol Specification V1.1b3, section 7)."""
 
 _U16 = 0xFFFF
+
+
+PROBE_UNIT_ID = 1
+PROBE_BAUDRATE = 19200
+PROBE_PARITY: Literal["E", "O", "N"] = "E"
+"""What :func:`probe` asks at by default: unit 1 at the Modbus-over-serial defaults (19200
+baud, even parity), as a controller leaves the factory -- assumed, like the driver's own
+defaults."""
+
+
+def _firmware(boot: int, mcu: int, fpga: int) -> str:
+    """BOOT_VERSION, MCU_VERSION and FPGA_VERSION as one text."""
+    return f"boot {boot:#06x}, MCU {mcu:#06x}, FPGA {fpga:#06x}"
+
+
+def _rtu_client(port: str, *, baudrate: int, parity: str, timeout_s: float,
+                trace: Callable[[bool, bytes], bytes]) -> ModbusSerialClient:
+    """pymodbus's RTU client as every use here builds it: 8 data bits, two stop bits without
+    parity and one with (as Modbus over serial line asks), no retries (see the module's
+    docstring), ``trace`` as its packet hook."""
+    return ModbusSerialClient(port, framer=FramerType.RTU, baudrate=baudrate, bytesize=8,
+                              parity=parity, stopbits=2 if parity == "N" else 1,
+                              timeout=timeout_s, retries=0, trace_packet=trace)
 
 
 def _error_word_faults(word: int, channel: int) -> tuple[list[str], list[str]]:
@@ -371,10 +394,8 @@ class OptoProjector(Projector):
                 raise ValueError(f"parity must be 'E', 'O' or 'N', not {parity!r}")
             self._link = _ModbusLink(device_id, f"serial port {port} (Modbus RTU unit "
                                                 f"{unit_id})", unit_id, timeout_s)
-            self._link.client = ModbusSerialClient(
-                port, framer=FramerType.RTU, baudrate=baudrate, bytesize=8, parity=parity,
-                stopbits=2 if parity == "N" else 1, timeout=timeout_s, retries=0,
-                trace_packet=self._link.trace)
+            self._link.client = _rtu_client(port, baudrate=baudrate, parity=parity,
+                                            timeout_s=timeout_s, trace=self._link.trace)
         elif transport == "tcp":
             if not host:
                 raise ValueError("transport 'tcp' needs host (the controller's address)")
@@ -403,7 +424,7 @@ class OptoProjector(Projector):
             self.device_type = self._link.read(DEVICE_TYPE, 1, "DEVICE_TYPE (register 0)")[0]
             boot, mcu, fpga = self._link.read(VERSIONS, 3, "BOOT/MCU/FPGA_VERSION "
                                                            "(registers 1-3)")
-            self.firmware = f"boot {boot:#06x}, MCU {mcu:#06x}, FPGA {fpga:#06x}"
+            self.firmware = _firmware(boot, mcu, fpga)
             self._push(self.enabled, self.intensity, self.strobe)
         except BaseException:
             self._link.close()
@@ -494,3 +515,56 @@ class OptoProjector(Projector):
     def _block_name(self, count: int) -> str:
         return (f"LD{self.channel} {_CHANNEL_REGISTERS[0]}..{_CHANNEL_REGISTERS[count - 1]} "
                 f"(registers {self._base}-{self._base + count - 1})")
+
+
+def probe(port: str, timeout_s: float = 0.3, *, unit_id: int = PROBE_UNIT_ID,
+          baudrate: int = PROBE_BAUDRATE,
+          parity: Literal["E", "O", "N"] = PROBE_PARITY) -> str | None:
+    """What an Opto Engineering-style controller on Modbus RTU at ``port`` says it is
+    (``DEVICE_TYPE 0x0804, firmware boot …``), or None when nothing answers as one.
+
+    Reads DEVICE_TYPE (register 0, the documented start of the map) from unit ``unit_id``, then
+    the firmware versions (registers 1-3) if it can: reads only, so nothing changes on a
+    controller. Any other reply -- an exception response, bytes that are no Modbus response --
+    or silence is None. The port is closed again before this returns, whatever happens.
+
+    Parameters
+    ----------
+    port : str
+        Device path of the RS485 adapter (``/dev/ttyUSB0``, a ``/dev/serial/by-id/...`` link).
+    timeout_s : float
+        Time allowed for each response, seconds; silence for this long is "no controller".
+    unit_id : int
+        The controller's Modbus address (1 to 247).
+    baudrate : int
+        Bits per second.
+    parity : {"E", "O", "N"}
+        Even, odd or none (then two stop bits).
+
+    Raises
+    ------
+    DeviceDisconnectedError
+        The port cannot be opened with these settings (missing, busy, no access, or parity a
+        port cannot take: a pty takes none) or failed while probing.
+    """
+    link = _ModbusLink(f"probe of {port}", f"serial port {port} (Modbus RTU unit {unit_id})",
+                       unit_id, timeout_s)
+    link.client = _rtu_client(port, baudrate=baudrate, parity=parity, timeout_s=timeout_s,
+                              trace=link.trace)
+    link.open()
+    try:
+        try:
+            device_type = link.read(DEVICE_TYPE, 1, "DEVICE_TYPE (register 0)")[0]
+        except DeviceDisconnectedError:
+            raise
+        except DeviceError:  # silence, garbage or refused: not the controller
+            return None
+        try:
+            boot, mcu, fpga = link.read(VERSIONS, 3, "BOOT/MCU/FPGA_VERSION (registers 1-3)")
+        except DeviceDisconnectedError:
+            raise
+        except DeviceError:
+            return f"DEVICE_TYPE {device_type:#06x}"
+        return f"DEVICE_TYPE {device_type:#06x}, firmware {_firmware(boot, mcu, fpga)}"
+    finally:
+        link.close()

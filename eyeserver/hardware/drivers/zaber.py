@@ -43,12 +43,12 @@ import re
 import time
 from dataclasses import dataclass
 
-from eyeserver.errors import DeviceError, DeviceTimeoutError
+from eyeserver.errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError
 from eyeserver.hardware.base import Stage
 from eyeserver.hardware.drivers.serialline import ReplyError, SerialLine
 from eyeserver.hardware.registry import DriverContext, register_driver
 
-__all__ = ["ZaberStage"]
+__all__ = ["PROBE_BAUDRATE", "ZaberDevice", "ZaberStage", "probe"]
 
 _log = logging.getLogger(__name__)
 
@@ -87,6 +87,23 @@ _REJECTIONS = {
     "NOTSUPPORTED": "the command is not supported",
 }
 """Rejection reasons (the data of an RJ reply) the driver explains."""
+
+
+PROBE_BAUDRATE = 115200
+"""The baud rate :func:`probe` asks at: the ASCII protocol's default (and the driver's)."""
+
+_DEVICE_ID_SETTINGS = ("device.id", "deviceid")
+"""The setting holding a device's product id: its firmware 7 name, then its firmware 6 one."""
+
+
+@dataclass(frozen=True)
+class ZaberDevice:
+    """A Zaber device that answered :func:`probe`: its ``address`` on the daisy chain (the
+    driver's ``address`` option) and its product id (``device.id``; None where it would not
+    say), which Zaber's device database names (e.g. in Zaber Launcher)."""
+
+    address: int
+    product_id: int | None
 
 
 @dataclass(frozen=True)
@@ -272,3 +289,83 @@ class ZaberStage(Stage):
             return reply
 
         return self._line.request(command, check)
+
+
+def probe(port: str, timeout_s: float = 0.3, *,
+          baudrate: int = PROBE_BAUDRATE) -> list[ZaberDevice]:
+    """The Zaber devices answering the ASCII protocol on ``port``, by address; empty when none.
+
+    Sends the empty broadcast command ``/`` (a status query every device on the chain answers,
+    changing nothing), then asks each device that answered for its product id
+    (``/<address> get device.id``, or ``deviceid`` on firmware 6). Devices answer only in the
+    ASCII protocol at this baud rate; one set to the Binary protocol stays silent. The port is
+    closed again before this returns, whatever happens.
+
+    Parameters
+    ----------
+    port : str
+        Device path (``/dev/ttyUSB0``, a ``/dev/serial/by-id/...`` link) or pyserial URL.
+    timeout_s : float
+        How long the chain is given to answer the broadcast, and each device its product id,
+        seconds. Every device answers the broadcast, so it is always waited out in full.
+    baudrate : int
+        Bits per second (8N1).
+
+    Raises
+    ------
+    DeviceDisconnectedError
+        The port cannot be opened (missing, busy, no access) or failed while probing; its
+        cause is pyserial's error, with the ``errno`` where the system gave one.
+    """
+    addresses: set[int] = set()
+    broadcasting = True
+
+    def skip(text: str) -> bool:
+        if broadcasting:
+            match = _REPLY.fullmatch(text.strip())
+            if match is not None:
+                addresses.add(int(match["address"]))
+            return True
+        return text.startswith(("#", "!"))  # what the device sends on its own, as the driver
+
+    # SerialLine reads one reply per request, and a broadcast has one from each device on the
+    # chain: while broadcasting, each is collected and skipped by ``ignore``, so the request
+    # runs to its timeout, the window in which the chain answers.
+    line = SerialLine(f"probe of {port}", port, baudrate=baudrate, timeout_s=timeout_s,
+                      write_terminator=b"\n", reply_terminator=b"\r\n", ignore=skip)
+    line.open()
+    try:
+        try:
+            line.request("/", str)
+        except DeviceDisconnectedError:
+            raise
+        except DeviceError:  # the window's end (a timeout), or garbage: keep who answered
+            pass
+        broadcasting = False
+        return [ZaberDevice(address, _product_id(line, address))
+                for address in sorted(addresses)]
+    finally:
+        line.close()
+
+
+def _product_id(line: SerialLine, address: int) -> int | None:
+    """The product id of the device at ``address``, or None when it answers neither setting."""
+
+    def check(text: str) -> int | None:
+        match = _REPLY.fullmatch(text.strip())
+        if match is None or int(match["address"]) != address:
+            raise ReplyError(f"not a reply from Zaber device {address}")
+        if match["flag"] == "RJ" or not match["data"].isdigit():
+            return None  # BADCOMMAND: the other firmware's name for the setting
+        return int(match["data"])
+
+    for setting in _DEVICE_ID_SETTINGS:
+        try:
+            product_id = line.request(f"/{address} get {setting}", check)
+        except DeviceDisconnectedError:
+            raise
+        except DeviceError:
+            return None
+        if product_id is not None:
+            return product_id
+    return None

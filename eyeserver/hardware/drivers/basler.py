@@ -1,0 +1,718 @@
+"""Basler cameras (ace GigE, ace USB 3.0 and others) through pylon's Python binding, pypylon.
+
+pypylon (``pip install pypylon``, which brings pylon's runtime with it) is imported when a camera
+is opened, so this module imports, type-checks and registers its driver on machines without it;
+opening a camera there raises a :class:`~eyeserver.errors.DeviceError` that says what to install.
+Every pylon call goes through :class:`_PylonLink`, the one place that holds untyped pylon objects
+and turns pylon's exceptions into eyeserver's (``raise … from``):
+
+=================================================  ================================
+what pylon reports                                 raised (:mod:`eyeserver.errors`)
+=================================================  ================================
+the camera removed (``IsCameraDeviceRemoved``),    ``DeviceDisconnectedError``
+no camera with the serial number or user id, a
+control call timing out
+a value out of range or refused, a feature or      ``DeviceValueError``
+enumeration entry the camera lacks
+anything else (the camera in use elsewhere, ...)   ``DeviceError``
+=================================================  ================================
+
+Acquisition. ``open()`` finds the camera by serial number or user id (``DeviceUserID``), turns
+its test image off (or on, to the one asked for: a camera left showing a test image by someone's
+pylon Viewer session would otherwise deliver a convincing but fake picture), sets the pixel
+format, the region of interest, the hardware trigger (``FrameStart`` from ``trigger_source`` on
+the rising edge, every other trigger selector off), continuous acquisition without a frame-rate
+limit (the trigger sets the rate), exposure and gain by hand (auto functions off) at the values
+last asked for, and starts grabbing one by one into ``max(4, queue_size)`` pylon buffers. A thread
+then calls ``RetrieveResult`` with a short timeout, copies each image out, releases the result
+and queues the frame for :meth:`~BaslerCamera.read_frame`.
+
+Why a thread calling ``RetrieveResult`` rather than pylon's image event handlers (pylon's own
+grab loop calling Python back): the loop is eyeserver's, shared with the other camera drivers
+(:mod:`~eyeserver.hardware.drivers.camerathread`), so ``close()`` stops and joins it like theirs;
+an exception in it is ours to see (one raised in a pylon callback is printed by the binding and
+lost, leaving the reader to time out); the removal check needs no callback either, since each
+empty wait also asks ``IsCameraDeviceRemoved``; and pypylon releases the GIL while it waits, so
+the poll costs nothing.
+
+Dropped frames. A result that did not succeed (``GrabSucceeded()`` false: an incomplete or
+failed buffer) and every block id skipped between two whole frames (a frame lost whole) count as
+dropped frames, as does a frame that arrives when the queue is full or is not the configured
+size and format; they are counted in :attr:`~BaslerCamera.dropped_frames` and ``describe()``,
+never returned.
+
+Time. The frame's ``GetTimeStamp()`` is the camera's timestamp of the frame start: ticks of
+``GevTimestampTickFrequency`` on GigE cameras, nanoseconds on USB3 Vision ones. It goes onto the
+rig clock (``context.clock``) with one offset per session, as
+:mod:`~eyeserver.hardware.drivers.camerathread` describes. pylon's camera emulation stamps 0, and
+such frames get their arrival time minus half the exposure.
+
+Disconnection. pylon notices a camera that goes away itself (a USB unplug at once, a GigE camera
+when its heartbeat times out, 3 s by default) and then answers ``IsCameraDeviceRemoved()`` true;
+the acquisition thread asks after every empty wait and every failed retrieval, and control calls
+ask when they fail. Waiting and later reads then raise
+:class:`~eyeserver.errors.DeviceDisconnectedError` (queued frames are still handed out first);
+``close()`` and ``open()`` recover once the camera is back, in the same process.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import logging
+import threading
+import warnings
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any, Final, TypeVar
+
+import numpy as np
+
+from eyeserver.core.frames import Frame
+from eyeserver.core.types import Image
+from eyeserver.errors import (
+    DeviceDisconnectedError,
+    DeviceError,
+    DeviceTimeoutError,
+    DeviceValueError,
+)
+from eyeserver.hardware.base import Camera
+from eyeserver.hardware.drivers.camerathread import (
+    MONO_PIXEL_FORMATS,
+    AcquisitionThread,
+    FrameIdGaps,
+    FrameQueue,
+    check_region,
+    check_region_read_back,
+    clamp,
+    narrow_range,
+)
+from eyeserver.hardware.registry import DriverContext, register_driver
+
+__all__ = ["INSTALL_HINT", "BaslerCamera", "ticks_to_ns"]
+
+_log = logging.getLogger(__name__)
+
+_T = TypeVar("_T")
+
+INSTALL_HINT: Final[str] = "install pypylon into the venv (pip install -e '.[basler]')"
+"""What a machine needs for this driver; named in the error raised without it."""
+
+_POLL_S: Final[float] = 0.05
+"""How long one ``RetrieveResult`` waits: bounds how long ``close()`` waits for the thread."""
+
+_TRIGGER_READY_TIMEOUT_S: Final[float] = 1.0
+"""How long :meth:`BaslerCamera.software_trigger` waits for the camera to take a trigger."""
+
+_READBACK_DECIMALS: Final[int] = 3
+"""Exposure (µs) and gain (dB) read back are rounded to this many decimals: the float features
+are computed from fixed-point registers and read back a few millionths off the value set (the
+emulator's Gain: 3.0 reads 2.999994), far below any camera's real step."""
+
+_NANOSECONDS_PER_SECOND: Final[int] = 1_000_000_000
+
+
+def ticks_to_ns(ticks: int, tick_frequency_hz: int) -> int:
+    """A camera timestamp in ticks of ``tick_frequency_hz`` (hertz), as nanoseconds.
+
+    Integer arithmetic, so that a 64-bit tick count loses nothing to a float's 53-bit mantissa.
+    """
+    if tick_frequency_hz <= 0:
+        raise ValueError(f"tick_frequency_hz must be positive, not {tick_frequency_hz}")
+    if tick_frequency_hz == _NANOSECONDS_PER_SECOND:
+        return ticks
+    return ticks * _NANOSECONDS_PER_SECOND // tick_frequency_hz
+
+
+@dataclass(frozen=True)
+class _Grab:
+    """What the link copies out of one pylon grab result before releasing it."""
+
+    arrived_ns: int
+    succeeded: bool
+    error: str
+    block_id: int
+    timestamp_ticks: int
+    width: int
+    height: int
+    pixel_type: int
+    image: Image | None
+
+
+def _load_pylon() -> tuple[Any, Any]:
+    """Import pypylon's ``pylon`` and ``genicam`` modules; ImportError names the gap."""
+    try:
+        with warnings.catch_warnings():
+            # pypylon's SWIG-made types lack __module__, which Python deprecates at import;
+            # with warnings as errors (the tests) the extension's initialisation fails half
+            # way and takes the process down with a segmentation fault (pypylon 26.10).
+            warnings.filterwarnings("ignore", category=DeprecationWarning,
+                                    message=r"builtin type Swig\w+ has no __module__")
+            return (importlib.import_module("pypylon.pylon"),
+                    importlib.import_module("pypylon.genicam"))
+    except ImportError as exc:
+        raise ImportError(f"pypylon is not installed: {INSTALL_HINT}") from exc
+
+
+def _readback(value: Any) -> float:
+    return round(float(value), _READBACK_DECIMALS)
+
+
+class _PylonLink:
+    """One opened camera: the only code that calls pylon.
+
+    Control calls are serialised by a re-entrant lock (one GenICam conversation at a time, a
+    software trigger's readiness wait not interleaved with settings; a link method may call
+    another under it); ``RetrieveResult``, which pylon lets another thread call, is not.
+    """
+
+    def __init__(self, device_id: str, serial: str, device_class: str | None) -> None:
+        self.device_id = device_id
+        try:
+            self._pylon, self._genicam = _load_pylon()
+        except ImportError as exc:
+            raise DeviceError(device_id, str(exc)) from exc
+        genicam = self._genicam
+        self._generic: type[Exception] = genicam.GenericException
+        self._timeout: type[Exception] = genicam.TimeoutException
+        self._value_errors: tuple[type[Exception], ...] = (
+            genicam.OutOfRangeException, genicam.InvalidArgumentException,
+            genicam.LogicalErrorException)
+        self._lock = threading.RLock()
+        self._camera: Any = None
+        factory = self._pylon.TlFactory.GetInstance()
+        with self._translated("listing the cameras"):
+            if device_class is None:
+                found = list(factory.EnumerateDevices())
+            else:
+                wanted = self._pylon.DeviceInfo()
+                wanted.SetDeviceClass(device_class)
+                found = list(factory.EnumerateDevices([wanted]))
+        matches = [info for info in found
+                   if serial in (str(info.GetSerialNumber()), str(info.GetUserDefinedName()))]
+        if not matches:
+            listed = ", ".join(f"{info.GetModelName()} {info.GetSerialNumber()}"
+                               for info in found) or "none"
+            where = f" among {device_class} devices" if device_class else ""
+            raise DeviceDisconnectedError(device_id, f"no camera with serial number or user id "
+                                                     f"{serial!r}{where} (pylon finds: {listed})")
+        if len(matches) > 1:
+            raise DeviceValueError(device_id, f"{len(matches)} cameras answer to {serial!r}; "
+                                              "name one by its serial number")
+        self.info: Any = matches[0]
+        with self._translated(f"opening the camera {serial!r}"):
+            camera = self._pylon.InstantCamera(factory.CreateDevice(self.info))
+            camera.Open()
+        self._camera = camera
+        self._nodes: Any = camera.GetNodeMap()
+
+    @contextlib.contextmanager
+    def _translated(self, doing: str) -> Iterator[None]:
+        try:
+            yield
+        except self._generic as exc:
+            reason = f"{doing}: {exc}"
+            if self.is_removed():
+                raise DeviceDisconnectedError(self.device_id, f"{reason} (pylon reports the "
+                                                              "camera removed)") from exc
+            if isinstance(exc, self._timeout):
+                raise DeviceDisconnectedError(self.device_id, reason) from exc
+            if isinstance(exc, self._value_errors):
+                raise DeviceValueError(self.device_id, reason) from exc
+            raise DeviceError(self.device_id, reason) from exc
+
+    def _call(self, doing: str, call: Callable[[], _T]) -> _T:
+        with self._lock, self._translated(doing):
+            return call()
+
+    def is_removed(self) -> bool:
+        """Whether pylon knows the camera is gone (a flag: asks nothing of the camera)."""
+        camera = self._camera
+        if camera is None:
+            return False
+        try:
+            return bool(camera.IsCameraDeviceRemoved())
+        except self._generic:
+            return False
+
+    # --- features ---------------------------------------------------------------------------
+
+    def _node(self, name: str) -> Any:
+        """The feature ``name``, or None when the camera has none (or not now)."""
+        node = self._nodes.GetNode(name)
+        return node if self._genicam.IsAvailable(node) else None
+
+    def _require(self, name: str) -> Any:
+        node = self._node(name)
+        if node is None:
+            raise DeviceValueError(self.device_id, f"the camera has no feature {name}")
+        return node
+
+    def has(self, name: str) -> bool:
+        """Whether the camera has the feature ``name`` now."""
+        return self._call(f"looking for {name}", lambda: self._node(name) is not None)
+
+    def entries(self, name: str) -> list[str]:
+        """The entries the enumeration feature ``name`` offers now."""
+        return self._call(f"listing {name}",
+                          lambda: [str(entry) for entry in self._require(name).Symbolics])
+
+    def get(self, name: str) -> Any:
+        """The value of the feature ``name``."""
+        return self._call(f"reading {name}", lambda: self._require(name).GetValue())
+
+    def set(self, name: str, value: object) -> Any:
+        """Set the feature ``name`` to ``value``; return its value read back."""
+        def write() -> Any:
+            node = self._require(name)
+            node.SetValue(value)
+            return node.GetValue()
+        return self._call(f"setting {name} to {value!r}", write)
+
+    def set_enum(self, name: str, entry: str) -> str:
+        """Set the enumeration feature ``name`` to ``entry``, which must be on offer; return the
+        entry read back."""
+        offered = self.entries(name)
+        if entry not in offered:
+            raise DeviceValueError(self.device_id, f"the camera's {name} has no {entry!r} (it "
+                                                   f"has {', '.join(offered) or 'none'})")
+        return str(self.set(name, entry))
+
+    def bounds(self, name: str) -> tuple[float, float]:
+        """The least and greatest values the feature ``name`` takes now."""
+        def read() -> tuple[float, float]:
+            node = self._require(name)
+            return float(node.GetMin()), float(node.GetMax())
+        return self._call(f"reading the bounds of {name}", read)
+
+    # --- identity and settings ----------------------------------------------------------------
+
+    def identity(self) -> dict[str, object]:
+        """Vendor, model, serial number, user id and transport (GigE Vision, USB3 Vision, or
+        pylon's device class for others, such as the emulation's ``BaslerCamEmu``)."""
+        info = self.info
+        camera = self._camera
+        transport = ("GigE Vision" if camera.IsGigE() else "USB3 Vision" if camera.IsUsb()
+                     else str(info.GetDeviceClass()))
+        return {"vendor": str(info.GetVendorName()), "model": str(info.GetModelName()),
+                "serial_number": str(info.GetSerialNumber()),
+                "user_id": str(info.GetUserDefinedName()), "transport": transport}
+
+    def set_region(self, x: int, y: int, width: int | None,
+                   height: int | None) -> tuple[int, int, int, int]:
+        """Set the region of interest (pixels; None: the rest of the sensor from the offset);
+        return it as read back (x, y, width, height). Offsets go to 0 first, so that the new
+        size is never refused for the old offset."""
+        self.set("OffsetX", 0)
+        self.set("OffsetY", 0)
+        if width is None:
+            width = int(self.bounds("Width")[1]) - x
+        if height is None:
+            height = int(self.bounds("Height")[1]) - y
+        read_width, read_height = int(self.set("Width", width)), int(self.set("Height", height))
+        return int(self.set("OffsetX", x)), int(self.set("OffsetY", y)), read_width, read_height
+
+    def set_trigger(self, source: str) -> str:
+        """Expose every frame on a rising edge of ``source``: every trigger selector's
+        TriggerMode off, then FrameStart's on. Returns the source read back."""
+        selectors = self.entries("TriggerSelector")
+        if "FrameStart" not in selectors:
+            raise DeviceValueError(self.device_id, f"the camera has no FrameStart trigger (it "
+                                                   f"has {', '.join(selectors) or 'none'})")
+        for selector in selectors:
+            self.set("TriggerSelector", selector)
+            if self.is_writable("TriggerMode"):
+                self.set("TriggerMode", "Off")
+        self.set("TriggerSelector", "FrameStart")
+        read_back = self.set_enum("TriggerSource", source)
+        if self.has("TriggerActivation"):
+            self.set_enum("TriggerActivation", "RisingEdge")
+        self.set("TriggerMode", "On")
+        return read_back
+
+    def is_writable(self, name: str) -> bool:
+        """Whether the feature ``name`` can be written now."""
+        return self._call(f"looking at {name}", lambda: bool(
+            self._genicam.IsWritable(self._nodes.GetNode(name))))
+
+    def tick_frequency_hz(self) -> int:
+        """The timestamp tick rate: ``GevTimestampTickFrequency`` where the camera has it (GigE),
+        else 1 GHz (USB3 Vision stamps nanoseconds)."""
+        if self.has("GevTimestampTickFrequency"):
+            return int(self.get("GevTimestampTickFrequency"))
+        return _NANOSECONDS_PER_SECOND
+
+    # --- streaming --------------------------------------------------------------------------
+
+    def start(self, n_buffers: int) -> None:
+        """Grab one by one (every frame, in order) into ``n_buffers`` pylon buffers."""
+        camera = self._camera
+        pylon = self._pylon
+
+        def start() -> None:
+            camera.MaxNumBuffer.SetValue(n_buffers)
+            camera.StartGrabbing(pylon.GrabStrategy_OneByOne)
+
+        self._call("starting to grab", start)
+
+    def software_trigger(self) -> None:
+        """Execute TriggerSoftware once the camera can take a trigger (an emulated or real
+        camera ignores one that comes while it is still busy with the last frame)."""
+        camera = self._camera
+        pylon = self._pylon
+
+        def fire() -> None:
+            ready = camera.WaitForFrameTriggerReady(round(_TRIGGER_READY_TIMEOUT_S * 1e3),
+                                                    pylon.TimeoutHandling_Return)
+            if not ready:
+                raise DeviceTimeoutError(self.device_id, f"the camera was not ready for a "
+                                                         f"trigger within "
+                                                         f"{_TRIGGER_READY_TIMEOUT_S} s")
+            camera.ExecuteSoftwareTrigger()
+
+        self._call("firing the software trigger", fire)
+
+    def retrieve(self, timeout_s: float, now_ns: Callable[[], int]) -> _Grab | None:
+        """Wait up to ``timeout_s`` for the next grab result; copy it out, with its arrival
+        time on the clock ``now_ns`` (nanoseconds), and release it. None when none came. Raises
+        :class:`DeviceDisconnectedError` once pylon reports the camera removed."""
+        camera = self._camera
+        try:
+            result = camera.RetrieveResult(max(1, round(timeout_s * 1e3)),
+                                           self._pylon.TimeoutHandling_Return)
+        except self._generic as exc:
+            if self.is_removed():
+                raise DeviceDisconnectedError(self.device_id, f"pylon reports the camera "
+                                                              f"removed ({exc})") from exc
+            raise DeviceError(self.device_id, f"retrieving a frame: {exc}") from exc
+        if not result.IsValid():  # nothing within the timeout
+            if self.is_removed():
+                raise DeviceDisconnectedError(self.device_id, "pylon reports the camera removed")
+            return None
+        arrived_ns = now_ns()
+        try:
+            succeeded = bool(result.GrabSucceeded())
+            image: Image | None = None
+            if succeeded:
+                # GetArray() may share memory with the pylon buffer, which Release() recycles.
+                image = np.array(result.GetArray(), copy=True)
+            return _Grab(arrived_ns=arrived_ns, succeeded=succeeded,
+                         error="" if succeeded else str(result.GetErrorDescription()),
+                         block_id=int(result.GetBlockID()),
+                         timestamp_ticks=int(result.GetTimeStamp()),
+                         width=int(result.GetWidth()), height=int(result.GetHeight()),
+                         pixel_type=int(result.GetPixelType()), image=image)
+        finally:
+            result.Release()
+
+    def pixel_type(self, pixel_format: str) -> int:
+        """pylon's pixel type code of ``pixel_format`` (``PixelType_Mono12``...)."""
+        return int(getattr(self._pylon, f"PixelType_{pixel_format}"))
+
+    def release(self) -> None:
+        """Stop grabbing, close the camera and destroy pylon's device object, whatever fails
+        (a removed camera's goodbyes fail at once: pylon knows it is gone)."""
+        camera, self._camera = self._camera, None
+        if camera is None:
+            return
+        with self._lock:
+            for goodbye in (camera.StopGrabbing, camera.Close, camera.DestroyDevice):
+                try:
+                    goodbye()
+                except self._generic as exc:
+                    _log.warning("camera %s: %s", self.device_id, exc)
+
+
+@register_driver("camera", "BaslerCamera")
+class BaslerCamera(Camera):
+    """A Basler camera through pylon, hardware-triggered.
+
+    Parameters
+    ----------
+    device_id : str
+        The camera's id in the rig.
+    context : DriverContext
+        Its clock is the rig clock the frames' times are put on.
+    serial : str
+        The camera's serial number (on its label, ``21234567``), or its user id
+        (``DeviceUserID``, set in pylon Viewer) where that names one camera.
+    pixel_format : {"Mono8", "Mono10", "Mono12"}
+        8 bits per pixel, or 10/12 unpacked in 16-bit words.
+    trigger_source : str
+        The camera's TriggerSource for each frame: ``Line1`` (the opto-coupled input, the
+        trigger controller's cable), or ``Software`` to expose on :meth:`software_trigger`
+        (tests, bench without a trigger).
+    offset_x, offset_y : int
+        Top-left corner of the region of interest on the sensor, pixels.
+    width, height : int or None
+        Size of the region of interest, pixels; None for the rest of the sensor from the
+        offset. Until the first ``open()`` the size reads as configured, or 1 when it comes from
+        the sensor.
+    queue_size : int
+        Frames held for :meth:`read_frame`; frames that arrive when it is full are dropped
+        (counted in :attr:`dropped_frames`).
+    device_class : str or None
+        The pylon transport layer to look in: ``BaslerGigE``, ``BaslerUsb`` or ``BaslerCamEmu``
+        (pylon's camera emulation); None looks in all of them, which costs GigE discovery's
+        quarter of a second at each ``open()`` even for a USB camera.
+    test_image : str or None
+        None (the default) turns the camera's test image off at ``open()``; a
+        ``TestImageSelector`` (or ``TestPattern``) entry such as ``Testimage1`` shows that
+        instead of the sensor's picture: for tests, and for checking the link on a bench.
+
+    Notes
+    -----
+    A frame's ``exposure_us`` and ``gain_db`` are the camera's settings when it arrived, and its
+    ``trigger_index`` the camera's own count of exposures since ``open()``, dropped ones
+    included. Its ``extra`` holds ``device_timestamp_ns`` (camera clock, 0 for none) and
+    ``block_id`` (pylon's frame id). One reader at a time.
+    """
+
+    def __init__(self, device_id: str, *, context: DriverContext, serial: str,
+                 pixel_format: str = "Mono8", trigger_source: str = "Line1",
+                 offset_x: int = 0, offset_y: int = 0, width: int | None = None,
+                 height: int | None = None, queue_size: int = 8,
+                 device_class: str | None = None, test_image: str | None = None) -> None:
+        if pixel_format not in MONO_PIXEL_FORMATS:
+            raise ValueError(f"pixel_format must be one of {', '.join(MONO_PIXEL_FORMATS)}, "
+                             f"not {pixel_format!r}")
+        if not serial:
+            raise ValueError("serial must name the camera (serial number or user id)")
+        if not trigger_source:
+            raise ValueError("trigger_source must name one of the camera's TriggerSource values")
+        check_region(offset_x, offset_y, width, height)
+        if queue_size < 1:
+            raise ValueError(f"queue_size must be at least 1, not {queue_size}")
+        if device_class is not None and not device_class:
+            raise ValueError("device_class must name a pylon transport layer, or be None")
+        if test_image is not None and (not test_image or test_image == "Off"):
+            raise ValueError("test_image must name a test image; None turns it off")
+        super().__init__(device_id, width or 1, height or 1, MONO_PIXEL_FORMATS[pixel_format])
+        self._clock = context.clock
+        self.serial = serial
+        self.pixel_format = pixel_format
+        self.trigger_source = trigger_source
+        self.device_class = device_class
+        self.test_image = test_image
+        self._roi = (int(offset_x), int(offset_y), width, height)
+        self._queue_size = int(queue_size)
+        self._link: _PylonLink | None = None
+        self._frames = FrameQueue(device_id, self._queue_size)
+        self._thread: AcquisitionThread | None = None
+        self._gaps = FrameIdGaps()
+        self._pixel_type = 0
+        self._tick_frequency_hz = _NANOSECONDS_PER_SECOND
+        self._exposure_feature = "ExposureTime"
+        self._gain_feature = "Gain"
+        self._device_exposure_us = self._exposure_us
+        self._device_gain_db = self._gain_db
+        self._info: dict[str, object] = {}
+
+    # --- what the camera reports ------------------------------------------------------------
+
+    @property
+    def exposure_us(self) -> float:
+        """Exposure time as the camera reports it after the last setting, microseconds (the
+        value asked for until the first ``open()``)."""
+        return self._device_exposure_us
+
+    @property
+    def gain_db(self) -> float:
+        """Gain as the camera reports it after the last setting: decibels where the camera has
+        ``Gain`` or ``GainAbs``; a camera with only ``GainRaw`` reports its own units
+        (``describe()`` says which)."""
+        return self._device_gain_db
+
+    @property
+    def dropped_frames(self) -> int:
+        """Frames lost since :meth:`open`: failed grabs, block ids skipped, a full queue."""
+        return self._frames.dropped
+
+    @property
+    def clock_offset_ns(self) -> int | None:
+        """Rig clock minus camera clock, nanoseconds, fixed on the first stamped frame after
+        :meth:`open` (None before it, and for a camera that stamps none)."""
+        return self._frames.clock_offset_ns
+
+    def software_trigger(self) -> None:
+        """Expose one frame now (TriggerSoftware); only with ``trigger_source="Software"``.
+
+        Raises
+        ------
+        DeviceValueError
+            When the camera is triggered from another source.
+        DeviceTimeoutError
+            When the camera is not ready for a trigger within a second.
+        DeviceDisconnectedError
+            When the camera is gone.
+        """
+        link = self._live_link()
+        if self.trigger_source != "Software":
+            raise DeviceValueError(self.id, f"software_trigger() needs trigger_source "
+                                            f"'Software', not {self.trigger_source!r}")
+        self._frames.guarded(link.software_trigger)
+
+    # --- Device and Camera hooks ------------------------------------------------------------
+
+    def _do_open(self) -> None:
+        link = _PylonLink(self.id, self.serial, self.device_class)
+        frames = FrameQueue(self.id, self._queue_size)
+        try:
+            self._configure(link)
+            link.start(n_buffers=max(4, self._queue_size))
+        except BaseException:
+            link.release()
+            raise
+        self._link = link
+        self._frames = frames
+        self._gaps = FrameIdGaps()
+        self._thread = AcquisitionThread(f"basler-{self.id}", frames,
+                                         lambda: self._step(link, frames))
+        self._thread.start()
+
+    def _configure(self, link: _PylonLink) -> None:
+        """Put the camera in the configured state and read back what it took."""
+        identity = link.identity()
+        test_image = self._configure_test_image(link)
+        offered = link.entries("PixelFormat")
+        if self.pixel_format not in offered:
+            raise DeviceValueError(self.id, f"the camera offers no {self.pixel_format} "
+                                            f"(it has {', '.join(offered) or 'none'})")
+        link.set_enum("PixelFormat", self.pixel_format)
+        self._pixel_type = link.pixel_type(self.pixel_format)
+
+        region = link.set_region(*self._roi)
+        check_region_read_back(self.id, self._roi, region)
+
+        source = link.set_trigger(self.trigger_source)
+        if source != self.trigger_source:
+            raise DeviceValueError(self.id, f"TriggerSource reads {source} after setting "
+                                            f"{self.trigger_source}")
+        if link.has("AcquisitionMode"):
+            link.set_enum("AcquisitionMode", "Continuous")
+        # A frame-rate limit left on would silently swallow triggers that come faster.
+        if link.is_writable("AcquisitionFrameRateEnable"):
+            link.set("AcquisitionFrameRateEnable", False)
+        for auto in ("ExposureAuto", "GainAuto"):
+            if link.is_writable(auto):
+                link.set_enum(auto, "Off")
+
+        self._exposure_feature = next(
+            (name for name in ("ExposureTime", "ExposureTimeAbs") if link.has(name)), "")
+        if not self._exposure_feature:
+            raise DeviceValueError(self.id, "the camera has neither ExposureTime nor "
+                                            "ExposureTimeAbs")
+        self._gain_feature = next(
+            (name for name in ("Gain", "GainAbs", "GainRaw") if link.has(name)), "")
+        if not self._gain_feature:
+            raise DeviceValueError(self.id, "the camera has no Gain, GainAbs or GainRaw")
+        # The rig's policy ranges (the class's) narrowed to what this camera can do.
+        self.exposure_range_us = narrow_range(self.id, "exposure_us",
+                                              type(self).exposure_range_us,
+                                              link.bounds(self._exposure_feature),
+                                              _READBACK_DECIMALS)
+        self.gain_range_db = narrow_range(self.id, "gain_db", type(self).gain_range_db,
+                                          link.bounds(self._gain_feature), _READBACK_DECIMALS)
+        # Settings asked for before (a reopen after a power cycle restores them).
+        self._device_exposure_us = self._set_exposure(
+            link, clamp(self._exposure_us, self.exposure_range_us))
+        self._device_gain_db = self._set_gain(link, clamp(self._gain_db, self.gain_range_db))
+        self._tick_frequency_hz = link.tick_frequency_hz()
+
+        self.width, self.height = region[2], region[3]
+        self.bit_depth = MONO_PIXEL_FORMATS[self.pixel_format]
+        self._info = {**identity, "offset_x": region[0], "offset_y": region[1],
+                      "test_image": test_image, "exposure_feature": self._exposure_feature,
+                      "gain_feature": self._gain_feature,
+                      "tick_frequency_hz": self._tick_frequency_hz}
+
+    def _configure_test_image(self, link: _PylonLink) -> str | None:
+        """Set the camera's test image (off unless one was asked for); return it read back, or
+        None for a camera without test images."""
+        feature = next((name for name in ("TestImageSelector", "TestPattern")
+                        if link.has(name)), None)
+        if feature is None:
+            if self.test_image is not None:
+                raise DeviceValueError(self.id, "the camera has no test images")
+            return None
+        return link.set_enum(feature, self.test_image or "Off")
+
+    def _set_exposure(self, link: _PylonLink, value: float) -> float:
+        return _readback(link.set(self._exposure_feature, value))
+
+    def _set_gain(self, link: _PylonLink, value: float) -> float:
+        if self._gain_feature == "GainRaw":  # an integer register, in the camera's own units
+            return _readback(link.set("GainRaw", round(value)))
+        return _readback(link.set(self._gain_feature, value))
+
+    def _do_close(self) -> None:
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.stop()
+        link, self._link = self._link, None
+        self._frames.clear()
+        if link is not None:
+            link.release()
+
+    def _apply_exposure_us(self, value: float) -> None:
+        link = self._live_link()
+        self._device_exposure_us = self._frames.guarded(lambda: self._set_exposure(link, value))
+
+    def _apply_gain_db(self, value: float) -> None:
+        link = self._live_link()
+        self._device_gain_db = self._frames.guarded(lambda: self._set_gain(link, value))
+
+    def _read_frame(self, timeout_s: float) -> Frame:
+        return self._frames.pop(timeout_s)
+
+    def describe(self) -> dict[str, object]:
+        info: dict[str, object] = {**super().describe(), "serial": self.serial,
+                                   "device_class": self.device_class,
+                                   "pixel_format": self.pixel_format,
+                                   "trigger_source": self.trigger_source,
+                                   "dropped_frames": self.dropped_frames}
+        if self.is_open:
+            info["connected"] = self._frames.lost is None
+            info["clock_offset_ns"] = self._frames.clock_offset_ns
+            info.update(self._info)
+        return info
+
+    # --- the acquisition thread -------------------------------------------------------------
+
+    def _step(self, link: _PylonLink, frames: FrameQueue) -> None:
+        """Retrieve one result (or none) and account for it."""
+        grab = link.retrieve(_POLL_S, self._clock.now_ns)
+        if grab is None:
+            return
+        if not grab.succeeded:
+            _log.warning("camera %s: grab of block %d failed: %s", self.id, grab.block_id,
+                         grab.error)
+            self._gaps.incomplete()
+            frames.count_dropped()
+            return
+        lost_whole = self._gaps.whole(grab.block_id)
+        if lost_whole:
+            _log.warning("camera %s: %d frame(s) lost whole before block %d", self.id,
+                         lost_whole, grab.block_id)
+            frames.count_dropped(lost_whole)
+        if grab.image is None or (grab.width, grab.height, grab.pixel_type) != (
+                self.width, self.height, self._pixel_type) or grab.image.shape != (
+                self.height, self.width):
+            _log.warning("camera %s: block %d is %dx%d pixel type 0x%08x, not the %dx%d %s "
+                         "configured", self.id, grab.block_id, grab.width, grab.height,
+                         grab.pixel_type, self.width, self.height, self.pixel_format)
+            frames.count_dropped()
+            return
+        frames.push(grab.image, arrived_ns=grab.arrived_ns,
+                    device_timestamp_ns=ticks_to_ns(grab.timestamp_ticks,
+                                                    self._tick_frequency_hz),
+                    exposure_us=self._device_exposure_us, gain_db=self._device_gain_db,
+                    bit_depth=self.bit_depth, extra={"block_id": grab.block_id})
+
+    def _live_link(self) -> _PylonLink:
+        """The open link, or DeviceDisconnectedError once the camera is known to be gone."""
+        self._require_open()
+        self._frames.check_connected()
+        link = self._link
+        assert link is not None  # open implies a link
+        return link

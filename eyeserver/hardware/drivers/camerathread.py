@@ -1,0 +1,403 @@
+"""What the streaming camera drivers share between their SDK's stream and ``read_frame()``.
+
+Every real camera driver (GenICam through Aravis, Basler through pylon, IDS through IDS peak) has
+one acquisition thread that takes buffers from its SDK and a reader waiting in
+:meth:`~eyeserver.hardware.base.Camera.read_frame`. Only the SDK calls differ; this module holds
+the rest, once:
+
+:class:`FrameQueue`
+    One open session of a camera: the bounded queue of frames between the thread and the reader,
+    the frame and dropped-frame counts that go into every :class:`~eyeserver.core.frames.FrameMeta`,
+    the mapping of device timestamps onto the rig clock (:class:`ClockMapping`), and whether the
+    camera is known to be gone. A driver makes a new one at each ``open()``, so news about an
+    earlier session (a late SDK callback) lands in that session's queue and changes nothing.
+:class:`FrameIdGaps`
+    Frames lost whole, told by gaps in the transport's frame ids between whole frames.
+:class:`AcquisitionThread`
+    The loop: call the driver's step until ``close()`` or the camera is gone; a
+    :class:`~eyeserver.errors.DeviceDisconnectedError` (or any other failure, logged) marks the
+    session lost, which wakes the reader.
+
+and the small checks the drivers' constructors and ``open()`` share (:data:`MONO_PIXEL_FORMATS`,
+:func:`check_region`, :func:`check_region_read_back`, :func:`narrow_range`, :func:`clamp`).
+
+Time. A camera stamps each frame with its own clock, taken here as the start of the exposure
+(the SFNC's frame-start latch), in nanoseconds. :class:`ClockMapping` puts it onto the rig clock
+with one offset fixed on the first stamped frame of the session::
+
+    offset_ns = rig_time_at_arrival_first - device_ts_first - exposure_first
+    t_ns      = device_ts + offset_ns + exposure / 2          (mid-exposure, rig clock)
+
+that is, the first frame is taken to have ended its exposure when it arrived. The error of that
+guess (readout, transfer, the thread's latency: milliseconds) is the same for every frame of the
+session, so the intervals between frames are the camera's own, to its tick; the two clocks drift
+apart by the camera oscillator's error (tens of ppm) until the next ``open()``. A frame without a
+timestamp (0) gets its arrival time minus half its exposure.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Mapping
+from typing import Final, TypeVar
+
+from eyeserver.core.frames import Frame, FrameMeta
+from eyeserver.core.types import Image
+from eyeserver.errors import DeviceDisconnectedError, DeviceTimeoutError, DeviceValueError
+
+__all__ = [
+    "MONO_PIXEL_FORMATS",
+    "AcquisitionThread",
+    "ClockMapping",
+    "FrameIdGaps",
+    "FrameQueue",
+    "check_region",
+    "check_region_read_back",
+    "clamp",
+    "narrow_range",
+    "skipped_frame_ids",
+]
+
+_log = logging.getLogger(__name__)
+
+_T = TypeVar("_T")
+
+MONO_PIXEL_FORMATS: Final[dict[str, int]] = {"Mono8": 8, "Mono10": 10, "Mono12": 12}
+"""The pixel formats the camera drivers take and their significant bits. Mono10 and Mono12 are
+the unpacked ones: one 16-bit word per pixel, the value in its low bits."""
+
+_GVSP_MAX_FRAME_ID: Final[int] = 0xFFFF
+"""GigE Vision 1.x frame (block) ids are 16 bits and skip 0 when they wrap."""
+
+
+class ClockMapping:
+    """Device timestamps onto the rig clock with one offset per session (the module's notes).
+
+    Not thread-safe on its own: :class:`FrameQueue` calls it under its lock.
+    """
+
+    def __init__(self) -> None:
+        self.offset_ns: int | None = None
+        """Rig clock minus camera clock, nanoseconds; None until the first stamped frame."""
+
+    def mid_exposure_ns(self, device_timestamp_ns: int, arrived_ns: int,
+                        exposure_us: float) -> int:
+        """The frame's mid-exposure time on the rig clock, nanoseconds.
+
+        Parameters
+        ----------
+        device_timestamp_ns : int
+            The camera's stamp of the exposure start, nanoseconds on its clock; 0 for none.
+        arrived_ns : int
+            Rig clock when the frame arrived, nanoseconds.
+        exposure_us : float
+            The frame's exposure time, microseconds.
+        """
+        exposure_ns = round(exposure_us * 1e3)
+        if device_timestamp_ns == 0:
+            return arrived_ns - exposure_ns // 2
+        if self.offset_ns is None:
+            self.offset_ns = arrived_ns - device_timestamp_ns - exposure_ns
+        return device_timestamp_ns + self.offset_ns + exposure_ns // 2
+
+
+def skipped_frame_ids(last: int, new: int) -> int:
+    """Frame ids strictly between ``last`` and ``new``: the frames lost whole between two buffers.
+
+    GigE Vision 1.x ids are 16 bits and wrap from 65535 to 1 (0 is invalid); 64-bit ids (USB3
+    Vision, GigE Vision 2 extended ids) never wrap in practice. Ids that go back otherwise (the
+    camera restarted its count) skip nothing that can be told.
+    """
+    if new > last:
+        return new - last - 1
+    if last <= _GVSP_MAX_FRAME_ID and new <= _GVSP_MAX_FRAME_ID and last - new > 0x8000:
+        return (_GVSP_MAX_FRAME_ID - last) + (new - 1)
+    return 0
+
+
+class FrameIdGaps:
+    """Frames lost whole, from the gaps between the frame ids of whole frames.
+
+    An SDK fills an incomplete buffer's frame id from whatever of the frame arrived, so it may be
+    stale (a reused buffer's) and only whole frames' ids are trusted: each incomplete buffer is
+    counted by the driver at once (and told here), and the ids skipped between two whole frames
+    count the frames lost whole, less the incomplete ones already counted there (SDKs hand
+    buffers over in frame order). Used by the acquisition thread only, so it has no lock.
+    """
+
+    def __init__(self) -> None:
+        self._last: int | None = None
+        self._incomplete_since_whole = 0
+
+    def incomplete(self) -> None:
+        """An incomplete buffer arrived (the driver counts it as one dropped frame)."""
+        self._incomplete_since_whole += 1
+
+    def whole(self, frame_id: int) -> int:
+        """A whole frame with ``frame_id`` arrived; return how many frames were lost whole since
+        the previous whole one."""
+        lost = 0
+        if self._last is not None:
+            lost = max(0, skipped_frame_ids(self._last, frame_id) - self._incomplete_since_whole)
+        self._last = frame_id
+        self._incomplete_since_whole = 0
+        return lost
+
+
+class FrameQueue:
+    """One open session of a camera: its frames on their way to the reader, and its counts.
+
+    Parameters
+    ----------
+    camera_id : str
+        The camera's id, for the frames' metadata and the errors.
+    capacity : int
+        Frames held for the reader; a frame that arrives when it is full is dropped (counted).
+
+    Notes
+    -----
+    A frame's ``frame_counter`` counts the frames delivered in the session from 0, its
+    ``dropped_frames`` the frames dropped so far, and its ``trigger_index`` the camera's own
+    count of exposures since ``open()``, dropped ones included (a camera cannot know the
+    trigger controller's pulse numbers). Thread-safe.
+    """
+
+    def __init__(self, camera_id: str, capacity: int) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity must be at least 1, not {capacity}")
+        self.camera_id = camera_id
+        self.capacity = int(capacity)
+        self._cond = threading.Condition()
+        self._frames: collections.deque[Frame] = collections.deque()
+        self._clock = ClockMapping()
+        self._lost: str | None = None
+        self._frame_counter = 0
+        self._dropped = 0
+
+    @property
+    def dropped(self) -> int:
+        """Frames dropped in this session (incomplete, lost whole, undecodable, queue full)."""
+        with self._cond:
+            return self._dropped
+
+    @property
+    def clock_offset_ns(self) -> int | None:
+        """Rig clock minus camera clock (nanoseconds), fixed on the session's first stamped
+        frame; None before it."""
+        with self._cond:
+            return self._clock.offset_ns
+
+    @property
+    def lost(self) -> str | None:
+        """Why the camera is known to be gone, or None while it is not."""
+        with self._cond:
+            return self._lost
+
+    def count_dropped(self, frames: int = 1) -> None:
+        """Count ``frames`` frames the camera exposed that will never be delivered."""
+        if frames < 0:
+            raise ValueError(f"frames must not be negative, not {frames}")
+        with self._cond:
+            self._dropped += frames
+
+    def push(self, image: Image, *, arrived_ns: int, device_timestamp_ns: int,
+             exposure_us: float, gain_db: float, bit_depth: int,
+             extra: Mapping[str, object] | None = None) -> Frame | None:
+        """Queue one whole frame for the reader.
+
+        Parameters
+        ----------
+        image : numpy.ndarray
+            The image, owned by the frame from now on (not a view of an SDK buffer).
+        arrived_ns : int
+            Rig clock when the buffer arrived, nanoseconds.
+        device_timestamp_ns : int
+            The camera's stamp of the exposure start, nanoseconds on its clock; 0 for none.
+        exposure_us, gain_db : float
+            The settings the frame was taken with (microseconds, decibels).
+        bit_depth : int
+            Significant bits per pixel.
+        extra : Mapping, optional
+            Driver-specific facts for ``Frame.extra``; ``device_timestamp_ns`` is added.
+
+        Returns
+        -------
+        Frame or None
+            The queued frame, or None when the queue was full (the frame is counted dropped).
+        """
+        with self._cond:
+            if len(self._frames) >= self.capacity:
+                self._dropped += 1
+                return None
+            meta = FrameMeta(camera_id=self.camera_id, frame_counter=self._frame_counter,
+                             t_ns=self._clock.mid_exposure_ns(device_timestamp_ns, arrived_ns,
+                                                              exposure_us),
+                             exposure_us=exposure_us, gain_db=gain_db,
+                             dropped_frames=self._dropped, bit_depth=bit_depth,
+                             trigger_index=self._frame_counter + self._dropped)
+            frame = Frame(image=image, meta=meta,
+                          extra={"device_timestamp_ns": device_timestamp_ns, **(extra or {})})
+            self._frames.append(frame)
+            self._frame_counter += 1
+            self._cond.notify_all()
+            return frame
+
+    def pop(self, timeout_s: float) -> Frame:
+        """The oldest queued frame, waiting up to ``timeout_s`` for one.
+
+        Frames queued before the camera was lost are still handed out first.
+
+        Raises
+        ------
+        DeviceDisconnectedError
+            When no frame is queued and the camera is known to be gone.
+        DeviceTimeoutError
+            When no frame came within ``timeout_s``.
+        """
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while not self._frames:
+                if self._lost is not None:
+                    raise DeviceDisconnectedError(self.camera_id, self._lost)
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise DeviceTimeoutError(self.camera_id, f"no frame within {timeout_s} s")
+                self._cond.wait(remaining)
+            return self._frames.popleft()
+
+    def mark_lost(self, reason: str) -> None:
+        """Record (and log, once) that the camera is gone, and wake the reader."""
+        with self._cond:
+            if self._lost is None:
+                _log.error("camera %s lost: %s", self.camera_id, reason)
+                self._lost = reason
+            self._cond.notify_all()
+
+    def check_connected(self) -> None:
+        """Raise :class:`DeviceDisconnectedError` once the camera is known to be gone."""
+        with self._cond:
+            if self._lost is not None:
+                raise DeviceDisconnectedError(self.camera_id, f"{self._lost}; close() and "
+                                                              "open() once it is back")
+
+    def guarded(self, call: Callable[[], _T]) -> _T:
+        """Run a control call; one that finds the camera gone marks the session lost (so the
+        waiting reader wakes) before its error goes on."""
+        try:
+            return call()
+        except DeviceDisconnectedError as exc:
+            self.mark_lost(exc.reason)
+            raise
+
+    def clear(self) -> None:
+        """Drop the queued frames and wake the reader (the camera is being closed)."""
+        with self._cond:
+            self._frames.clear()
+            self._cond.notify_all()
+
+
+class AcquisitionThread:
+    """The acquisition loop of one session: ``step()`` over and over on a daemon thread.
+
+    ``step`` waits a short while (tens of milliseconds, which bound how long :meth:`stop` waits)
+    for one buffer from the SDK and hands it on. The loop ends at :meth:`stop` or once
+    ``frames`` is marked lost; a :class:`DeviceDisconnectedError` from ``step`` marks it lost,
+    and so does any other exception (logged with its traceback), because a thread that died
+    silently would leave the reader timing out with no word of why.
+    """
+
+    def __init__(self, name: str, frames: FrameQueue, step: Callable[[], None]) -> None:
+        self._frames = frames
+        self._step = step
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+
+    @property
+    def stopping(self) -> bool:
+        """Whether :meth:`stop` was called (an SDK wait it aborted is then no failure)."""
+        return self._stop.is_set()
+
+    def start(self) -> None:
+        """Start the loop."""
+        self._thread.start()
+
+    def stop(self) -> None:
+        """End the loop and wait for it. Idempotent."""
+        self._stop.set()
+        if self._thread.ident is not None:
+            self._thread.join()
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set() and self._frames.lost is None:
+                self._step()
+        except DeviceDisconnectedError as exc:
+            self._frames.mark_lost(exc.reason)
+        except Exception as exc:
+            _log.exception("camera %s: acquisition thread failed", self._frames.camera_id)
+            self._frames.mark_lost(f"acquisition failed: {exc}")
+
+
+def check_region(offset_x: int, offset_y: int, width: int | None, height: int | None) -> None:
+    """Check a region-of-interest option (pixels; None size: the rest of the sensor).
+
+    Raises
+    ------
+    ValueError
+        For a negative offset or a size that is not positive.
+    """
+    if offset_x < 0 or offset_y < 0:
+        raise ValueError(f"offsets must not be negative, not ({offset_x}, {offset_y})")
+    for name, size in (("width", width), ("height", height)):
+        if size is not None and size <= 0:
+            raise ValueError(f"{name} must be positive, not {size}")
+
+
+def check_region_read_back(device_id: str, asked: tuple[int, int, int | None, int | None],
+                           read: tuple[int, int, int, int]) -> None:
+    """Check that the camera took the region of interest asked for, ``(x, y, width, height)`` in
+    pixels (a size of None: whatever the rest of the sensor is).
+
+    Raises
+    ------
+    DeviceValueError
+        When the region read back differs: a camera that rounds to its increment instead of
+        refusing would otherwise deliver another region than the calibration expects.
+    """
+    x, y, width, height = asked
+    if read[:2] != (x, y) or (width is not None and read[2] != width) or (
+            height is not None and read[3] != height):
+        raise DeviceValueError(device_id, f"region {width}x{height}+{x}+{y} reads back as "
+                                          f"{read[2]}x{read[3]}+{read[0]}+{read[1]}")
+
+
+def narrow_range(device_id: str, name: str, policy: tuple[float, float],
+                 device: tuple[float, float],
+                 decimals: int | None = None) -> tuple[float, float]:
+    """The rig's policy range for a setting narrowed to what the camera can do.
+
+    ``decimals``, for a driver that reports settings rounded to that many decimals, rounds the
+    range inwards to match: its ends then read back as themselves, and stay within the camera's.
+
+    Raises
+    ------
+    DeviceValueError
+        When the two ranges do not meet.
+    """
+    low, high = max(policy[0], device[0]), min(policy[1], device[1])
+    if decimals is not None:
+        scale = 10.0**decimals
+        low, high = math.ceil(low * scale) / scale, math.floor(high * scale) / scale
+    if low > high:
+        raise DeviceValueError(device_id, f"the camera's {name} range {device} misses the "
+                                          f"rig's {policy}")
+    return low, high
+
+
+def clamp(value: float, bounds: tuple[float, float]) -> float:
+    """``value`` moved into ``bounds`` (a setting asked for before the range was known)."""
+    return min(max(value, bounds[0]), bounds[1])

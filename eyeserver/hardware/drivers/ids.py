@@ -1,0 +1,759 @@
+"""IDS cameras (uEye+, and uEye such as the UI-5240 through IDS's uEye Transport Layer) through
+IDS peak's Python API, behind the :class:`Camera` interface.
+
+**Untested on real hardware.** IDS peak is not on PyPI for this platform (it comes from IDS's
+website under IDS's licence), so this driver was written against IDS's documented Python samples
+and tested only against a fake of exactly the calls below (tests/test_driver_ids.py). Check it on
+a camera before trusting it; the notes at the end say what to look at first.
+
+IDS peak (``ids_peak`` and ``ids_peak_ipl``, with the IDS peak runtime; for uEye cameras its uEye
+Transport Layer) is imported when a camera is opened, so this module imports, type-checks and
+registers its driver on machines without it; opening a camera there raises a
+:class:`~eyeserver.errors.DeviceError` that says what to install. Every IDS peak call goes through
+:class:`_PeakLink`, the one place that holds untyped IDS peak objects and turns IDS peak's
+exceptions into eyeserver's (``raise … from``):
+
+=================================================  ================================
+what IDS peak reports                              raised (:mod:`eyeserver.errors`)
+=================================================  ================================
+the device lost (its lost callback, or an          ``DeviceDisconnectedError``
+exception other than a timeout from
+``WaitForFinishedBuffer``), no camera with the
+serial number or user id, ``IOException`` or
+``TimeoutException`` from a control call
+a value out of range or refused, a feature or      ``DeviceValueError``
+enumeration entry the camera lacks
+anything else (the camera in use elsewhere, ...)   ``DeviceError``
+=================================================  ================================
+
+The IDS peak calls used, all of them (``peak`` is ``ids_peak.ids_peak``)::
+
+    peak.Library.Initialize()  peak.Library.Close()       (once per process while cameras are open)
+    peak.DeviceManager.Instance()  .Update()  .Devices()
+    .DeviceLostCallback(f)  .RegisterDeviceLostCallback(cb)  .UnregisterDeviceLostCallback(h)
+    descriptor: .SerialNumber()  .UserDefinedName()  .ModelName()  .Key()
+                .IsOpenable(peak.DeviceAccessType_Control)
+                .OpenDevice(peak.DeviceAccessType_Control)
+    device:     .RemoteDevice().NodeMaps()[0]  .DataStreams()[0].OpenDataStream()
+    node map:   .HasNode(name)  .FindNode(name)
+    nodes:      .Value()  .SetValue(v)  .Minimum()  .Maximum()            (integer, float)
+                .Entries()  .SetCurrentEntry(s)  .CurrentEntry()         (enumeration)
+                entry.SymbolicValue()  entry.AccessStatus()
+                .Execute()  .WaitUntilDone()                             (command)
+    features:   PixelFormat  OffsetX  OffsetY  Width  Height  PayloadSize  ExposureTime
+                GainSelector  Gain  TriggerSelector  TriggerMode  TriggerSource
+                TriggerActivation  TriggerSoftware  AcquisitionMode  AcquisitionStart
+                AcquisitionStop  TLParamsLocked  ExposureAuto  GainAuto
+                AcquisitionFrameRate (read only, for describe())
+    data stream: .NumBuffersAnnouncedMinRequired()  .AllocAndAnnounceBuffer(size)
+                .QueueBuffer(b)  .StartAcquisition()  .WaitForFinishedBuffer(timeout_ms)
+                .StopAcquisition(peak.AcquisitionStopMode_Default)
+                .Flush(peak.DataStreamFlushMode_DiscardAll)  .AnnouncedBuffers()
+                .RevokeBuffer(b)
+    buffer:     .IsIncomplete()  .FrameID()  .Timestamp_ns()
+    ids_peak.ids_peak_ipl_extension.BufferToImage(buffer)
+    image:      .Width()  .Height()  .get_numpy_2D() (Mono8)  .get_numpy_2D_16() (Mono10/12)
+    constants:  peak.NodeAccessStatus_NotAvailable  peak.NodeAccessStatus_NotImplemented
+    exceptions: peak.Exception  peak.TimeoutException  peak.AbortedException  peak.IOException
+                peak.OutOfRangeException  peak.InvalidArgumentException
+                peak.NotFoundException  peak.NotAvailableException
+
+Buffers come from ``AllocAndAnnounceBuffer`` (IDS's samples' way: the transport layer owns the
+memory) rather than ``AnnounceBuffer``, which would need memory that Python could free under it.
+
+Acquisition. ``open()`` finds the camera by serial number or user id, sets the pixel format, the
+region of interest, the hardware trigger (``ExposureStart``, or ``FrameStart`` where the camera
+has no such selector, from ``trigger_source`` on the rising edge; every other selector off),
+continuous acquisition, exposure and analogue gain by hand at the values last asked for, announces
+and queues ``max(NumBuffersAnnouncedMinRequired, 4, queue_size)`` buffers, locks the transport
+parameters (``TLParamsLocked``), starts the stream and ``AcquisitionStart``. A thread then waits
+for finished buffers (``WaitForFinishedBuffer`` with a short timeout), copies each image out,
+queues the buffer again and hands the frame to :meth:`~IdsCamera.read_frame`.
+
+Dropped frames. An incomplete buffer (``IsIncomplete()``), every frame id skipped between two
+whole frames (a frame lost whole, or with no buffer free), a frame that cannot be converted or is
+not the configured size, and one that arrives when the queue is full count as dropped frames:
+counted in :attr:`~IdsCamera.dropped_frames` and ``describe()``, never returned.
+
+Gain. IDS peak gives ``Gain`` as a factor (1.0 is unity), not in decibels; the driver converts,
+``factor = 10 ** (gain_db / 20)``, with ``GainSelector`` on ``AnalogAll`` where the camera has it.
+
+Time. ``Timestamp_ns()`` is the camera's stamp of the frame, nanoseconds on its clock, taken as
+the exposure start; it goes onto the rig clock (``context.clock``) with one offset per session, as
+:mod:`~eyeserver.hardware.drivers.camerathread` describes.
+
+Disconnection. IDS peak calls the device-lost callback of a camera that goes away (reconnection
+left off, its default), and ``WaitForFinishedBuffer`` raises instead of waiting; either marks the
+session lost. Waiting and later reads then raise :class:`~eyeserver.errors.DeviceDisconnectedError`
+(queued frames are still handed out first); ``close()`` and ``open()`` recover once the camera is
+back, in the same process.
+
+What to check first on a camera: that ``Gain`` is a factor on it; which trigger selectors and
+sources it offers (uEye+ cameras have ``ExposureStart`` and ``Line0``); that ``Timestamp_ns()``
+counts the camera's clock (not the host's); that ``ExposureTime``'s maximum, which IDS cameras
+bind to ``AcquisitionFrameRate`` (left as the camera's user set has it, shown in ``describe()``),
+covers the rig's exposures; and how long IDS peak takes to notice an unplugged camera.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import logging
+import math
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any, Final, TypeVar
+
+import numpy as np
+
+from eyeserver.core.frames import Frame
+from eyeserver.core.types import Image
+from eyeserver.errors import DeviceDisconnectedError, DeviceError, DeviceValueError
+from eyeserver.hardware.base import Camera
+from eyeserver.hardware.drivers.camerathread import (
+    MONO_PIXEL_FORMATS,
+    AcquisitionThread,
+    FrameIdGaps,
+    FrameQueue,
+    check_region,
+    check_region_read_back,
+    clamp,
+    narrow_range,
+)
+from eyeserver.hardware.registry import DriverContext, register_driver
+
+__all__ = ["INSTALL_HINT", "IdsCamera", "db_to_factor", "factor_to_db"]
+
+_log = logging.getLogger(__name__)
+
+_T = TypeVar("_T")
+
+INSTALL_HINT: Final[str] = (
+    "install IDS peak from IDS's website (with its uEye Transport Layer for uEye cameras) and "
+    "its Python packages ids_peak and ids_peak_ipl into the venv")
+"""What a machine needs for this driver; named in the error raised without it."""
+
+_POLL_S: Final[float] = 0.05
+"""How long one ``WaitForFinishedBuffer`` waits: bounds how long ``close()`` waits for the
+thread."""
+
+_READBACK_DECIMALS: Final[int] = 3
+"""Exposure (µs) and gain (dB) read back are rounded to this many decimals: float conversions
+of fixed-point registers (and the dB conversion) leave millionths, far below a real step."""
+
+_TRIGGER_SELECTORS: Final[tuple[str, ...]] = ("ExposureStart", "FrameStart")
+"""The trigger selectors that expose one frame per pulse, in order of preference (IDS cameras
+have ExposureStart)."""
+
+_library_lock = threading.Lock()
+_library_users = 0
+
+
+def db_to_factor(gain_db: float) -> float:
+    """A gain in decibels as IDS peak's factor (0 dB is 1.0)."""
+    return float(10.0 ** (gain_db / 20.0))
+
+
+def factor_to_db(factor: float) -> float:
+    """IDS peak's gain factor in decibels (1.0 is 0 dB)."""
+    if factor <= 0:
+        raise ValueError(f"a gain factor must be positive, not {factor}")
+    return 20.0 * math.log10(factor)
+
+
+@dataclass(frozen=True)
+class _Buffer:
+    """What the link copies out of one finished buffer before queueing it again."""
+
+    arrived_ns: int
+    incomplete: bool
+    frame_id: int
+    timestamp_ns: int
+    width: int
+    height: int
+    image: Image | None
+
+
+def _load_peak() -> tuple[Any, Any]:
+    """Import ``ids_peak.ids_peak`` and ``ids_peak.ids_peak_ipl_extension``; ImportError names
+    the gap."""
+    try:
+        return (importlib.import_module("ids_peak.ids_peak"),
+                importlib.import_module("ids_peak.ids_peak_ipl_extension"))
+    except ImportError as exc:
+        raise ImportError(f"IDS peak's Python API (ids_peak) is not installed: "
+                          f"{INSTALL_HINT}") from exc
+
+
+def _exceptions(peak: Any, *names: str) -> tuple[type[Exception], ...]:
+    """IDS peak's exception classes of those names that this version has."""
+    found = (getattr(peak, name, None) for name in names)
+    return tuple(cls for cls in found if isinstance(cls, type) and issubclass(cls, Exception))
+
+
+class _PeakLink:
+    """One opened camera and its data stream: the only code that calls IDS peak.
+
+    Control calls are serialised by a lock; the data stream's ``WaitForFinishedBuffer`` (which
+    IDS peak lets another thread call) is not. IDS peak closes a device when its last Python
+    reference goes, so :meth:`release` drops every one.
+    """
+
+    def __init__(self, device_id: str, serial: str) -> None:
+        self.device_id = device_id
+        try:
+            self._peak, self._extension = _load_peak()
+        except ImportError as exc:
+            raise DeviceError(device_id, str(exc)) from exc
+        peak = self._peak
+        self._error: type[Exception] = peak.Exception
+        self._timeout: type[Exception] = peak.TimeoutException
+        self._aborted = _exceptions(peak, "AbortedException")
+        self._lost_errors = _exceptions(peak, "IOException", "TimeoutException")
+        self._value_errors = _exceptions(peak, "OutOfRangeException", "InvalidArgumentException",
+                                         "NotFoundException", "NotAvailableException")
+        self._unavailable = (peak.NodeAccessStatus_NotAvailable,
+                             peak.NodeAccessStatus_NotImplemented)
+        self._lock = threading.RLock()
+        self._device: Any = None
+        self._nodes: Any = None
+        self._stream: Any = None
+        self._lost_callback: Any = None
+        self._lost_handle: Any = None
+        self._library = False
+        _acquire_library(peak, device_id)
+        self._library = True
+        try:
+            self._open(serial)
+        except BaseException:
+            self.release()
+            raise
+
+    def _open(self, serial: str) -> None:
+        peak = self._peak
+        with self._translated("looking for cameras"):
+            self._manager: Any = peak.DeviceManager.Instance()
+            self._manager.Update()
+            found = list(self._manager.Devices())
+        with self._translated("reading the cameras' names"):
+            matches = [descriptor for descriptor in found if serial in (
+                str(descriptor.SerialNumber()), str(descriptor.UserDefinedName()))]
+            listed = ", ".join(f"{descriptor.ModelName()} {descriptor.SerialNumber()}"
+                               for descriptor in found) or "none"
+        if not matches:
+            raise DeviceDisconnectedError(self.device_id, f"no camera with serial number or user "
+                                                          f"id {serial!r} (IDS peak finds: "
+                                                          f"{listed})")
+        if len(matches) > 1:
+            raise DeviceValueError(self.device_id, f"{len(matches)} cameras answer to "
+                                                   f"{serial!r}; name one by its serial number")
+        descriptor = matches[0]
+        with self._translated(f"opening the camera {serial!r}"):
+            self.model = str(descriptor.ModelName())
+            self.serial_number = str(descriptor.SerialNumber())
+            self.key = str(descriptor.Key())
+            if not descriptor.IsOpenable(peak.DeviceAccessType_Control):
+                raise DeviceError(self.device_id, f"the camera {serial!r} cannot be opened for "
+                                                  "control (another program has it?)")
+            self._device = descriptor.OpenDevice(peak.DeviceAccessType_Control)
+            self._nodes = self._device.RemoteDevice().NodeMaps()[0]
+            self._stream = self._device.DataStreams()[0].OpenDataStream()
+
+    @contextlib.contextmanager
+    def _translated(self, doing: str) -> Iterator[None]:
+        try:
+            yield
+        except self._error as exc:
+            reason = f"{doing}: {exc}"
+            if isinstance(exc, self._lost_errors):
+                raise DeviceDisconnectedError(self.device_id, reason) from exc
+            if isinstance(exc, self._value_errors):
+                raise DeviceValueError(self.device_id, reason) from exc
+            raise DeviceError(self.device_id, reason) from exc
+
+    def _call(self, doing: str, call: Callable[[], _T]) -> _T:
+        with self._lock, self._translated(doing):
+            return call()
+
+    # --- device lost ------------------------------------------------------------------------
+
+    def on_lost(self, callback: Callable[[], None]) -> None:
+        """Call ``callback`` (from an IDS peak thread) when IDS peak reports this camera lost."""
+        key = self.key
+
+        def lost(lost_key: str) -> None:
+            if str(lost_key) == key:
+                callback()
+
+        with self._translated("registering for the device-lost event"):
+            # IDS peak keeps only a reference to the wrapper: it must outlive the registration.
+            self._lost_callback = self._manager.DeviceLostCallback(lost)
+            self._lost_handle = self._manager.RegisterDeviceLostCallback(self._lost_callback)
+
+    def _forget_lost(self) -> None:
+        handle, self._lost_handle = self._lost_handle, None
+        if handle is not None:
+            with contextlib.suppress(self._error):
+                self._manager.UnregisterDeviceLostCallback(handle)
+        self._lost_callback = None
+
+    # --- features ---------------------------------------------------------------------------
+
+    def _find(self, name: str) -> Any:
+        if not self._nodes.HasNode(name):
+            raise DeviceValueError(self.device_id, f"the camera has no feature {name}")
+        return self._nodes.FindNode(name)
+
+    def has(self, name: str) -> bool:
+        """Whether the camera has the feature ``name``."""
+        return bool(self._call(f"looking for {name}", lambda: self._nodes.HasNode(name)))
+
+    def entries(self, name: str) -> list[str]:
+        """The entries the enumeration feature ``name`` offers."""
+        return self._call(f"listing {name}", lambda: [
+            str(entry.SymbolicValue()) for entry in self._find(name).Entries()
+            if entry.AccessStatus() not in self._unavailable])
+
+    def get(self, name: str) -> Any:
+        """The value of the integer or float feature ``name``."""
+        return self._call(f"reading {name}", lambda: self._find(name).Value())
+
+    def set(self, name: str, value: float) -> Any:
+        """Set the integer or float feature ``name``; return its value read back."""
+        def write() -> Any:
+            node = self._find(name)
+            node.SetValue(value)
+            return node.Value()
+        return self._call(f"setting {name} to {value!r}", write)
+
+    def set_enum(self, name: str, entry: str) -> str:
+        """Set the enumeration feature ``name`` to ``entry``, which must be on offer; return the
+        entry read back."""
+        offered = self.entries(name)
+        if entry not in offered:
+            raise DeviceValueError(self.device_id, f"the camera's {name} has no {entry!r} (it "
+                                                   f"has {', '.join(offered) or 'none'})")
+
+        def write() -> str:
+            node = self._find(name)
+            node.SetCurrentEntry(entry)
+            return str(node.CurrentEntry().SymbolicValue())
+        return self._call(f"setting {name} to {entry}", write)
+
+    def bounds(self, name: str) -> tuple[float, float]:
+        """The least and greatest values the feature ``name`` takes now."""
+        def read() -> tuple[float, float]:
+            node = self._find(name)
+            return float(node.Minimum()), float(node.Maximum())
+        return self._call(f"reading the bounds of {name}", read)
+
+    def execute(self, name: str) -> None:
+        """Execute the command ``name`` and wait until the camera has done it."""
+        def run() -> None:
+            node = self._find(name)
+            node.Execute()
+            node.WaitUntilDone()
+        self._call(f"executing {name}", run)
+
+    # --- settings ---------------------------------------------------------------------------
+
+    def set_region(self, x: int, y: int, width: int | None,
+                   height: int | None) -> tuple[int, int, int, int]:
+        """Set the region of interest (pixels; None: the rest of the sensor from the offset);
+        return it as read back (x, y, width, height). Offsets go to 0 first, so that the new
+        size is never refused for the old offset."""
+        self.set("OffsetX", 0)
+        self.set("OffsetY", 0)
+        if width is None:
+            width = int(self.bounds("Width")[1]) - x
+        if height is None:
+            height = int(self.bounds("Height")[1]) - y
+        read_width, read_height = int(self.set("Width", width)), int(self.set("Height", height))
+        return int(self.set("OffsetX", x)), int(self.set("OffsetY", y)), read_width, read_height
+
+    def set_trigger(self, source: str) -> tuple[str, str]:
+        """Expose one frame on each rising edge of ``source``: every trigger selector's
+        TriggerMode off, then ExposureStart's (or FrameStart's) on. Returns the selector used and
+        the source read back."""
+        selectors = self.entries("TriggerSelector")
+        chosen = next((name for name in _TRIGGER_SELECTORS if name in selectors), None)
+        if chosen is None:
+            raise DeviceValueError(self.device_id, f"the camera has neither an ExposureStart nor "
+                                                   f"a FrameStart trigger (it has "
+                                                   f"{', '.join(selectors) or 'none'})")
+        for selector in selectors:
+            self.set_enum("TriggerSelector", selector)
+            self.set_enum("TriggerMode", "Off")
+        self.set_enum("TriggerSelector", chosen)
+        read_back = self.set_enum("TriggerSource", source)
+        if self.has("TriggerActivation"):
+            self.set_enum("TriggerActivation", "RisingEdge")
+        self.set_enum("TriggerMode", "On")
+        return chosen, read_back
+
+    # --- streaming --------------------------------------------------------------------------
+
+    def start(self, n_buffers: int) -> None:
+        """Announce and queue buffers for the current payload, lock the transport parameters,
+        start the stream and the camera's acquisition."""
+        stream = self._stream
+
+        def start() -> None:
+            payload = int(self._find("PayloadSize").Value())
+            for _ in range(max(int(stream.NumBuffersAnnouncedMinRequired()), n_buffers)):
+                stream.QueueBuffer(stream.AllocAndAnnounceBuffer(payload))
+            if self._nodes.HasNode("TLParamsLocked"):
+                self._nodes.FindNode("TLParamsLocked").SetValue(1)
+            stream.StartAcquisition()
+
+        self._call("starting the data stream", start)
+        self.execute("AcquisitionStart")
+
+    def stop(self) -> None:
+        """Stop the camera's acquisition and the stream, and give the buffers back."""
+        stream = self._stream
+        peak = self._peak
+        self.execute("AcquisitionStop")
+
+        def stop() -> None:
+            stream.StopAcquisition(peak.AcquisitionStopMode_Default)
+            stream.Flush(peak.DataStreamFlushMode_DiscardAll)
+            for buffer in list(stream.AnnouncedBuffers()):
+                stream.RevokeBuffer(buffer)
+            if self._nodes.HasNode("TLParamsLocked"):
+                self._nodes.FindNode("TLParamsLocked").SetValue(0)
+
+        self._call("stopping the data stream", stop)
+
+    def wait(self, timeout_s: float, bit_depth: int,
+             now_ns: Callable[[], int]) -> _Buffer | None:
+        """Wait up to ``timeout_s`` for the next finished buffer; copy it out, with its arrival
+        time on the clock ``now_ns`` (nanoseconds), and queue it again. None when none came.
+        Raises :class:`DeviceDisconnectedError` when the wait fails otherwise: IDS peak's way of
+        saying the device is gone."""
+        stream = self._stream
+        try:
+            buffer = stream.WaitForFinishedBuffer(max(1, round(timeout_s * 1e3)))
+        except self._timeout:
+            return None
+        except self._aborted:  # nobody here calls KillWait; it is no frame either way
+            return None
+        except self._error as exc:
+            raise DeviceDisconnectedError(self.device_id, f"waiting for a frame: {exc}") from exc
+        arrived_ns = now_ns()
+        try:
+            return self._copy(buffer, bit_depth, arrived_ns)
+        finally:
+            with self._translated("queueing a buffer again"):
+                stream.QueueBuffer(buffer)
+
+    def _copy(self, buffer: Any, bit_depth: int, arrived_ns: int) -> _Buffer:
+        with self._translated("reading a buffer"):
+            incomplete = bool(buffer.IsIncomplete())
+            frame_id, timestamp_ns = int(buffer.FrameID()), int(buffer.Timestamp_ns())
+        if incomplete:
+            return _Buffer(arrived_ns, True, frame_id, timestamp_ns, 0, 0, None)
+        try:
+            image = self._extension.BufferToImage(buffer)
+            # Views of the buffer's memory, which the camera refills once it is queued again.
+            copied: Image = (np.array(image.get_numpy_2D(), dtype=np.uint8) if bit_depth == 8
+                             else np.array(image.get_numpy_2D_16(), dtype=np.uint16))
+            return _Buffer(arrived_ns, False, frame_id, timestamp_ns, int(image.Width()),
+                           int(image.Height()), copied)
+        except self._error as exc:
+            _log.warning("camera %s: frame id %d cannot be converted: %s", self.device_id,
+                         frame_id, exc)
+            return _Buffer(arrived_ns, False, frame_id, timestamp_ns, 0, 0, None)
+
+    def software_trigger(self) -> None:
+        """Execute TriggerSoftware."""
+        self.execute("TriggerSoftware")
+
+    def release(self) -> None:
+        """Drop the device-lost callback, the stream, the node map and the device (IDS peak
+        closes it as its last reference goes), and this link's hold on the library."""
+        with self._lock:
+            if self._lost_handle is not None:
+                self._forget_lost()
+            self._stream = None
+            self._nodes = None
+            self._device = None
+            if self._library:
+                self._library = False
+                _release_library(self._peak)
+
+
+def _acquire_library(peak: Any, device_id: str) -> None:
+    """``Library.Initialize()`` for the first open camera of the process."""
+    global _library_users
+    with _library_lock:
+        if _library_users == 0:
+            try:
+                peak.Library.Initialize()
+            except peak.Exception as exc:
+                raise DeviceError(device_id, f"IDS peak did not initialise: {exc}") from exc
+        _library_users += 1
+
+
+def _release_library(peak: Any) -> None:
+    """``Library.Close()`` when the last camera of the process is released."""
+    global _library_users
+    with _library_lock:
+        _library_users -= 1
+        if _library_users == 0:
+            with contextlib.suppress(peak.Exception):
+                peak.Library.Close()
+
+
+@register_driver("camera", "IdsCamera")
+class IdsCamera(Camera):
+    """An IDS camera through IDS peak, hardware-triggered. Untested on real hardware (the
+    module's notes).
+
+    Parameters
+    ----------
+    device_id : str
+        The camera's id in the rig.
+    context : DriverContext
+        Its clock is the rig clock the frames' times are put on.
+    serial : str
+        The camera's serial number (on its label), or its user-defined name where that names one
+        camera.
+    pixel_format : {"Mono8", "Mono10", "Mono12"}
+        8 bits per pixel, or 10/12 unpacked in 16-bit words.
+    trigger_source : str
+        The camera's TriggerSource for each frame: ``Line0`` (the trigger input of IDS cameras,
+        the trigger controller's cable), or ``Software`` to expose on :meth:`software_trigger`.
+    offset_x, offset_y : int
+        Top-left corner of the region of interest on the sensor, pixels.
+    width, height : int or None
+        Size of the region of interest, pixels; None for the rest of the sensor from the
+        offset. Until the first ``open()`` the size reads as configured, or 1 when it comes from
+        the sensor.
+    queue_size : int
+        Frames held for :meth:`read_frame`; frames that arrive when it is full are dropped
+        (counted in :attr:`dropped_frames`).
+
+    Notes
+    -----
+    A frame's ``exposure_us`` and ``gain_db`` are the camera's settings when it arrived, and its
+    ``trigger_index`` the camera's own count of exposures since ``open()``, dropped ones
+    included. Its ``extra`` holds ``device_timestamp_ns`` (camera clock) and ``frame_id`` (IDS
+    peak's). One reader at a time.
+    """
+
+    def __init__(self, device_id: str, *, context: DriverContext, serial: str,
+                 pixel_format: str = "Mono8", trigger_source: str = "Line0",
+                 offset_x: int = 0, offset_y: int = 0, width: int | None = None,
+                 height: int | None = None, queue_size: int = 8) -> None:
+        if pixel_format not in MONO_PIXEL_FORMATS:
+            raise ValueError(f"pixel_format must be one of {', '.join(MONO_PIXEL_FORMATS)}, "
+                             f"not {pixel_format!r}")
+        if not serial:
+            raise ValueError("serial must name the camera (serial number or user-defined name)")
+        if not trigger_source:
+            raise ValueError("trigger_source must name one of the camera's TriggerSource values")
+        check_region(offset_x, offset_y, width, height)
+        if queue_size < 1:
+            raise ValueError(f"queue_size must be at least 1, not {queue_size}")
+        super().__init__(device_id, width or 1, height or 1, MONO_PIXEL_FORMATS[pixel_format])
+        self._clock = context.clock
+        self.serial = serial
+        self.pixel_format = pixel_format
+        self.trigger_source = trigger_source
+        self._roi = (int(offset_x), int(offset_y), width, height)
+        self._queue_size = int(queue_size)
+        self._link: _PeakLink | None = None
+        self._frames = FrameQueue(device_id, self._queue_size)
+        self._thread: AcquisitionThread | None = None
+        self._gaps = FrameIdGaps()
+        self._device_exposure_us = self._exposure_us
+        self._device_gain_db = self._gain_db
+        self._info: dict[str, object] = {}
+
+    # --- what the camera reports ------------------------------------------------------------
+
+    @property
+    def exposure_us(self) -> float:
+        """Exposure time as the camera reports it after the last setting, microseconds (the
+        value asked for until the first ``open()``)."""
+        return self._device_exposure_us
+
+    @property
+    def gain_db(self) -> float:
+        """Analogue gain as the camera reports it after the last setting, decibels (converted
+        from IDS peak's factor)."""
+        return self._device_gain_db
+
+    @property
+    def dropped_frames(self) -> int:
+        """Frames lost since :meth:`open`: incomplete buffers, frame ids skipped, a full queue."""
+        return self._frames.dropped
+
+    @property
+    def clock_offset_ns(self) -> int | None:
+        """Rig clock minus camera clock, nanoseconds, fixed on the first stamped frame after
+        :meth:`open` (None before it)."""
+        return self._frames.clock_offset_ns
+
+    def software_trigger(self) -> None:
+        """Expose one frame now (TriggerSoftware); only with ``trigger_source="Software"``.
+
+        Raises
+        ------
+        DeviceValueError
+            When the camera is triggered from another source.
+        DeviceDisconnectedError
+            When the camera is gone.
+        """
+        link = self._live_link()
+        if self.trigger_source != "Software":
+            raise DeviceValueError(self.id, f"software_trigger() needs trigger_source "
+                                            f"'Software', not {self.trigger_source!r}")
+        self._frames.guarded(link.software_trigger)
+
+    # --- Device and Camera hooks ------------------------------------------------------------
+
+    def _do_open(self) -> None:
+        link = _PeakLink(self.id, self.serial)
+        frames = FrameQueue(self.id, self._queue_size)
+        try:
+            self._configure(link)
+            link.on_lost(lambda: frames.mark_lost("IDS peak reports the device lost"))
+            link.start(n_buffers=max(4, self._queue_size))
+        except BaseException:
+            link.release()
+            raise
+        self._link = link
+        self._frames = frames
+        self._gaps = FrameIdGaps()
+        self._thread = AcquisitionThread(f"ids-{self.id}", frames,
+                                         lambda: self._step(link, frames))
+        self._thread.start()
+
+    def _configure(self, link: _PeakLink) -> None:
+        """Put the camera in the configured state and read back what it took."""
+        # A previous controller (or a crashed daemon) may have left it acquiring, with the
+        # transport parameters (the image format) locked.
+        with contextlib.suppress(DeviceError):
+            link.execute("AcquisitionStop")
+        if link.has("TLParamsLocked"):
+            link.set("TLParamsLocked", 0)
+        link.set_enum("PixelFormat", self.pixel_format)
+        region = link.set_region(*self._roi)
+        check_region_read_back(self.id, self._roi, region)
+        selector, source = link.set_trigger(self.trigger_source)
+        if source != self.trigger_source:
+            raise DeviceValueError(self.id, f"TriggerSource reads {source} after setting "
+                                            f"{self.trigger_source}")
+        if link.has("AcquisitionMode"):
+            link.set_enum("AcquisitionMode", "Continuous")
+        for auto in ("ExposureAuto", "GainAuto"):
+            if link.has(auto):
+                link.set_enum(auto, "Off")
+        if link.has("GainSelector") and "AnalogAll" in link.entries("GainSelector"):
+            link.set_enum("GainSelector", "AnalogAll")
+
+        # The rig's policy ranges (the class's) narrowed to what this camera can do.
+        self.exposure_range_us = narrow_range(self.id, "exposure_us",
+                                              type(self).exposure_range_us,
+                                              link.bounds("ExposureTime"), _READBACK_DECIMALS)
+        low, high = link.bounds("Gain")
+        self.gain_range_db = narrow_range(self.id, "gain_db", type(self).gain_range_db,
+                                          (factor_to_db(low), factor_to_db(high)),
+                                          _READBACK_DECIMALS)
+        # Settings asked for before (a reopen after a power cycle restores them).
+        self._device_exposure_us = self._set_exposure(
+            link, clamp(self._exposure_us, self.exposure_range_us))
+        self._device_gain_db = self._set_gain(link, clamp(self._gain_db, self.gain_range_db))
+
+        self.width, self.height = region[2], region[3]
+        self.bit_depth = MONO_PIXEL_FORMATS[self.pixel_format]
+        frame_rate = (float(link.get("AcquisitionFrameRate"))
+                      if link.has("AcquisitionFrameRate") else None)
+        self._info = {"model": link.model, "serial_number": link.serial_number,
+                      "offset_x": region[0], "offset_y": region[1],
+                      "trigger_selector": selector, "acquisition_frame_rate_hz": frame_rate}
+
+    @staticmethod
+    def _set_exposure(link: _PeakLink, value: float) -> float:
+        return round(float(link.set("ExposureTime", value)), _READBACK_DECIMALS)
+
+    @staticmethod
+    def _set_gain(link: _PeakLink, value_db: float) -> float:
+        factor = float(link.set("Gain", db_to_factor(value_db)))
+        return round(factor_to_db(factor), _READBACK_DECIMALS)
+
+    def _do_close(self) -> None:
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.stop()
+        link, self._link = self._link, None
+        self._frames.clear()
+        if link is None:
+            return
+        if self._frames.lost is None:
+            try:
+                link.stop()
+            except DeviceError as exc:
+                _log.warning("camera %s: stopping acquisition: %s", self.id, exc)
+        link.release()
+
+    def _apply_exposure_us(self, value: float) -> None:
+        link = self._live_link()
+        self._device_exposure_us = self._frames.guarded(lambda: self._set_exposure(link, value))
+
+    def _apply_gain_db(self, value: float) -> None:
+        link = self._live_link()
+        self._device_gain_db = self._frames.guarded(lambda: self._set_gain(link, value))
+
+    def _read_frame(self, timeout_s: float) -> Frame:
+        return self._frames.pop(timeout_s)
+
+    def describe(self) -> dict[str, object]:
+        info: dict[str, object] = {**super().describe(), "serial": self.serial,
+                                   "pixel_format": self.pixel_format,
+                                   "trigger_source": self.trigger_source,
+                                   "dropped_frames": self.dropped_frames}
+        if self.is_open:
+            info["connected"] = self._frames.lost is None
+            info["clock_offset_ns"] = self._frames.clock_offset_ns
+            info.update(self._info)
+        return info
+
+    # --- the acquisition thread -------------------------------------------------------------
+
+    def _step(self, link: _PeakLink, frames: FrameQueue) -> None:
+        """Wait for one buffer (or none) and account for it."""
+        buffer = link.wait(_POLL_S, self.bit_depth, self._clock.now_ns)
+        if buffer is None:
+            return
+        if buffer.incomplete:
+            _log.warning("camera %s: incomplete frame id %d dropped", self.id, buffer.frame_id)
+            self._gaps.incomplete()
+            frames.count_dropped()
+            return
+        lost_whole = self._gaps.whole(buffer.frame_id)
+        if lost_whole:
+            _log.warning("camera %s: %d frame(s) lost whole before frame id %d", self.id,
+                         lost_whole, buffer.frame_id)
+            frames.count_dropped(lost_whole)
+        if buffer.image is None or buffer.image.shape != (self.height, self.width):
+            _log.warning("camera %s: frame id %d is not a %dx%d %s image", self.id,
+                         buffer.frame_id, self.width, self.height, self.pixel_format)
+            frames.count_dropped()
+            return
+        frames.push(buffer.image, arrived_ns=buffer.arrived_ns,
+                    device_timestamp_ns=buffer.timestamp_ns,
+                    exposure_us=self._device_exposure_us, gain_db=self._device_gain_db,
+                    bit_depth=self.bit_depth, extra={"frame_id": buffer.frame_id})
+
+    def _live_link(self) -> _PeakLink:
+        """The open link, or DeviceDisconnectedError once the camera is known to be gone."""
+        self._require_open()
+        self._frames.check_connected()
+        link = self._link
+        assert link is not None  # open implies a link
+        return link
