@@ -22,6 +22,7 @@ ROOMS: dict[str, Path | None] = {
     "wide": ROOT / "examples" / "rooms" / "wide.toml",
     "horizontal": ROOT / "examples" / "rooms" / "horizontal.toml",
     "blind": ROOT / "examples" / "rooms" / "blind.toml",
+    "single": ROOT / "examples" / "rooms" / "single.toml",
 }
 
 
@@ -38,8 +39,11 @@ def calibrate_room(name: str, base: Path) -> tuple[Path, Path]:
 
 
 # What a calibration of the simulated room is made from: a change to any of it makes a new one.
-_CALIBRATION_SOURCES = ("calibration", "hardware", "pipeline", "core", "io", "commands",
-                        "cli.py", "config.py")
+# Not the real devices' drivers and emulators (hardware/drivers, hardware/emulators, the
+# discovery): they take no part in it.
+_CALIBRATION_SOURCES = ("calibration", "hardware/sim", "hardware/base.py", "hardware/rig.py",
+                        "hardware/registry.py", "hardware/room.py", "hardware/bundling.py",
+                        "pipeline", "core", "io", "commands", "cli.py", "config.py")
 
 _CACHE: dict[str, tuple[Path, Path]] = {}
 

@@ -181,7 +181,7 @@ def test_a_window_of_the_images_reconstructs_the_same_points(
         at = (row + y0) * width + (col + x0)
         # Away from the window's border (the band-pass's reach, two periods), every point the
         # window gives is the whole image's point at the same pixel.
-        margin = 2 * cam.border_px
+        margin = 2 * math.ceil(cam.carrier.period_px)
         inner = ((row >= margin) & (row < y1 - y0 - margin) & (col >= margin)
                  & (col < x1 - x0 - margin))
         common, in_full, in_part = np.intersect1d(full.pixels, at[inner], return_indices=True)

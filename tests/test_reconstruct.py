@@ -38,12 +38,31 @@ SCENES: dict[str, SceneSpec] = {
     # range (at Z = −9 they reached −14 mm, beyond what any order can be checked for).
     "eye_phantom_2": SceneSpec(kind="eye_phantom_2", position_mm=(1.5, 0.5, -5.0),
                                rotation_deg=(8.0, -6.0, 0.0)),
+    "eye": SceneSpec(kind="eye"),  # a patient's eye, lids and skin about it
 }
 CASES = [pytest.param("default", name) for name in SCENES] + [
     pytest.param("wide", "plate_+3"), pytest.param("wide", "pyramid"),
-    pytest.param("wide", "eye_phantom_2"),
+    pytest.param("wide", "eye_phantom_2"), pytest.param("wide", "eye"),
     # Horizontal fringes, one unit, 12-bit cameras: the pipeline assumes no fringe direction.
-    pytest.param("horizontal", "plate_+3"), pytest.param("horizontal", "pyramid")]
+    pytest.param("horizontal", "plate_+3"), pytest.param("horizontal", "pyramid"),
+    pytest.param("horizontal", "eye"),
+    # Unbinned 1280×1024 10-bit cameras: twice the pixels per millimetre.
+    pytest.param("single", "plate_+3"), pytest.param("single", "eye")]
+
+PLANES = {"plate_0", "plate_-9", "plate_+3", "plate_+23", "tilted"}
+SHORT_OF_THE_GOAL = {
+    ("default", "plate_+23"): 0.67,    # S1 0.69: the top band S2 does not see at +23 mm
+    ("default", "tilted"): 0.70,       # S1 0.72: the corners S2 does not see
+    ("wide", "plate_+3"): 0.78,        # S4 0.799
+    ("horizontal", "plate_+3"): 0.76,  # S2 0.783
+    ("default", "eye_phantom_2"): 0.53,  # 0.55-0.57
+    ("wide", "eye_phantom_2"): 0.53,     # 0.56-0.58
+    ("horizontal", "eye"): 0.58,         # S2 0.598
+}
+"""Issue 37's coverage goals are shares of the pixels the unit's projector lights (the truth's
+count, :func:`~eyeserver.hardware.sim.scoring.score_cloud`'s ``lit_share``): 0.8 on planes,
+0.6 on every other shape. Where a case falls short (docs/notes/fringe-order.md), what it reaches
+stands in as a guard against losing more, not as the goal."""
 
 
 def _measure(calibrated_rooms: Any, room: str, scene: str, tmp_path: Path,
@@ -73,8 +92,9 @@ def test_scene_matches_its_exact_surface(calibrated_rooms: Any, room: str, scene
     assert score["median_mm"] < 0.05, score  # docs/design.md §6: goal 0.15 mm, next 0.05
     assert score["rmse_mm"] < 0.15, score  # the goal of docs/design.md §6
     assert score["beyond_1mm"] < 0.001, score
+    least = SHORT_OF_THE_GOAL.get((room, scene), 0.8 if scene in PLANES else 0.6)
     for camera_id, coverage in score["coverage"].items():
-        assert coverage["share"] > 0.4, (camera_id, score)
+        assert coverage["lit_share"] >= least, (camera_id, score)
 
 
 @pytest.mark.slow

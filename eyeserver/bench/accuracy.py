@@ -324,6 +324,7 @@ def run(config: RoomConfig, *, quick: bool = False, seed: int = 0, out: Path | N
                     ids = cameras or [c.id for u in config.units for c in u.cameras]
                     score = score_cloud(truth, cloud, config)
                     coverage = [c["share"] for c in score["coverage"].values()]
+                    lit = [c["lit_share"] for c in score["coverage"].values()]
                     if view == "4view" and method == "multi-view":
                         seam.extend(seam_distances(truth, cloud, config).tolist())
                         if case.spec.kind == "eye_phantom_1" and not maps:
@@ -333,6 +334,7 @@ def run(config: RoomConfig, *, quick: bool = False, seed: int = 0, out: Path | N
                         "points": score["points"], "median_mm": score["median_mm"],
                         "rmse_mm": score["rmse_mm"], "beyond_1mm": score["beyond_1mm"],
                         "coverage": float(np.mean(coverage)) if coverage else 0.0,
+                        "lit_coverage": float(np.mean(lit)) if lit else 0.0,
                         "by_surface": score_by_surface(truth, cloud),
                         "reconstruct_s": seconds,
                         "icp_rmse_mm": icp_rmse(truth, cloud, room, ids) if len(cloud)
@@ -363,9 +365,9 @@ def run(config: RoomConfig, *, quick: bool = False, seed: int = 0, out: Path | N
         rows = [m for m in measurements if m["views"].startswith(kind) and m["method"] == method]
         for key, field in (("surface_median", "median_mm"), ("surface_rmse", "rmse_mm"),
                            ("icp_rmse", "icp_rmse_mm"), ("coverage", "coverage"),
-                           ("beyond_1mm", "beyond_1mm")):
+                           ("lit_coverage", "lit_coverage"), ("beyond_1mm", "beyond_1mm")):
             values = np.asarray([m[field] for m in rows], dtype=np.float64)
-            unit = "_fraction" if key in ("coverage", "beyond_1mm") else "_mm"
+            unit = "_fraction" if key in ("coverage", "lit_coverage", "beyond_1mm") else "_mm"
             name = f"{key}_{prefix}{unit}" if prefix != "spatial_4view" else \
                 f"spatial_{key}_4view{unit}"
             report[name] = float(np.nanmedian(values)) if len(values) else None
@@ -458,7 +460,9 @@ def format_text(report: dict[str, Any]) -> str:
             ("share beyond 1 mm", "beyond_1mm_4view_fraction",
              "spatial_beyond_1mm_4view_fraction", 100.0, " %"),
             ("coverage of the pixels seeing the scene", "coverage_4view_fraction",
-             "spatial_coverage_4view_fraction", 100.0, " %")):
+             "spatial_coverage_4view_fraction", 100.0, " %"),
+            ("coverage of the pixels the projector lights", "lit_coverage_4view_fraction",
+             "spatial_lit_coverage_4view_fraction", 100.0, " %")):
         if report.get(fast) is not None and report.get(robust) is not None:
             lines.append(f"  {label:<42}{scale * report[fast]:>9.3f}{unit:<4}"
                          f"{scale * report[robust]:>9.3f}{unit}")
@@ -473,11 +477,12 @@ def format_text(report: dict[str, Any]) -> str:
     lines.append(f"{report['4view_measurements']} 4-view and {report['2view_measurements']} "
                  "2-view reconstructions of the phantoms:")
     lines.append(f"  {'case':<18}{'views':<13}{'method':<11}{'points':>8}{'median':>8}"
-                 f"{'RMSE':>8}{'ICP RMSE':>9}{'>1 mm':>7}{'cover':>7}{'s':>6}")
+                 f"{'RMSE':>8}{'ICP RMSE':>9}{'>1 mm':>7}{'cover':>7}{'lit':>7}{'s':>6}")
     for m in report["measurements"]:
         lines.append(f"  {m['case']:<18}{m['views']:<13}{m['method']:<11}{m['points']:>8}"
                      f"{m['median_mm']:>8.4f}{m['rmse_mm']:>8.4f}{m['icp_rmse_mm']:>9.4f}"
                      f"{100 * m['beyond_1mm']:>6.2f}%{100 * m['coverage']:>6.1f}%"
+                     f"{100 * m['lit_coverage']:>6.1f}%"
                      f"{m['reconstruct_s']:>6.2f}")
     for key, why in report["pending"].items():
         lines.append(f"pending {key}: {why}")

@@ -925,11 +925,13 @@ def phase_difference(wrapped_object: npt.ArrayLike, wrapped_reference: npt.Array
     return np.asarray(difference, dtype=np.float32)
 
 
-def border_mask(shape: tuple[int, ...], margin: int) -> npt.NDArray[np.bool_]:
+def border_mask(shape: tuple[int, ...], margin: int | tuple[int, int]) -> npt.NDArray[np.bool_]:
     """True except within ``margin`` pixels of the image border, where the FTM's phase is least
-    trustworthy (about a fringe period, docs/design.md §4 step 1)."""
-    if margin < 0:
+    trustworthy (about a fringe period, docs/design.md §4 step 1); ``(rows, columns)``: a margin
+    of its own at the top and bottom and at the sides."""
+    rows, columns = (margin, margin) if isinstance(margin, int) else margin
+    if rows < 0 or columns < 0:
         raise ValueError(f"margin must not be negative, not {margin}")
     mask = np.zeros(shape[:2], dtype=bool)
-    mask[margin:shape[0] - margin, margin:shape[1] - margin] = True
+    mask[rows:shape[0] - rows, columns:shape[1] - columns] = True
     return mask

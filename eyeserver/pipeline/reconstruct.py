@@ -93,7 +93,14 @@ extra candidate is one more chance for a wrong order to match the other camera (
 fifth of an eye phantom's points), and a surface beyond the range has no checked margin
 anyway: it is outside the volume the rig was calibrated for (its points may be wrong)."""
 EDGE_EROSION_PERIODS = 0.5
-"""The mask is eroded by this share of a fringe period around every edge."""
+"""The mask is eroded by this share of a fringe period around every edge of the fringe field
+(not at the image's frame, whose own margin is :data:`BORDER_PERIODS`)."""
+BORDER_ACROSS_PERIODS = 0.5
+"""The image's frame masked at the two sides the fringes run into, in fringe periods (the other
+two, across which the carrier runs, keep :attr:`CalibratedCamera.border_px`, a whole period).
+The demodulation continues the image beyond the frame along the fringes, exactly for straight
+ones, and across them by whole periods, which bent fringes make an extrapolation
+(:mod:`~eyeserver.pipeline.demodulate`): measured in docs/notes/fringe-order.md."""
 SPECKLE_PX = 1000
 """Patches of continuous depth smaller than this (≈ 10 mm² on the default rig) are dropped: a
 wrong fringe order that slipped through every check shows as an island a fringe's depth (≈ 5 mm)
@@ -183,6 +190,8 @@ class CalibratedCamera:
     carrier: Carrier
     reference_phase: F32
     border_px: int
+    """The image's frame masked across the carrier, pixels (a fringe period; along the fringes
+    :data:`BORDER_ACROSS_PERIODS` of one)."""
     strong_modulation: float | None = None
     """The modulation of the image's strong fringes the mask's threshold is relative to
     (:data:`MODULATION_FRACTION`); None: each image's own 95th percentile. A window of an image
@@ -574,20 +583,26 @@ def camera_phase(camera: CalibratedCamera, image: npt.ArrayLike,
     dphi = phase_difference(result.surface_phase(), camera.reference_phase)
     strong = (fringe_strength(result.modulation) if camera.strong_modulation is None
               else camera.strong_modulation)
-    b = camera.border_px
-    valid = (result.modulation > MODULATION_FRACTION * strong) & border_mask(dphi.shape, b)
+    period = math.ceil(camera.carrier.period_px)
+    valid = result.modulation > MODULATION_FRACTION * strong
     if saturation_dn is not None:
         saturated = (pixels >= SATURATION_FRACTION * saturation_dn).astype(np.float32)
         if saturated.any():
             # Clipping a fringe's crests keeps it symmetric about them, so its phase survives
             # light saturation; only where most of a period is clipped is the fringe lost.
-            share = cv2.blur(saturated, (b, b))
+            share = cv2.blur(saturated, (period, period))
             valid &= share < SATURATED_SHARE
     # The band-pass spreads every edge of the fringe field (an object's outline, a shadow, the
-    # end of the plate) over about a period: erode the mask by half a period on each side.
-    half = max(1, round(EDGE_EROSION_PERIODS * b))
+    # end of the plate) over about a period: erode the mask by half a period on each side. The
+    # image's frame is no such edge (the image is continued beyond it): cv2.erode takes what
+    # lies outside the image as valid, and the frame's own margin is cut after.
+    half = max(1, round(EDGE_EROSION_PERIODS * period))
     eroded = cv2.erode(valid.astype(np.uint8), np.ones((2 * half + 1, 2 * half + 1), np.uint8))
-    return Phase(dphi=dphi, modulation=result.modulation, valid=np.asarray(eroded, dtype=bool),
+    across = math.ceil(BORDER_ACROSS_PERIODS * camera.carrier.period_px)
+    fy, fx = camera.carrier.frequency
+    margins = (camera.border_px, across) if abs(fy) >= abs(fx) else (across, camera.border_px)
+    valid = np.asarray(eroded, dtype=bool) & border_mask(dphi.shape, margins)
+    return Phase(dphi=dphi, modulation=result.modulation, valid=valid,
                  bend_bias=result.bend_bias)
 
 

@@ -210,6 +210,15 @@ class Renderer:
                   for pid in projectors}
         return Components(ambient=ambient, fringe=fringe)
 
+    def lit_pixels(self, camera_id: str, scene: Scene, projector_id: str) -> npt.NDArray[np.bool_]:
+        """Per pixel ``(height, width)``, whether the ray through its centre meets ``scene`` where
+        projector ``projector_id`` lights it (inside its field, not shadowed, facing it): the
+        pixels that can show that projector's fringe, the truth's denominator of a
+        reconstruction's coverage, whatever the pipeline's own fringe mask decides."""
+        cam = self.cameras[camera_id]
+        shading = self._shade(cam, scene, cam.rays().reshape(-1, 3), projector_id)
+        return shading.lit.reshape(cam.config.height, cam.config.width)
+
     def _source(self, camera_id: str, scene: Scene, s: int, source: str,
                 cache_key: str | None) -> F32:
         key = (camera_id, source, f"{cache_key}|{s}") if cache_key is not None else None

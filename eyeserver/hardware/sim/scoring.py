@@ -17,9 +17,12 @@ def score_cloud(truth: dict[str, Any], cloud: PointCloud, room: RoomConfig,
                 camera_ids: list[str] | None = None) -> dict[str, Any]:
     """Distances of ``cloud`` to the exact surface of ``truth``'s scene, and coverage per camera.
 
-    Coverage of a camera is its points over the pixels whose ray meets the scene (the most it
-    could reconstruct, before shadows and masks). ``camera_ids`` maps the cloud's camera
-    indices to ids (default: the room's cameras in order, as the rig file lists them).
+    Coverage of a camera is its points over the pixels whose ray meets the scene (``share``:
+    the most it could reconstruct, before shadows and masks) and over the pixels its unit's
+    projector lights there (``lit_share``: the pixels that can show a fringe, from the truth,
+    not from the pipeline's mask; issue 37's coverage goals count these). ``camera_ids`` maps
+    the cloud's camera indices to ids (default: the room's cameras in order, as the rig file
+    lists them).
     """
     built = build_scene(truth_scene(truth), float(truth.get("t_s", 0.0)))
     points = cloud.points.astype(np.float64)
@@ -27,14 +30,19 @@ def score_cloud(truth: dict[str, Any], cloud: PointCloud, room: RoomConfig,
     sim = SimRoom(room)
     ids = camera_ids if camera_ids is not None else sim.camera_ids()
     coverage: dict[str, Any] = {}
+    projector_of = {camera: projector for _, projector, cameras in sim.units()
+                    for camera in cameras}
     if cloud.camera is not None:
         for index in np.unique(cloud.camera):
             camera_id = ids[int(index)]
             cam = sim.renderer.cameras[camera_id]
             seen = int(np.isfinite(built.scene.cast(cam.centre,
                                                     cam.rays().reshape(-1, 3)).t).sum())
+            lit = int(sim.renderer.lit_pixels(camera_id, built.scene,
+                                              projector_of[camera_id]).sum())
             count = int(np.sum(cloud.camera == index))
-            coverage[camera_id] = {"points": count, "share": count / max(seen, 1)}
+            coverage[camera_id] = {"points": count, "share": count / max(seen, 1),
+                                   "lit_pixels": lit, "lit_share": count / max(lit, 1)}
     return {
         "scene": built.scene.labels[0] if built.scene.labels else "empty",
         "points": len(points),
