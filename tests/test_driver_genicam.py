@@ -32,7 +32,7 @@ from eyeserver.errors import (
     DeviceTimeoutError,
     DeviceValueError,
 )
-from eyeserver.hardware.drivers import genicam
+from eyeserver.hardware.drivers import camerathread, genicam
 from eyeserver.hardware.drivers.genicam import GenicamCamera, image_from_payload
 from eyeserver.hardware.emulators.fakegv import FakeGigECamera, find_fake_camera_program
 from eyeserver.hardware.registry import DriverContext, create_device, driver_class
@@ -406,4 +406,4 @@ def test_image_from_payload() -> None:
     (500, 3, 0),  # the camera restarted its count: nothing to tell
 ])
 def test_skipped_block_ids(last: int, new: int, skipped: int) -> None:
-    assert genicam._skipped_block_ids(last, new) == skipped
+    assert camerathread.skipped_frame_ids(last, new) == skipped

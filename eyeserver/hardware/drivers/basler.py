@@ -68,7 +68,6 @@ from typing import Any, Final, TypeVar
 
 import numpy as np
 
-from eyeserver.core.frames import Frame
 from eyeserver.core.types import Image
 from eyeserver.errors import (
     DeviceDisconnectedError,
@@ -76,16 +75,11 @@ from eyeserver.errors import (
     DeviceTimeoutError,
     DeviceValueError,
 )
-from eyeserver.hardware.base import Camera
 from eyeserver.hardware.drivers.camerathread import (
     MONO_PIXEL_FORMATS,
-    AcquisitionThread,
-    FrameIdGaps,
     FrameQueue,
-    check_region,
+    StreamingCamera,
     check_region_read_back,
-    clamp,
-    narrow_range,
 )
 from eyeserver.hardware.registry import DriverContext, register_driver
 
@@ -355,6 +349,10 @@ class _PylonLink:
 
         self._call("starting to grab", start)
 
+    def stop(self) -> None:
+        """Stop grabbing."""
+        self._call("stopping the grab", self._camera.StopGrabbing)
+
     def software_trigger(self) -> None:
         """Execute TriggerSoftware once the camera can take a trigger (an emulated or real
         camera ignores one that comes while it is still busy with the last frame)."""
@@ -424,7 +422,7 @@ class _PylonLink:
 
 
 @register_driver("camera", "BaslerCamera")
-class BaslerCamera(Camera):
+class BaslerCamera(StreamingCamera[_PylonLink]):
     """A Basler camera through pylon, hardware-triggered.
 
     Parameters
@@ -473,105 +471,32 @@ class BaslerCamera(Camera):
                  offset_x: int = 0, offset_y: int = 0, width: int | None = None,
                  height: int | None = None, queue_size: int = 8,
                  device_class: str | None = None, test_image: str | None = None) -> None:
-        if pixel_format not in MONO_PIXEL_FORMATS:
-            raise ValueError(f"pixel_format must be one of {', '.join(MONO_PIXEL_FORMATS)}, "
-                             f"not {pixel_format!r}")
         if not serial:
             raise ValueError("serial must name the camera (serial number or user id)")
-        if not trigger_source:
-            raise ValueError("trigger_source must name one of the camera's TriggerSource values")
-        check_region(offset_x, offset_y, width, height)
-        if queue_size < 1:
-            raise ValueError(f"queue_size must be at least 1, not {queue_size}")
         if device_class is not None and not device_class:
             raise ValueError("device_class must name a pylon transport layer, or be None")
         if test_image is not None and (not test_image or test_image == "Off"):
             raise ValueError("test_image must name a test image; None turns it off")
-        super().__init__(device_id, width or 1, height or 1, MONO_PIXEL_FORMATS[pixel_format])
-        self._clock = context.clock
+        super().__init__(device_id, clock=context.clock, pixel_format=pixel_format,
+                         trigger_source=trigger_source, offset_x=offset_x, offset_y=offset_y,
+                         width=width, height=height, queue_size=queue_size)
         self.serial = serial
-        self.pixel_format = pixel_format
-        self.trigger_source = trigger_source
         self.device_class = device_class
         self.test_image = test_image
-        self._roi = (int(offset_x), int(offset_y), width, height)
-        self._queue_size = int(queue_size)
-        self._link: _PylonLink | None = None
-        self._frames = FrameQueue(device_id, self._queue_size)
-        self._thread: AcquisitionThread | None = None
-        self._gaps = FrameIdGaps()
         self._pixel_type = 0
         self._tick_frequency_hz = _NANOSECONDS_PER_SECOND
         self._exposure_feature = "ExposureTime"
         self._gain_feature = "Gain"
-        self._device_exposure_us = self._exposure_us
-        self._device_gain_db = self._gain_db
-        self._info: dict[str, object] = {}
 
-    # --- what the camera reports ------------------------------------------------------------
+    def describe(self) -> dict[str, object]:
+        return {**super().describe(), "serial": self.serial, "device_class": self.device_class}
 
-    @property
-    def exposure_us(self) -> float:
-        """Exposure time as the camera reports it after the last setting, microseconds (the
-        value asked for until the first ``open()``)."""
-        return self._device_exposure_us
+    # --- StreamingCamera hooks --------------------------------------------------------------
 
-    @property
-    def gain_db(self) -> float:
-        """Gain as the camera reports it after the last setting: decibels where the camera has
-        ``Gain`` or ``GainAbs``; a camera with only ``GainRaw`` reports its own units
-        (``describe()`` says which)."""
-        return self._device_gain_db
-
-    @property
-    def dropped_frames(self) -> int:
-        """Frames lost since :meth:`open`: failed grabs, block ids skipped, a full queue."""
-        return self._frames.dropped
-
-    @property
-    def clock_offset_ns(self) -> int | None:
-        """Rig clock minus camera clock, nanoseconds, fixed on the first stamped frame after
-        :meth:`open` (None before it, and for a camera that stamps none)."""
-        return self._frames.clock_offset_ns
-
-    def software_trigger(self) -> None:
-        """Expose one frame now (TriggerSoftware); only with ``trigger_source="Software"``.
-
-        Raises
-        ------
-        DeviceValueError
-            When the camera is triggered from another source.
-        DeviceTimeoutError
-            When the camera is not ready for a trigger within a second.
-        DeviceDisconnectedError
-            When the camera is gone.
-        """
-        link = self._live_link()
-        if self.trigger_source != "Software":
-            raise DeviceValueError(self.id, f"software_trigger() needs trigger_source "
-                                            f"'Software', not {self.trigger_source!r}")
-        self._frames.guarded(link.software_trigger)
-
-    # --- Device and Camera hooks ------------------------------------------------------------
-
-    def _do_open(self) -> None:
-        link = _PylonLink(self.id, self.serial, self.device_class)
-        frames = FrameQueue(self.id, self._queue_size)
-        try:
-            self._configure(link)
-            link.start(n_buffers=max(4, self._queue_size))
-        except BaseException:
-            link.release()
-            raise
-        self._link = link
-        self._frames = frames
-        self._gaps = FrameIdGaps()
-        self._thread = AcquisitionThread(f"basler-{self.id}", frames,
-                                         lambda: self._step(link, frames))
-        self._thread.start()
+    def _connect(self) -> _PylonLink:
+        return _PylonLink(self.id, self.serial, self.device_class)
 
     def _configure(self, link: _PylonLink) -> None:
-        """Put the camera in the configured state and read back what it took."""
         identity = link.identity()
         test_image = self._configure_test_image(link)
         offered = link.entries("PixelFormat")
@@ -606,17 +531,8 @@ class BaslerCamera(Camera):
             (name for name in ("Gain", "GainAbs", "GainRaw") if link.has(name)), "")
         if not self._gain_feature:
             raise DeviceValueError(self.id, "the camera has no Gain, GainAbs or GainRaw")
-        # The rig's policy ranges (the class's) narrowed to what this camera can do.
-        self.exposure_range_us = narrow_range(self.id, "exposure_us",
-                                              type(self).exposure_range_us,
-                                              link.bounds(self._exposure_feature),
-                                              _READBACK_DECIMALS)
-        self.gain_range_db = narrow_range(self.id, "gain_db", type(self).gain_range_db,
-                                          link.bounds(self._gain_feature), _READBACK_DECIMALS)
-        # Settings asked for before (a reopen after a power cycle restores them).
-        self._device_exposure_us = self._set_exposure(
-            link, clamp(self._exposure_us, self.exposure_range_us))
-        self._device_gain_db = self._set_gain(link, clamp(self._gain_db, self.gain_range_db))
+        self._restore_exposure_and_gain(link, link.bounds(self._exposure_feature),
+                                        link.bounds(self._gain_feature), _READBACK_DECIMALS)
         self._tick_frequency_hz = link.tick_frequency_hz()
 
         self.width, self.height = region[2], region[3]
@@ -637,45 +553,13 @@ class BaslerCamera(Camera):
             return None
         return link.set_enum(feature, self.test_image or "Off")
 
-    def _set_exposure(self, link: _PylonLink, value: float) -> float:
-        return _readback(link.set(self._exposure_feature, value))
+    def _set_exposure(self, link: _PylonLink, value_us: float) -> float:
+        return _readback(link.set(self._exposure_feature, value_us))
 
-    def _set_gain(self, link: _PylonLink, value: float) -> float:
+    def _set_gain(self, link: _PylonLink, value_db: float) -> float:
         if self._gain_feature == "GainRaw":  # an integer register, in the camera's own units
-            return _readback(link.set("GainRaw", round(value)))
-        return _readback(link.set(self._gain_feature, value))
-
-    def _do_close(self) -> None:
-        thread, self._thread = self._thread, None
-        if thread is not None:
-            thread.stop()
-        link, self._link = self._link, None
-        self._frames.clear()
-        if link is not None:
-            link.release()
-
-    def _apply_exposure_us(self, value: float) -> None:
-        link = self._live_link()
-        self._device_exposure_us = self._frames.guarded(lambda: self._set_exposure(link, value))
-
-    def _apply_gain_db(self, value: float) -> None:
-        link = self._live_link()
-        self._device_gain_db = self._frames.guarded(lambda: self._set_gain(link, value))
-
-    def _read_frame(self, timeout_s: float) -> Frame:
-        return self._frames.pop(timeout_s)
-
-    def describe(self) -> dict[str, object]:
-        info: dict[str, object] = {**super().describe(), "serial": self.serial,
-                                   "device_class": self.device_class,
-                                   "pixel_format": self.pixel_format,
-                                   "trigger_source": self.trigger_source,
-                                   "dropped_frames": self.dropped_frames}
-        if self.is_open:
-            info["connected"] = self._frames.lost is None
-            info["clock_offset_ns"] = self._frames.clock_offset_ns
-            info.update(self._info)
-        return info
+            return _readback(link.set("GainRaw", round(value_db)))
+        return _readback(link.set(self._gain_feature, value_db))
 
     # --- the acquisition thread -------------------------------------------------------------
 
@@ -684,35 +568,19 @@ class BaslerCamera(Camera):
         grab = link.retrieve(_POLL_S, self._clock.now_ns)
         if grab is None:
             return
+        image = grab.image
         if not grab.succeeded:
             _log.warning("camera %s: grab of block %d failed: %s", self.id, grab.block_id,
                          grab.error)
-            self._gaps.incomplete()
-            frames.count_dropped()
-            return
-        lost_whole = self._gaps.whole(grab.block_id)
-        if lost_whole:
-            _log.warning("camera %s: %d frame(s) lost whole before block %d", self.id,
-                         lost_whole, grab.block_id)
-            frames.count_dropped(lost_whole)
-        if grab.image is None or (grab.width, grab.height, grab.pixel_type) != (
-                self.width, self.height, self._pixel_type) or grab.image.shape != (
+        elif image is None or (grab.width, grab.height, grab.pixel_type) != (
+                self.width, self.height, self._pixel_type) or image.shape != (
                 self.height, self.width):
             _log.warning("camera %s: block %d is %dx%d pixel type 0x%08x, not the %dx%d %s "
                          "configured", self.id, grab.block_id, grab.width, grab.height,
                          grab.pixel_type, self.width, self.height, self.pixel_format)
-            frames.count_dropped()
-            return
-        frames.push(grab.image, arrived_ns=grab.arrived_ns,
-                    device_timestamp_ns=ticks_to_ns(grab.timestamp_ticks,
-                                                    self._tick_frequency_hz),
-                    exposure_us=self._device_exposure_us, gain_db=self._device_gain_db,
-                    bit_depth=self.bit_depth, extra={"block_id": grab.block_id})
-
-    def _live_link(self) -> _PylonLink:
-        """The open link, or DeviceDisconnectedError once the camera is known to be gone."""
-        self._require_open()
-        self._frames.check_connected()
-        link = self._link
-        assert link is not None  # open implies a link
-        return link
+            image = None
+        self._deliver(frames, grab.block_id, image, whole=grab.succeeded,
+                      arrived_ns=grab.arrived_ns,
+                      device_timestamp_ns=ticks_to_ns(grab.timestamp_ticks,
+                                                      self._tick_frequency_hz),
+                      extra={"block_id": grab.block_id})

@@ -5,12 +5,20 @@ one acquisition thread that takes buffers from its SDK and a reader waiting in
 :meth:`~eyeserver.hardware.base.Camera.read_frame`. Only the SDK calls differ; this module holds
 the rest, once:
 
+:class:`StreamingCamera`
+    The :class:`~eyeserver.hardware.base.Camera` those drivers derive from: their options common
+    to all (pixel format, trigger source, region of interest, queue size), ``open()`` and
+    ``close()`` around the driver's link to its SDK (:class:`CameraLink`), settings read back
+    from the camera, the software trigger, ``read_frame()``, ``describe()``, and the accounting
+    of each buffer the acquisition thread takes. A driver supplies the SDK's side through a
+    handful of hooks.
 :class:`FrameQueue`
     One open session of a camera: the bounded queue of frames between the thread and the reader,
     the frame and dropped-frame counts that go into every :class:`~eyeserver.core.frames.FrameMeta`,
     the mapping of device timestamps onto the rig clock (:class:`ClockMapping`), and whether the
-    camera is known to be gone. A driver makes a new one at each ``open()``, so news about an
-    earlier session (a late SDK callback) lands in that session's queue and changes nothing.
+    camera is known to be gone. :class:`StreamingCamera` makes a new one at each ``open()``, so
+    news about an earlier session (a late SDK callback) lands in that session's queue and
+    changes nothing.
 :class:`FrameIdGaps`
     Frames lost whole, told by gaps in the transport's frame ids between whole frames.
 :class:`AcquisitionThread`
@@ -18,8 +26,9 @@ the rest, once:
     :class:`~eyeserver.errors.DeviceDisconnectedError` (or any other failure, logged) marks the
     session lost, which wakes the reader.
 
-and the small checks the drivers' constructors and ``open()`` share (:data:`MONO_PIXEL_FORMATS`,
-:func:`check_region`, :func:`check_region_read_back`, :func:`narrow_range`, :func:`clamp`).
+and the small checks behind :class:`StreamingCamera` and the drivers' ``open()``
+(:data:`MONO_PIXEL_FORMATS`, :func:`check_region`, :func:`check_region_read_back`,
+:func:`narrow_range`, :func:`clamp`).
 
 Time. A camera stamps each frame with its own clock, taken here as the start of the exposure
 (the SFNC's frame-start latch), in nanoseconds. :class:`ClockMapping` puts it onto the rig clock
@@ -37,24 +46,34 @@ timestamp (0) gets its arrival time minus half its exposure.
 
 from __future__ import annotations
 
+import abc
 import collections
 import logging
 import math
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Final, TypeVar
+from typing import Final, Generic, Protocol, TypeVar
 
+from eyeserver.core.clock import Clock
 from eyeserver.core.frames import Frame, FrameMeta
 from eyeserver.core.types import Image
-from eyeserver.errors import DeviceDisconnectedError, DeviceTimeoutError, DeviceValueError
+from eyeserver.errors import (
+    DeviceDisconnectedError,
+    DeviceError,
+    DeviceTimeoutError,
+    DeviceValueError,
+)
+from eyeserver.hardware.base import Camera
 
 __all__ = [
     "MONO_PIXEL_FORMATS",
     "AcquisitionThread",
+    "CameraLink",
     "ClockMapping",
     "FrameIdGaps",
     "FrameQueue",
+    "StreamingCamera",
     "check_region",
     "check_region_read_back",
     "clamp",
@@ -401,3 +420,296 @@ def narrow_range(device_id: str, name: str, policy: tuple[float, float],
 def clamp(value: float, bounds: tuple[float, float]) -> float:
     """``value`` moved into ``bounds`` (a setting asked for before the range was known)."""
     return min(max(value, bounds[0]), bounds[1])
+
+
+_MIN_BUFFERS: Final[int] = 4
+"""SDK buffers a session streams into at the least (``queue_size`` of them when that is more)."""
+
+
+class CameraLink(Protocol):
+    """What :class:`StreamingCamera` asks of a driver's link to its SDK: one opened camera, the
+    only object that calls the SDK."""
+
+    def start(self, n_buffers: int) -> None:
+        """Start streaming into ``n_buffers`` SDK buffers (each trigger makes one frame)."""
+
+    def stop(self) -> None:
+        """Stop streaming."""
+
+    def software_trigger(self) -> None:
+        """Execute TriggerSoftware."""
+
+    def release(self) -> None:
+        """Let go of the camera and whatever of the SDK the link holds, whatever fails."""
+
+
+LinkT = TypeVar("LinkT", bound=CameraLink)
+"""A driver's link type."""
+
+
+class StreamingCamera(Camera, Generic[LinkT]):
+    """A hardware-triggered camera whose SDK hands buffers to an acquisition thread.
+
+    Parameters
+    ----------
+    device_id : str
+        The camera's id in the rig.
+    clock : Clock
+        The rig clock the frames' times are put on.
+    pixel_format : {"Mono8", "Mono10", "Mono12"}
+        8 bits per pixel, or 10/12 unpacked in 16-bit words.
+    trigger_source : str
+        The camera's TriggerSource for each frame (its trigger input's line), or ``Software`` to
+        expose on :meth:`software_trigger`.
+    offset_x, offset_y : int
+        Top-left corner of the region of interest on the sensor, pixels.
+    width, height : int or None
+        Size of the region of interest, pixels; None for the rest of the sensor from the offset.
+        Until the first ``open()`` the size reads as configured, or 1 when it comes from the
+        sensor.
+    queue_size : int
+        Frames held for :meth:`read_frame`; frames that arrive when it is full are dropped
+        (counted in :attr:`dropped_frames`).
+
+    Notes
+    -----
+    ``open()`` connects (:meth:`_connect`), puts the camera in the configured state
+    (:meth:`_configure`, which ends with :meth:`_restore_exposure_and_gain`), lets the driver
+    watch for the camera going away (:meth:`_watch`), starts streaming into
+    ``max(4, queue_size)`` buffers, and starts an :class:`AcquisitionThread` calling
+    :meth:`_step`, which hands each buffer to :meth:`_deliver`. Each ``open()`` starts a session
+    of its own (a new :class:`FrameQueue` and :class:`FrameIdGaps`). ``close()`` stops the
+    thread, stops streaming unless the camera is known to be gone, and releases the link
+    (:meth:`_release`).
+
+    A frame's ``exposure_us`` and ``gain_db`` are the camera's settings when it arrived, and its
+    ``trigger_index`` the camera's own count of exposures since ``open()``, dropped ones
+    included. Its ``extra`` holds ``device_timestamp_ns`` (camera clock, 0 for none) and what
+    the driver adds. One reader at a time.
+    """
+
+    def __init__(self, device_id: str, *, clock: Clock, pixel_format: str,
+                 trigger_source: str, offset_x: int, offset_y: int, width: int | None,
+                 height: int | None, queue_size: int) -> None:
+        if pixel_format not in MONO_PIXEL_FORMATS:
+            raise ValueError(f"pixel_format must be one of {', '.join(MONO_PIXEL_FORMATS)}, "
+                             f"not {pixel_format!r}")
+        if not trigger_source:
+            raise ValueError("trigger_source must name one of the camera's TriggerSource values")
+        check_region(offset_x, offset_y, width, height)
+        if queue_size < 1:
+            raise ValueError(f"queue_size must be at least 1, not {queue_size}")
+        super().__init__(device_id, width or 1, height or 1, MONO_PIXEL_FORMATS[pixel_format])
+        self._clock = clock
+        self.pixel_format = pixel_format
+        self.trigger_source = trigger_source
+        self._roi = (int(offset_x), int(offset_y), width, height)
+        self._queue_size = int(queue_size)
+        self._link: LinkT | None = None
+        self._frames = FrameQueue(device_id, self._queue_size)
+        self._thread: AcquisitionThread | None = None
+        self._gaps = FrameIdGaps()
+        self._device_exposure_us = self._exposure_us
+        self._device_gain_db = self._gain_db
+        self._info: dict[str, object] = {}
+        """What ``open()`` read from the camera, for ``describe()``."""
+
+    # --- what the camera reports ------------------------------------------------------------
+
+    @property
+    def exposure_us(self) -> float:
+        """Exposure time as the camera reports it after the last setting, microseconds (the
+        value asked for until the first ``open()``)."""
+        return self._device_exposure_us
+
+    @property
+    def gain_db(self) -> float:
+        """Gain as the camera reports it after the last setting, decibels, except where the
+        driver can reach only the camera's ``GainRaw``: its own units then (``describe()``'s
+        ``gain_feature`` says so)."""
+        return self._device_gain_db
+
+    @property
+    def dropped_frames(self) -> int:
+        """Frames lost since :meth:`open`: incomplete or failed buffers, frame ids skipped,
+        frames not of the configured size and format, a full queue."""
+        return self._frames.dropped
+
+    @property
+    def clock_offset_ns(self) -> int | None:
+        """Rig clock minus camera clock, nanoseconds, fixed on the first stamped frame after
+        :meth:`open` (None before it, and for a camera that stamps none):
+        ``t_ns = device_ts + offset + exposure / 2``."""
+        return self._frames.clock_offset_ns
+
+    def software_trigger(self) -> None:
+        """Expose one frame now (TriggerSoftware); only with ``trigger_source="Software"``.
+
+        Raises
+        ------
+        DeviceValueError
+            When the camera is triggered from another source.
+        DeviceTimeoutError
+            When the camera is not ready for a trigger in time (a driver that waits for it).
+        DeviceDisconnectedError
+            When the camera is gone or does not answer.
+        """
+        link = self._live_link()
+        if self.trigger_source != "Software":
+            raise DeviceValueError(self.id, f"software_trigger() needs trigger_source "
+                                            f"'Software', not {self.trigger_source!r}")
+        self._frames.guarded(link.software_trigger)
+
+    def describe(self) -> dict[str, object]:
+        info: dict[str, object] = {**super().describe(), "pixel_format": self.pixel_format,
+                                   "trigger_source": self.trigger_source,
+                                   "dropped_frames": self.dropped_frames}
+        if self.is_open:
+            info["connected"] = self._frames.lost is None
+            info["clock_offset_ns"] = self._frames.clock_offset_ns
+            info.update(self._info)
+        return info
+
+    # --- the driver's hooks -------------------------------------------------------------------
+
+    @abc.abstractmethod
+    def _connect(self) -> LinkT:
+        """Open the camera through the SDK."""
+
+    @abc.abstractmethod
+    def _configure(self, link: LinkT) -> None:
+        """Put the camera in the configured state, read back what it took (setting ``width``,
+        ``height``, ``bit_depth`` and ``_info``), and end with
+        :meth:`_restore_exposure_and_gain`."""
+
+    @abc.abstractmethod
+    def _set_exposure(self, link: LinkT, value_us: float) -> float:
+        """Set the exposure time; return the camera's value, microseconds."""
+
+    @abc.abstractmethod
+    def _set_gain(self, link: LinkT, value_db: float) -> float:
+        """Set the gain; return the camera's value (decibels where it has them)."""
+
+    @abc.abstractmethod
+    def _step(self, link: LinkT, frames: FrameQueue) -> None:
+        """One turn of the acquisition thread: wait a short while (tens of milliseconds) for
+        one buffer of the session ``frames`` and hand it to :meth:`_deliver`."""
+
+    def _watch(self, link: LinkT, frames: FrameQueue) -> None:
+        """Get ready to notice the camera going away in the session ``frames`` (an SDK callback
+        that marks it lost); called after :meth:`_configure`, before streaming starts.
+        Nothing by default."""
+
+    def _release(self, link: LinkT, *, lost: bool) -> None:
+        """Let go of ``link``, after a failed ``open()`` or at ``close()``; ``lost`` says the
+        camera is known to be gone."""
+        link.release()
+
+    # --- Device and Camera hooks ------------------------------------------------------------
+
+    def _do_open(self) -> None:
+        link = self._connect()
+        frames = FrameQueue(self.id, self._queue_size)
+        try:
+            self._configure(link)
+            self._watch(link, frames)
+            link.start(n_buffers=max(_MIN_BUFFERS, self._queue_size))
+        except BaseException as exc:
+            self._release(link, lost=isinstance(exc, DeviceDisconnectedError))
+            raise
+        self._link = link
+        self._frames = frames
+        self._gaps = FrameIdGaps()
+        self._thread = AcquisitionThread(f"{type(self).__name__}-{self.id}", frames,
+                                         lambda: self._step(link, frames))
+        self._thread.start()
+
+    def _do_close(self) -> None:
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.stop()
+        link, self._link = self._link, None
+        self._frames.clear()
+        if link is None:
+            return
+        lost = self._frames.lost is not None
+        if not lost:  # a camera known to be gone is not asked: each call would time out
+            try:
+                link.stop()
+            except DeviceError as exc:
+                _log.warning("camera %s: stopping acquisition: %s", self.id, exc)
+        self._release(link, lost=lost)
+
+    def _apply_exposure_us(self, value: float) -> None:
+        link = self._live_link()
+        self._device_exposure_us = self._frames.guarded(lambda: self._set_exposure(link, value))
+
+    def _apply_gain_db(self, value: float) -> None:
+        link = self._live_link()
+        self._device_gain_db = self._frames.guarded(lambda: self._set_gain(link, value))
+
+    def _read_frame(self, timeout_s: float) -> Frame:
+        return self._frames.pop(timeout_s)
+
+    # --- for the driver -----------------------------------------------------------------------
+
+    def _restore_exposure_and_gain(self, link: LinkT, exposure_bounds_us: tuple[float, float],
+                                   gain_bounds: tuple[float, float],
+                                   decimals: int | None = None) -> None:
+        """Narrow the rig's policy ranges (the class's) to what the camera can do
+        (:func:`narrow_range`, ``decimals`` as there), then set the exposure and gain last asked
+        for within them (a reopen after a power cycle restores them) and keep what the camera
+        took."""
+        self.exposure_range_us = narrow_range(self.id, "exposure_us",
+                                              type(self).exposure_range_us,
+                                              exposure_bounds_us, decimals)
+        self.gain_range_db = narrow_range(self.id, "gain_db", type(self).gain_range_db,
+                                          gain_bounds, decimals)
+        self._device_exposure_us = self._set_exposure(
+            link, clamp(self._exposure_us, self.exposure_range_us))
+        self._device_gain_db = self._set_gain(link, clamp(self._gain_db, self.gain_range_db))
+
+    def _deliver(self, frames: FrameQueue, frame_id: int, image: Image | None, *, whole: bool,
+                 arrived_ns: int, device_timestamp_ns: int,
+                 extra: Mapping[str, object] | None = None) -> None:
+        """Account for one buffer of the session ``frames`` and queue its frame.
+
+        Parameters
+        ----------
+        frames : FrameQueue
+            The session the buffer belongs to.
+        frame_id : int
+            The transport's frame (block) id.
+        image : numpy.ndarray or None
+            The buffer's image, copied out of the SDK's memory; None for a buffer that is not a
+            usable frame of the configured size and format (the driver has logged why).
+        whole : bool
+            False for a buffer the SDK reports incomplete or failed: one dropped frame, whose id
+            is not trusted (:class:`FrameIdGaps`). A whole one's id counts the frames lost whole
+            before it.
+        arrived_ns, device_timestamp_ns, extra
+            As :meth:`FrameQueue.push` takes them.
+        """
+        if not whole:
+            self._gaps.incomplete()
+            frames.count_dropped()
+            return
+        lost_whole = self._gaps.whole(frame_id)
+        if lost_whole:
+            _log.warning("camera %s: %d frame(s) lost whole before frame id %d", self.id,
+                         lost_whole, frame_id)
+            frames.count_dropped(lost_whole)
+        if image is None:
+            frames.count_dropped()
+            return
+        frames.push(image, arrived_ns=arrived_ns, device_timestamp_ns=device_timestamp_ns,
+                    exposure_us=self._device_exposure_us, gain_db=self._device_gain_db,
+                    bit_depth=self.bit_depth, extra=extra)
+
+    def _live_link(self) -> LinkT:
+        """The open link, or DeviceDisconnectedError once the camera is known to be gone."""
+        self._require_open()
+        self._frames.check_connected()
+        link = self._link
+        assert link is not None  # open implies a link
+        return link

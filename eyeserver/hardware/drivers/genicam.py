@@ -21,26 +21,22 @@ last asked for, and the hardware trigger (``TriggerMode On`` for ``FrameStart`` 
 configured ``TriggerSource``), starts acquisition and a thread that pops buffers from the Aravis
 stream (Aravis has no Python stream callback, so the thread polls
 ``ArvStream.timeout_pop_buffer``), copies each complete image out, pushes the buffer back and
-queues the frame for :meth:`~GenicamCamera.read_frame`. A buffer that is not complete (missing
-packets, timed out, wrong size) and every GVSP frame id skipped between two buffers (a frame
-lost whole, or with no free buffer) is a dropped frame: counted in
-:attr:`~GenicamCamera.dropped_frames` and ``describe()``, never returned.
+queues the frame for :meth:`~GenicamCamera.read_frame`; the queue, the thread and the accounting
+are :mod:`~eyeserver.hardware.drivers.camerathread`'s, shared with the other camera drivers. A
+buffer that is not complete (missing packets, timed out, wrong size) and every GVSP frame id
+skipped between two complete buffers (a frame lost whole, or with no free buffer) is a dropped
+frame: counted in :attr:`~GenicamCamera.dropped_frames` and ``describe()``, never returned.
 
 Time. GigE Vision cameras stamp each frame with their own tick counter; Aravis converts the ticks
 to nanoseconds with the camera's ``GevTimestampTickFrequency`` (the tick rate in hertz, shown in
 ``describe()``), so a device timestamp here is nanoseconds on the camera's clock, taken as the
 start of the exposure (the SFNC's frame-start latch). It is put onto the rig clock
-(``context.clock``) with one offset fixed on the first buffer after each ``open()``::
-
-    offset_ns = rig_now_at_first_pop - device_ts_first - exposure_first
-    t_ns      = device_ts + offset_ns + exposure / 2          (mid-exposure, rig clock)
-
-that is, the first frame is taken to have ended its exposure when it was popped. The error of
-that guess (readout, transfer and the poll's latency, a few milliseconds at 640 × 512) is the
-same for every frame of the session, so intervals between frames are the camera's own, to its
-tick. The two clocks drift apart by the camera oscillator's error (tens of ppm) until the next
-``open()``. A camera without timestamps (0 in every buffer) gets ``t_ns`` from the pop time
-minus half the exposure.
+(``context.clock``) with one offset fixed on the first buffer after each ``open()``, as
+:mod:`~eyeserver.hardware.drivers.camerathread` describes: the first frame is taken to have
+ended its exposure when Aravis handed it over. The error of that guess (readout, transfer and
+the poll's latency, a few milliseconds at 640 × 512) is the same for every frame of the session,
+so intervals between frames are the camera's own, to its tick. A camera without timestamps (0
+in every buffer) gets ``t_ns`` from the hand-over time minus half the exposure.
 
 Disconnection. A camera that goes away (power, cable, the fake killed) is noticed three ways:
 Aravis's heartbeat emits ``control-lost``; a control call (a setting, a software trigger) gets
@@ -57,7 +53,6 @@ GVCP writes each wait out that timeout, to a thread (:meth:`GenicamCamera.wait_r
 
 from __future__ import annotations
 
-import collections
 import contextlib
 import importlib
 import logging
@@ -69,15 +64,14 @@ from typing import Any, Final, TypeVar
 
 import numpy as np
 
-from eyeserver.core.frames import Frame, FrameMeta
 from eyeserver.core.types import Image
-from eyeserver.errors import (
-    DeviceDisconnectedError,
-    DeviceError,
-    DeviceTimeoutError,
-    DeviceValueError,
+from eyeserver.errors import DeviceDisconnectedError, DeviceError, DeviceValueError
+from eyeserver.hardware.drivers.camerathread import (
+    MONO_PIXEL_FORMATS,
+    FrameQueue,
+    StreamingCamera,
+    check_region_read_back,
 )
-from eyeserver.hardware.base import Camera
 from eyeserver.hardware.registry import DriverContext, register_driver
 
 __all__ = ["INSTALL_HINT", "PIXEL_FORMATS", "FoundCamera", "GenicamCamera", "identify_camera",
@@ -87,8 +81,9 @@ _log = logging.getLogger(__name__)
 
 _T = TypeVar("_T")
 
-PIXEL_FORMATS: Final[dict[str, int]] = {"Mono8": 8, "Mono10": 10, "Mono12": 12}
-"""The pixel formats the driver takes and their significant bits. Mono10 and Mono12 are the
+PIXEL_FORMATS: Final[dict[str, int]] = MONO_PIXEL_FORMATS
+"""The pixel formats the driver takes and their significant bits (the other camera drivers',
+:data:`~eyeserver.hardware.drivers.camerathread.MONO_PIXEL_FORMATS`). Mono10 and Mono12 are the
 unpacked ones: one little-endian 16-bit word per pixel, the value in its low bits."""
 
 INSTALL_HINT: Final[str] = (
@@ -103,14 +98,12 @@ _CONTROL_CHANNEL_PRIVILEGE_REGISTER: Final[int] = 0x0A00
 _POLL_S: Final[float] = 0.05
 """How long one ``timeout_pop_buffer`` waits: bounds how long ``close()`` waits for the thread."""
 
-_GVSP_MAX_BLOCK_ID: Final[int] = 0xFFFF
-"""GigE Vision 1.x frame ids are 16 bits and skip 0 when they wrap."""
-
 
 @dataclass(frozen=True)
 class _Buffer:
     """What the link copies out of one Aravis buffer before handing it back to the stream."""
 
+    arrived_ns: int
     complete: bool
     status: str
     block_id: int
@@ -316,20 +309,23 @@ class _AravisLink:
         """Stop acquiring."""
         self._call("stopping acquisition", self._camera.stop_acquisition)
 
-    def pop(self, timeout_s: float) -> _Buffer | None:
-        """Wait up to ``timeout_s`` for the next buffer; copy it out and hand it back to the
-        stream. None when none came."""
+    def pop(self, timeout_s: float, now_ns: Callable[[], int]) -> _Buffer | None:
+        """Wait up to ``timeout_s`` for the next buffer; copy it out, with the time Aravis
+        handed it over on the clock ``now_ns`` (nanoseconds), and hand it back to the stream.
+        None when none came."""
         stream = self._stream
         if stream is None:
             return None
         buffer = stream.timeout_pop_buffer(max(1, round(timeout_s * 1e6)))
         if buffer is None:
             return None
+        arrived_ns = now_ns()
         try:
             status = buffer.get_status()
             complete = (status == self._aravis.BufferStatus.SUCCESS
                         and buffer.get_payload_type() == self._aravis.BufferPayloadType.IMAGE)
-            return _Buffer(complete=complete, status=str(status.value_nick),
+            return _Buffer(arrived_ns=arrived_ns, complete=complete,
+                           status=str(status.value_nick),
                            block_id=int(buffer.get_frame_id()),
                            timestamp_ns=int(buffer.get_timestamp()),
                            width=int(buffer.get_image_width()) if complete else 0,
@@ -354,7 +350,7 @@ class _AravisLink:
         :class:`DeviceDisconnectedError` when the camera does not answer."""
         if not self.is_gv:
             return True
-        with self._translated("asking whether the camera is still there"):
+        with self._translated(f"asking whether the camera at {self.address} is still there"):
             value = int(self._device.read_register(_CONTROL_CHANNEL_PRIVILEGE_REGISTER))
         return bool(value & 0b11)
 
@@ -379,17 +375,6 @@ class _AravisLink:
             self._stream = None
             self._device = None
             self._camera = None
-
-
-def _skipped_block_ids(last: int, new: int) -> int:
-    """GVSP frame ids strictly between ``last`` and ``new``: the frames lost whole between two
-    buffers. 16-bit ids wrap from 65535 to 1 (0 is invalid); ids that go back otherwise (the
-    camera restarted its count) skip nothing we can tell."""
-    if new > last:
-        return new - last - 1
-    if last <= _GVSP_MAX_BLOCK_ID and new <= _GVSP_MAX_BLOCK_ID and last - new > 0x8000:
-        return (_GVSP_MAX_BLOCK_ID - last) + (new - 1)
-    return 0
 
 
 def image_from_payload(data: bytes, width: int, height: int, bit_depth: int) -> Image:
@@ -427,7 +412,7 @@ def image_from_payload(data: bytes, width: int, height: int, bit_depth: int) -> 
 
 
 @register_driver("camera", "GenicamCamera")
-class GenicamCamera(Camera):
+class GenicamCamera(StreamingCamera[_AravisLink]):
     """A GenICam camera (GigE Vision or USB3 Vision) through Aravis, hardware-triggered.
 
     Parameters
@@ -466,8 +451,9 @@ class GenicamCamera(Camera):
     A frame's ``exposure_us`` and ``gain_db`` are the camera's settings when it arrived, and
     its ``trigger_index`` is the camera's own count of exposures since ``open()``, the dropped
     ones included (the camera cannot know the trigger controller's pulse numbers). Its
-    ``extra`` holds ``device_timestamp_ns`` (camera clock) and ``block_id`` (GVSP frame id).
-    One reader at a time.
+    ``extra`` holds ``device_timestamp_ns`` (camera clock), ``block_id`` (GVSP frame id) and
+    ``received_ns`` (rig clock when Aravis handed the buffer over: the driver's own latency is
+    from there to the reader, the speed bench's frame path). One reader at a time.
     """
 
     def __init__(self, device_id: str, *, context: DriverContext, address: str,
@@ -475,125 +461,51 @@ class GenicamCamera(Camera):
                  offset_x: int = 0, offset_y: int = 0, width: int | None = None,
                  height: int | None = None, packet_size: int | None = None,
                  queue_size: int = 8, liveness_s: float = 1.0) -> None:
-        if pixel_format not in PIXEL_FORMATS:
-            raise ValueError(f"pixel_format must be one of {', '.join(PIXEL_FORMATS)}, "
-                             f"not {pixel_format!r}")
         if not address:
             raise ValueError("address must name the camera (IP address or GenICam device id)")
-        if not trigger_source:
-            raise ValueError("trigger_source must name one of the camera's TriggerSource values")
-        if offset_x < 0 or offset_y < 0:
-            raise ValueError(f"offsets must not be negative, not ({offset_x}, {offset_y})")
-        for name, size in (("width", width), ("height", height)):
-            if size is not None and size <= 0:
-                raise ValueError(f"{name} must be positive, not {size}")
         if packet_size is not None and not 576 <= packet_size <= 16_384:
             raise ValueError(f"packet_size must be in [576, 16384] bytes, not {packet_size}")
-        if queue_size < 1:
-            raise ValueError(f"queue_size must be at least 1, not {queue_size}")
         if liveness_s <= 0:
             raise ValueError(f"liveness_s must be positive, not {liveness_s}")
-        super().__init__(device_id, width or 1, height or 1, PIXEL_FORMATS[pixel_format])
-        self._clock = context.clock
+        super().__init__(device_id, clock=context.clock, pixel_format=pixel_format,
+                         trigger_source=trigger_source, offset_x=offset_x, offset_y=offset_y,
+                         width=width, height=height, queue_size=queue_size)
         self.address = address
-        self.pixel_format = pixel_format
-        self.trigger_source = trigger_source
-        self._roi = (int(offset_x), int(offset_y), width, height)
         self._packet_size_option = packet_size
-        self._queue_size = int(queue_size)
         self._liveness_s = float(liveness_s)
-        self._link: _AravisLink | None = None
         self._releasing: list[threading.Thread] = []
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
-        self._cond = threading.Condition()
-        self._frames: collections.deque[Frame] = collections.deque()
-        self._lost: str | None = None
-        self._frame_counter = 0
-        self._dropped = 0
-        self._last_block_id: int | None = None
-        self._incomplete_since_whole = 0
-        self._offset_ns: int | None = None
         self._pixel_format_code = 0
-        self._device_exposure_us = self._exposure_us
-        self._device_gain_db = self._gain_db
-        self._info: dict[str, object] = {}
+        self._quiet_since = 0.0
+        """When the acquisition thread last had a buffer or asked the camera (monotonic s)."""
 
-    # --- what the camera reports ------------------------------------------------------------
+    def wait_released(self, timeout_s: float = 15.0) -> bool:
+        """Wait until the connections to a lost camera that :meth:`close` (or a failed
+        :meth:`open`) left to tear down in the background are gone; True when they are.
 
-    @property
-    def exposure_us(self) -> float:
-        """Exposure time as the camera reports it after the last setting, microseconds (the
-        value asked for until the first ``open()``)."""
-        return self._device_exposure_us
-
-    @property
-    def gain_db(self) -> float:
-        """Gain as the camera reports it after the last setting: decibels where the camera has
-        the SFNC ``Gain``; a camera with only ``GainRaw`` reports its own units (``describe()``
-        says which)."""
-        return self._device_gain_db
-
-    @property
-    def dropped_frames(self) -> int:
-        """Frames lost since :meth:`open`: incomplete buffers, frame ids skipped, a full queue."""
-        with self._cond:
-            return self._dropped
-
-    @property
-    def clock_offset_ns(self) -> int | None:
-        """Rig clock minus camera clock, nanoseconds, fixed on the first buffer after
-        :meth:`open` (None before it): ``t_ns = device_ts + offset + exposure / 2``."""
-        with self._cond:
-            return self._offset_ns
-
-    def software_trigger(self) -> None:
-        """Expose one frame now (TriggerSoftware); only with ``trigger_source="Software"``.
-
-        Raises
-        ------
-        DeviceValueError
-            When the camera is triggered from another source.
-        DeviceDisconnectedError
-            When the camera does not answer.
+        A camera that no longer answers makes each of Aravis's goodbyes (stream channel reset,
+        control release) wait out its GVCP timeout, up to 10 s in all; ``close()`` does not
+        wait for them, and a new ``open()`` need not either: the camera refuses writes from
+        the old connection once the new one controls it. The process waits for them at exit.
         """
-        link = self._live_link()
-        if self.trigger_source != "Software":
-            raise DeviceValueError(self.id, f"software_trigger() needs trigger_source "
-                                            f"'Software', not {self.trigger_source!r}")
-        self._guarded(link, link.software_trigger)
+        deadline = time.monotonic() + timeout_s
+        for releasing in self._releasing:
+            releasing.join(max(0.0, deadline - time.monotonic()))
+        self._releasing = [t for t in self._releasing if t.is_alive()]
+        return not self._releasing
 
-    # --- Device and Camera hooks ------------------------------------------------------------
+    def describe(self) -> dict[str, object]:
+        info = {**super().describe(), "address": self.address}
+        link = self._link
+        if self.is_open and link is not None:
+            info["stream"] = link.stream_statistics()
+        return info
 
-    def _do_open(self) -> None:
-        link = _AravisLink(self.id, self.address)
-        try:
-            self._configure(link)
-            with self._cond:
-                self._frames.clear()
-                self._lost = None
-                self._frame_counter = 0
-                self._dropped = 0
-                self._last_block_id = None
-                self._incomplete_since_whole = 0
-                self._offset_ns = None
-            link.start(n_buffers=max(4, self._queue_size))
-        except DeviceDisconnectedError:
-            self._release(link, background=True)
-            raise
-        except BaseException:
-            self._release(link, background=False)
-            raise
-        self._link = link
-        link.on_control_lost(lambda: self._mark_lost(
-            link, "Aravis lost control of the camera (no heartbeat answer)"))
-        self._stop.clear()
-        self._thread = threading.Thread(target=self._acquire, args=(link,), daemon=True,
-                                        name=f"genicam-{self.id}")
-        self._thread.start()
+    # --- StreamingCamera hooks --------------------------------------------------------------
+
+    def _connect(self) -> _AravisLink:
+        return _AravisLink(self.id, self.address)
 
     def _configure(self, link: _AravisLink) -> None:
-        """Put the camera in the configured state and read back what it took."""
         identity = link.identity()
         # A previous controller (or a crashed daemon) may have left it streaming.
         with contextlib.suppress(DeviceError):
@@ -614,9 +526,7 @@ class GenicamCamera(Camera):
             width = width or sensor_width - x
             height = height or sensor_height - y
         region = link.set_region(x, y, width, height)
-        if region != (x, y, width, height):
-            raise DeviceValueError(self.id, f"region {width}x{height}+{x}+{y} reads back as "
-                                            f"{region[2]}x{region[3]}+{region[0]}+{region[1]}")
+        check_region_read_back(self.id, (x, y, width, height), region)
 
         sources = link.trigger_sources()
         if self.trigger_source not in sources:
@@ -627,175 +537,53 @@ class GenicamCamera(Camera):
         if source != self.trigger_source:
             raise DeviceValueError(self.id, f"TriggerSource reads {source} after setting "
                                             f"{self.trigger_source}")
-
-        # The rig's policy ranges (the class's) narrowed to what this camera can do.
-        self.exposure_range_us = _overlap("exposure_us", self.id, type(self).exposure_range_us,
-                                          link.exposure_bounds_us())
-        self.gain_range_db = _overlap("gain_db", self.id, type(self).gain_range_db,
-                                      link.gain_bounds())
-        # Settings asked for before (a reopen after a power cycle restores them).
-        self._device_exposure_us = link.set_exposure_us(_clamp(self._exposure_us,
-                                                               self.exposure_range_us))
-        self._device_gain_db = link.set_gain(_clamp(self._gain_db, self.gain_range_db))
+        self._restore_exposure_and_gain(link, link.exposure_bounds_us(), link.gain_bounds())
 
         self.width, self.height = region[2], region[3]
-        self.bit_depth = PIXEL_FORMATS[self.pixel_format]
+        self.bit_depth = MONO_PIXEL_FORMATS[self.pixel_format]
         self._info = {**identity, "offset_x": region[0], "offset_y": region[1],
                       "packet_size": packet_size, "gain_feature": link.gain_feature(),
                       "tick_frequency_hz": link.tick_frequency_hz(),
                       "transport": "GigE Vision" if link.is_gv else "other"}
 
-    def _do_close(self) -> None:
-        self._stop.set()
-        thread, self._thread = self._thread, None
-        if thread is not None:
-            thread.join()
-        link, self._link = self._link, None
-        if link is None:
-            return
-        link.forget_control_lost()
-        with self._cond:
-            lost = self._lost is not None
-            self._frames.clear()
-            self._cond.notify_all()
-        if not lost:
-            with contextlib.suppress(DeviceError):
-                link.stop()
-        # A camera known to be gone is not waited for: its teardown's GVCP writes each wait
-        # out their timeout, so it runs on a thread of its own (see wait_released()).
-        self._release(link, background=lost)
+    def _set_exposure(self, link: _AravisLink, value_us: float) -> float:
+        return link.set_exposure_us(value_us)
 
-    def _release(self, link: _AravisLink, *, background: bool) -> None:
-        if not background:
+    def _set_gain(self, link: _AravisLink, value_db: float) -> float:
+        return link.set_gain(value_db)
+
+    def _watch(self, link: _AravisLink, frames: FrameQueue) -> None:
+        self._quiet_since = time.monotonic()
+        link.on_control_lost(lambda: frames.mark_lost(
+            f"Aravis lost control of the camera at {self.address} (no heartbeat answer)"))
+
+    def _release(self, link: _AravisLink, *, lost: bool) -> None:
+        if not lost:
             link.release()
             return
-        releasing = threading.Thread(target=link.release, name=f"genicam-{self.id}-release")
+        # A camera known to be gone is not waited for: its teardown's GVCP writes each wait
+        # out their timeout, so it runs on a thread of its own (see wait_released()).
+        releasing = threading.Thread(target=link.release,
+                                     name=f"{type(self).__name__}-{self.id}-release")
         releasing.start()
         self._releasing.append(releasing)
 
-    def wait_released(self, timeout_s: float = 15.0) -> bool:
-        """Wait until the connections to a lost camera that :meth:`close` (or a failed
-        :meth:`open`) left to tear down in the background are gone; True when they are.
-
-        A camera that no longer answers makes each of Aravis's goodbyes (stream channel reset,
-        control release) wait out its GVCP timeout, up to 10 s in all; ``close()`` does not
-        wait for them, and a new ``open()`` need not either: the camera refuses writes from
-        the old connection once the new one controls it. The process waits for them at exit.
-        """
-        deadline = time.monotonic() + timeout_s
-        for releasing in self._releasing:
-            releasing.join(max(0.0, deadline - time.monotonic()))
-        self._releasing = [t for t in self._releasing if t.is_alive()]
-        return not self._releasing
-
-    def _apply_exposure_us(self, value: float) -> None:
-        link = self._live_link()
-        self._device_exposure_us = self._guarded(link, lambda: link.set_exposure_us(value))
-
-    def _apply_gain_db(self, value: float) -> None:
-        link = self._live_link()
-        self._device_gain_db = self._guarded(link, lambda: link.set_gain(value))
-
-    def _read_frame(self, timeout_s: float) -> Frame:
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while not self._frames:
-                if self._lost is not None:
-                    raise DeviceDisconnectedError(self.id, self._lost)
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise DeviceTimeoutError(self.id, f"no frame within {timeout_s} s")
-                self._cond.wait(remaining)
-            return self._frames.popleft()
-
-    def describe(self) -> dict[str, object]:
-        info: dict[str, object] = {**super().describe(), "address": self.address,
-                                   "pixel_format": self.pixel_format,
-                                   "trigger_source": self.trigger_source,
-                                   "dropped_frames": self.dropped_frames}
-        link = self._link
-        if self.is_open and link is not None:
-            with self._cond:
-                info["connected"] = self._lost is None
-                info["clock_offset_ns"] = self._offset_ns
-            info.update(self._info)
-            info["stream"] = link.stream_statistics()
-        return info
-
     # --- the acquisition thread -------------------------------------------------------------
 
-    def _acquire(self, link: _AravisLink) -> None:
-        """Pop buffers into the frame queue until close() or the camera is lost."""
-        last_sign_of_life = time.monotonic()
-        try:
-            while not self._stop.is_set():
-                buffer = link.pop(_POLL_S)
-                now = time.monotonic()
-                if buffer is not None:
-                    last_sign_of_life = now
-                    self._receive(buffer)
-                elif now - last_sign_of_life >= self._liveness_s:
-                    if not link.probe():
-                        self._mark_lost(link, "the camera answers but has no controller "
-                                              "(it restarted)")
-                    last_sign_of_life = time.monotonic()
-                with self._cond:
-                    if self._lost is not None:
-                        return
-        except DeviceDisconnectedError as exc:
-            self._mark_lost(link, exc.reason)
-        except Exception as exc:  # a thread that dies silently would leave readers timing out
-            _log.exception("camera %s: acquisition thread failed", self.id)
-            self._mark_lost(link, f"acquisition failed: {exc}")
-
-    def _receive(self, buffer: _Buffer) -> None:
-        """Account for one buffer and queue its frame if it is complete and fits.
-
-        Aravis fills a buffer's frame id and timestamp from the GVSP leader, so an incomplete
-        buffer's may be stale (a reused buffer's) and only complete buffers' ids are trusted:
-        an incomplete buffer counts one dropped frame at once, and the ids skipped between two
-        complete buffers count the frames lost whole, less the incomplete ones already counted
-        there (Aravis hands buffers over in frame order).
-        """
-        rig_now_ns = self._clock.now_ns()
-        exposure_us = self._device_exposure_us
-        image = self._image(buffer)
-        with self._cond:
-            if not buffer.complete:
-                self._dropped += 1
-                self._incomplete_since_whole += 1
-                return
-            if self._last_block_id is not None:
-                skipped = _skipped_block_ids(self._last_block_id, buffer.block_id)
-                lost_whole = max(0, skipped - self._incomplete_since_whole)
-                if lost_whole:
-                    _log.warning("camera %s: %d frame(s) lost whole before frame id %d",
-                                 self.id, lost_whole, buffer.block_id)
-                self._dropped += lost_whole
-            self._last_block_id = buffer.block_id
-            self._incomplete_since_whole = 0
-            if image is None or len(self._frames) >= self._queue_size:
-                self._dropped += 1
-                return
-            exposure_ns = round(exposure_us * 1e3)
-            if buffer.timestamp_ns == 0:
-                t_ns = rig_now_ns - exposure_ns // 2
-            else:
-                if self._offset_ns is None:
-                    self._offset_ns = rig_now_ns - buffer.timestamp_ns - exposure_ns
-                t_ns = buffer.timestamp_ns + self._offset_ns + exposure_ns // 2
-            meta = FrameMeta(camera_id=self.id, frame_counter=self._frame_counter, t_ns=t_ns,
-                             exposure_us=exposure_us, gain_db=self._device_gain_db,
-                             dropped_frames=self._dropped, bit_depth=self.bit_depth,
-                             # The camera's own count of exposures since open(), lost ones too.
-                             trigger_index=self._frame_counter + self._dropped)
-            # received_ns: the rig's clock when Aravis handed the buffer over (the driver's own
-            # latency is from there to the reader; the speed bench's frame path).
-            self._frames.append(Frame(image=image, meta=meta, extra={
-                "device_timestamp_ns": buffer.timestamp_ns, "block_id": buffer.block_id,
-                "received_ns": rig_now_ns}))
-            self._frame_counter += 1
-            self._cond.notify_all()
+    def _step(self, link: _AravisLink, frames: FrameQueue) -> None:
+        """Pop one buffer (or none) and account for it; after ``liveness_s`` without one, ask
+        the camera whether it is still there."""
+        buffer = link.pop(_POLL_S, self._clock.now_ns)
+        if buffer is not None:
+            self._quiet_since = time.monotonic()
+            self._deliver(frames, buffer.block_id, self._image(buffer), whole=buffer.complete,
+                          arrived_ns=buffer.arrived_ns, device_timestamp_ns=buffer.timestamp_ns,
+                          extra={"block_id": buffer.block_id, "received_ns": buffer.arrived_ns})
+        elif time.monotonic() - self._quiet_since >= self._liveness_s:
+            if not link.probe():
+                frames.mark_lost(f"the camera at {self.address} answers but has no controller "
+                                 "(it restarted)")
+            self._quiet_since = time.monotonic()
 
     def _image(self, buffer: _Buffer) -> Image | None:
         """The buffer's image, or None (logged) for a buffer that is not a whole frame of the
@@ -814,51 +602,6 @@ class GenicamCamera(Camera):
         except ValueError as exc:
             _log.warning("camera %s: frame id %d: %s", self.id, buffer.block_id, exc)
             return None
-
-    # --- disconnection ----------------------------------------------------------------------
-
-    def _mark_lost(self, link: _AravisLink, reason: str) -> None:
-        """Record that the camera behind ``link`` is gone and wake the reader; news about a
-        link closed since (a late heartbeat) is ignored."""
-        with self._cond:
-            if link is not self._link:
-                return
-            if self._lost is None:
-                _log.error("camera %s at %s lost: %s", self.id, self.address, reason)
-                self._lost = reason
-            self._cond.notify_all()
-
-    def _live_link(self) -> _AravisLink:
-        """The open link, or DeviceDisconnectedError once the camera is known to be gone."""
-        self._require_open()
-        with self._cond:
-            if self._lost is not None:
-                raise DeviceDisconnectedError(self.id, f"{self._lost}; close() and open() "
-                                                       "once it is back")
-        link = self._link
-        assert link is not None  # open implies a link
-        return link
-
-    def _guarded(self, link: _AravisLink, call: Callable[[], _T]) -> _T:
-        """Run a control call; a camera that does not answer is marked lost for the reader."""
-        try:
-            return call()
-        except DeviceDisconnectedError as exc:
-            self._mark_lost(link, exc.reason)
-            raise
-
-
-def _overlap(name: str, device_id: str, policy: tuple[float, float],
-             device: tuple[float, float]) -> tuple[float, float]:
-    low, high = max(policy[0], device[0]), min(policy[1], device[1])
-    if low > high:
-        raise DeviceValueError(device_id, f"the camera's {name} range {device} misses the "
-                                          f"rig's {policy}")
-    return low, high
-
-
-def _clamp(value: float, bounds: tuple[float, float]) -> float:
-    return min(max(value, bounds[0]), bounds[1])
 
 
 # --- discovery (``eyeserver devices discover``) -----------------------------------------------

@@ -108,19 +108,13 @@ from typing import Any, Final, TypeVar
 
 import numpy as np
 
-from eyeserver.core.frames import Frame
 from eyeserver.core.types import Image
 from eyeserver.errors import DeviceDisconnectedError, DeviceError, DeviceValueError
-from eyeserver.hardware.base import Camera
 from eyeserver.hardware.drivers.camerathread import (
     MONO_PIXEL_FORMATS,
-    AcquisitionThread,
-    FrameIdGaps,
     FrameQueue,
-    check_region,
+    StreamingCamera,
     check_region_read_back,
-    clamp,
-    narrow_range,
 )
 from eyeserver.hardware.registry import DriverContext, register_driver
 
@@ -508,7 +502,7 @@ def _release_library(peak: Any) -> None:
 
 
 @register_driver("camera", "IdsCamera")
-class IdsCamera(Camera):
+class IdsCamera(StreamingCamera[_PeakLink]):
     """An IDS camera through IDS peak, hardware-triggered. Untested on real hardware (the
     module's notes).
 
@@ -548,93 +542,22 @@ class IdsCamera(Camera):
                  pixel_format: str = "Mono8", trigger_source: str = "Line0",
                  offset_x: int = 0, offset_y: int = 0, width: int | None = None,
                  height: int | None = None, queue_size: int = 8) -> None:
-        if pixel_format not in MONO_PIXEL_FORMATS:
-            raise ValueError(f"pixel_format must be one of {', '.join(MONO_PIXEL_FORMATS)}, "
-                             f"not {pixel_format!r}")
         if not serial:
             raise ValueError("serial must name the camera (serial number or user-defined name)")
-        if not trigger_source:
-            raise ValueError("trigger_source must name one of the camera's TriggerSource values")
-        check_region(offset_x, offset_y, width, height)
-        if queue_size < 1:
-            raise ValueError(f"queue_size must be at least 1, not {queue_size}")
-        super().__init__(device_id, width or 1, height or 1, MONO_PIXEL_FORMATS[pixel_format])
-        self._clock = context.clock
+        super().__init__(device_id, clock=context.clock, pixel_format=pixel_format,
+                         trigger_source=trigger_source, offset_x=offset_x, offset_y=offset_y,
+                         width=width, height=height, queue_size=queue_size)
         self.serial = serial
-        self.pixel_format = pixel_format
-        self.trigger_source = trigger_source
-        self._roi = (int(offset_x), int(offset_y), width, height)
-        self._queue_size = int(queue_size)
-        self._link: _PeakLink | None = None
-        self._frames = FrameQueue(device_id, self._queue_size)
-        self._thread: AcquisitionThread | None = None
-        self._gaps = FrameIdGaps()
-        self._device_exposure_us = self._exposure_us
-        self._device_gain_db = self._gain_db
-        self._info: dict[str, object] = {}
 
-    # --- what the camera reports ------------------------------------------------------------
+    def describe(self) -> dict[str, object]:
+        return {**super().describe(), "serial": self.serial}
 
-    @property
-    def exposure_us(self) -> float:
-        """Exposure time as the camera reports it after the last setting, microseconds (the
-        value asked for until the first ``open()``)."""
-        return self._device_exposure_us
+    # --- StreamingCamera hooks --------------------------------------------------------------
 
-    @property
-    def gain_db(self) -> float:
-        """Analogue gain as the camera reports it after the last setting, decibels (converted
-        from IDS peak's factor)."""
-        return self._device_gain_db
-
-    @property
-    def dropped_frames(self) -> int:
-        """Frames lost since :meth:`open`: incomplete buffers, frame ids skipped, a full queue."""
-        return self._frames.dropped
-
-    @property
-    def clock_offset_ns(self) -> int | None:
-        """Rig clock minus camera clock, nanoseconds, fixed on the first stamped frame after
-        :meth:`open` (None before it)."""
-        return self._frames.clock_offset_ns
-
-    def software_trigger(self) -> None:
-        """Expose one frame now (TriggerSoftware); only with ``trigger_source="Software"``.
-
-        Raises
-        ------
-        DeviceValueError
-            When the camera is triggered from another source.
-        DeviceDisconnectedError
-            When the camera is gone.
-        """
-        link = self._live_link()
-        if self.trigger_source != "Software":
-            raise DeviceValueError(self.id, f"software_trigger() needs trigger_source "
-                                            f"'Software', not {self.trigger_source!r}")
-        self._frames.guarded(link.software_trigger)
-
-    # --- Device and Camera hooks ------------------------------------------------------------
-
-    def _do_open(self) -> None:
-        link = _PeakLink(self.id, self.serial)
-        frames = FrameQueue(self.id, self._queue_size)
-        try:
-            self._configure(link)
-            link.on_lost(lambda: frames.mark_lost("IDS peak reports the device lost"))
-            link.start(n_buffers=max(4, self._queue_size))
-        except BaseException:
-            link.release()
-            raise
-        self._link = link
-        self._frames = frames
-        self._gaps = FrameIdGaps()
-        self._thread = AcquisitionThread(f"ids-{self.id}", frames,
-                                         lambda: self._step(link, frames))
-        self._thread.start()
+    def _connect(self) -> _PeakLink:
+        return _PeakLink(self.id, self.serial)
 
     def _configure(self, link: _PeakLink) -> None:
-        """Put the camera in the configured state and read back what it took."""
         # A previous controller (or a crashed daemon) may have left it acquiring, with the
         # transport parameters (the image format) locked.
         with contextlib.suppress(DeviceError):
@@ -656,18 +579,10 @@ class IdsCamera(Camera):
         if link.has("GainSelector") and "AnalogAll" in link.entries("GainSelector"):
             link.set_enum("GainSelector", "AnalogAll")
 
-        # The rig's policy ranges (the class's) narrowed to what this camera can do.
-        self.exposure_range_us = narrow_range(self.id, "exposure_us",
-                                              type(self).exposure_range_us,
-                                              link.bounds("ExposureTime"), _READBACK_DECIMALS)
         low, high = link.bounds("Gain")
-        self.gain_range_db = narrow_range(self.id, "gain_db", type(self).gain_range_db,
-                                          (factor_to_db(low), factor_to_db(high)),
-                                          _READBACK_DECIMALS)
-        # Settings asked for before (a reopen after a power cycle restores them).
-        self._device_exposure_us = self._set_exposure(
-            link, clamp(self._exposure_us, self.exposure_range_us))
-        self._device_gain_db = self._set_gain(link, clamp(self._gain_db, self.gain_range_db))
+        self._restore_exposure_and_gain(link, link.bounds("ExposureTime"),
+                                        (factor_to_db(low), factor_to_db(high)),
+                                        _READBACK_DECIMALS)
 
         self.width, self.height = region[2], region[3]
         self.bit_depth = MONO_PIXEL_FORMATS[self.pixel_format]
@@ -677,51 +592,15 @@ class IdsCamera(Camera):
                       "offset_x": region[0], "offset_y": region[1],
                       "trigger_selector": selector, "acquisition_frame_rate_hz": frame_rate}
 
-    @staticmethod
-    def _set_exposure(link: _PeakLink, value: float) -> float:
-        return round(float(link.set("ExposureTime", value)), _READBACK_DECIMALS)
+    def _set_exposure(self, link: _PeakLink, value_us: float) -> float:
+        return round(float(link.set("ExposureTime", value_us)), _READBACK_DECIMALS)
 
-    @staticmethod
-    def _set_gain(link: _PeakLink, value_db: float) -> float:
+    def _set_gain(self, link: _PeakLink, value_db: float) -> float:
         factor = float(link.set("Gain", db_to_factor(value_db)))
         return round(factor_to_db(factor), _READBACK_DECIMALS)
 
-    def _do_close(self) -> None:
-        thread, self._thread = self._thread, None
-        if thread is not None:
-            thread.stop()
-        link, self._link = self._link, None
-        self._frames.clear()
-        if link is None:
-            return
-        if self._frames.lost is None:
-            try:
-                link.stop()
-            except DeviceError as exc:
-                _log.warning("camera %s: stopping acquisition: %s", self.id, exc)
-        link.release()
-
-    def _apply_exposure_us(self, value: float) -> None:
-        link = self._live_link()
-        self._device_exposure_us = self._frames.guarded(lambda: self._set_exposure(link, value))
-
-    def _apply_gain_db(self, value: float) -> None:
-        link = self._live_link()
-        self._device_gain_db = self._frames.guarded(lambda: self._set_gain(link, value))
-
-    def _read_frame(self, timeout_s: float) -> Frame:
-        return self._frames.pop(timeout_s)
-
-    def describe(self) -> dict[str, object]:
-        info: dict[str, object] = {**super().describe(), "serial": self.serial,
-                                   "pixel_format": self.pixel_format,
-                                   "trigger_source": self.trigger_source,
-                                   "dropped_frames": self.dropped_frames}
-        if self.is_open:
-            info["connected"] = self._frames.lost is None
-            info["clock_offset_ns"] = self._frames.clock_offset_ns
-            info.update(self._info)
-        return info
+    def _watch(self, link: _PeakLink, frames: FrameQueue) -> None:
+        link.on_lost(lambda: frames.mark_lost("IDS peak reports the device lost"))
 
     # --- the acquisition thread -------------------------------------------------------------
 
@@ -730,30 +609,13 @@ class IdsCamera(Camera):
         buffer = link.wait(_POLL_S, self.bit_depth, self._clock.now_ns)
         if buffer is None:
             return
+        image = buffer.image
         if buffer.incomplete:
             _log.warning("camera %s: incomplete frame id %d dropped", self.id, buffer.frame_id)
-            self._gaps.incomplete()
-            frames.count_dropped()
-            return
-        lost_whole = self._gaps.whole(buffer.frame_id)
-        if lost_whole:
-            _log.warning("camera %s: %d frame(s) lost whole before frame id %d", self.id,
-                         lost_whole, buffer.frame_id)
-            frames.count_dropped(lost_whole)
-        if buffer.image is None or buffer.image.shape != (self.height, self.width):
+        elif image is None or image.shape != (self.height, self.width):
             _log.warning("camera %s: frame id %d is not a %dx%d %s image", self.id,
                          buffer.frame_id, self.width, self.height, self.pixel_format)
-            frames.count_dropped()
-            return
-        frames.push(buffer.image, arrived_ns=buffer.arrived_ns,
-                    device_timestamp_ns=buffer.timestamp_ns,
-                    exposure_us=self._device_exposure_us, gain_db=self._device_gain_db,
-                    bit_depth=self.bit_depth, extra={"frame_id": buffer.frame_id})
-
-    def _live_link(self) -> _PeakLink:
-        """The open link, or DeviceDisconnectedError once the camera is known to be gone."""
-        self._require_open()
-        self._frames.check_connected()
-        link = self._link
-        assert link is not None  # open implies a link
-        return link
+            image = None
+        self._deliver(frames, buffer.frame_id, image, whole=not buffer.incomplete,
+                      arrived_ns=buffer.arrived_ns, device_timestamp_ns=buffer.timestamp_ns,
+                      extra={"frame_id": buffer.frame_id})
