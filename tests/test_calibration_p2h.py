@@ -113,3 +113,13 @@ def test_margin_tells_a_sighted_rig_from_a_blind_one() -> None:
                                 _camera(blind_room, "S1"), _camera(blind_room, "S2"),
                                 (-10.0, 25.0))
     assert blind["margin_rad"] < 0.1 < math.pi
+
+
+def test_a_range_with_no_wrong_order_in_it_has_the_largest_margin() -> None:
+    """Plates over a range shallower than a fringe's depth leave no wrong order inside it: the
+    margin is π (a wrapped gap's most), a number a calibration file can hold, not infinity."""
+    default = SimRoom()
+    shallow = fringe_order_margin(_exact_model(default, "S1", "P1"),
+                                  _exact_model(default, "S2", "P1"),
+                                  _camera(default, "S1"), _camera(default, "S2"), (-0.5, 0.5))
+    assert shallow == {"margin_rad": math.pi, "orders_checked": 0}

@@ -91,7 +91,9 @@ def fringe_order_margin(model_a: PhaseHeightModel, model_b: PhaseHeightModel,
     For points on a grid over the calibrated volume, each candidate order k ≠ 0 of camera A
     moves the point along A's ray to another height inside the calibrated range; the phase B
     would then see differs from the true one by a gap. The margin is the smallest |gap| over
-    points and candidates.
+    points and candidates. A range shallower than any wrong order's step leaves no candidate:
+    the margin is then π, the largest a wrapped gap can be (a calibration with plates over
+    −4…+4 mm gave ``inf`` here, which no JSON holds).
     """
     xs = np.linspace(-half_width_mm, half_width_mm, 7)
     zs = np.linspace(z_range[0], z_range[1], 15)
@@ -107,7 +109,7 @@ def fringe_order_margin(model_a: PhaseHeightModel, model_b: PhaseHeightModel,
     phase_b = model_b.phase(xb, yb, grid[:, 2])
     centre_a = -cam_a["R"].T @ cam_a["T"]
     rays = rays_from_normalised(xa, ya, cam_a["R"])
-    smallest, orders = math.inf, 0
+    smallest, orders = math.pi, 0
     for k in range(1, 40):
         found = False
         for sign in (1, -1):
