@@ -5,6 +5,7 @@ fit on the same images (the bench renders anew on every run).
     .venv/bin/python scripts/pose_set.py fit --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py fit --stages --method spatial --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py oracle --method spatial --calibration CALDIR SETDIR
+    .venv/bin/python scripts/pose_set.py cloud --calibration CALDIR SETDIR
     PYTHONPATH=/path/to/other/checkout .venv/bin/python scripts/pose_set.py fit ... SETDIR
 
 Eyes are drawn as ``eyeserver.hardware.sim.population.draw`` draws them and placed within ±5 mm
@@ -123,6 +124,28 @@ def oracle(args: argparse.Namespace) -> None:
               f"{spec['limbus_width_mm']:.2f} mm)", flush=True)
 
 
+def cloud(args: argparse.Namespace) -> None:
+    """Each eye's cloud against the exact scene (globe, cornea, iris, lids, lashes, skin): is
+    the reconstruction right before any fit, and what share of the globe's neighbourhood is
+    lid rather than sclera."""
+    from eyeserver.hardware.sim.config import load_room
+    from eyeserver.hardware.sim.scoring import score_by_surface, score_cloud
+    from eyeserver.reconstruction import reconstruct_bundle
+
+    config = load_room(args.room)
+    for bundle in sorted(args.setdir.glob("eye_*")):
+        truth = json.loads((bundle / "truth.json").read_text())
+        made, _ = reconstruct_bundle(args.calibration, bundle, method=args.method)
+        score = score_cloud(truth, made, config)
+        lit = [c["lit_share"] for c in score["coverage"].values()]
+        surfaces = score_by_surface(truth, made)
+        near = ", ".join(f"{name} {v['points']}" for name, v in surfaces.items()
+                         if name in ("sclera", "lids", "iris", "lashes"))
+        print(f"{bundle.name}: median {score['median_mm']:.4f} mm, beyond 1 mm "
+              f"{score['beyond_1mm']:.4f}, lit share {min(lit):.2f}-{max(lit):.2f}; points on "
+              f"{near}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     steps = parser.add_subparsers(required=True)
@@ -147,6 +170,12 @@ def main() -> None:
     bound.add_argument("--method", default="multi-view", choices=("multi-view", "spatial"))
     bound.add_argument("setdir", type=Path)
     bound.set_defaults(step=oracle)
+    scored = steps.add_parser("cloud", help="each eye's cloud against the exact scene")
+    scored.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
+    scored.add_argument("--method", default="auto", choices=("auto", "multi-view", "spatial"))
+    scored.add_argument("--room", type=Path, default=None, help="room file (default room)")
+    scored.add_argument("setdir", type=Path)
+    scored.set_defaults(step=cloud)
     args = parser.parse_args()
     args.step(args)
 
