@@ -33,7 +33,7 @@ from eyeserver.hardware.emulators.modbus import (
 from eyeserver.hardware.registry import DriverContext, create_device, driver_class
 from tests.hardware.contract import ProjectorContract
 
-REPLY_TIMEOUT_S = 0.5  # a reply the emulator gives at once; 0.2 s was missed on a machine at load 13
+REPLY_TIMEOUT_S = 0.5  # the emulators answer at once; 0.2 s was missed once at load 13
 """Per-response timeout of the driver under test: short, since the emulator answers at once."""
 
 MAX_CURRENT_MA = 2000.0
