@@ -31,6 +31,8 @@ PURPOSE = {
     "pydantic": "validation of every request body, settings and file format",
     "pydantic-settings": "configuration from the TOML file and the environment",
     "pyserial": "the projectors' and trigger's serial controllers (real hardware)",
+    "pydicom": "DICOM: pose measurements out as Spatial Registration and Surface "
+               "Segmentation; the plan's RT Structure Set and Spatial Registration in",
     "pymodbus": "Modbus RTU/TCP client of the Opto Engineering-style LED strobe controller "
                 "(real hardware)",
     "platformdirs": "the user's data directory when none is configured",

@@ -12,6 +12,12 @@
 #   libcairo2-dev            PyGObject's dependency pycairo's build
 #   pkg-config, gcc, libc6-dev   what those builds call
 #
+# With --dev (scripts/setup.sh: a development machine or CI), also what only the tests need:
+#
+#   chromium                 the headless browser tests/test_console.py drives (Playwright)
+#   dicom3tools              dciodvfy, which tests/test_dicom.py checks every exported DICOM
+#                            object with
+#
 # Run as root (CI and the development machines are); without root it only checks, and fails
 # naming what is missing. Nothing is done when every package is installed already.
 set -euo pipefail
@@ -25,6 +31,9 @@ packages=(
     gcc
     libc6-dev
 )
+if [[ "${1:-}" == "--dev" ]]; then
+    packages+=(chromium dicom3tools)
+fi
 
 say() { printf 'system-packages: %s\n' "$*" >&2; }
 

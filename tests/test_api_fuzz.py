@@ -31,10 +31,10 @@ pytestmark = pytest.mark.slow  # every test here takes over a second
 
 EXAMPLES = 6
 
-@schemathesis.serializer("application/zip")
+@schemathesis.serializer("application/zip", "application/dicom")
 def _zip_body(ctx: object, value: object) -> bytes:
-    """A calibration upload's body as generated (bytes or text): the daemon must refuse any
-    that is not a calibration zip with a 4xx."""
+    """A calibration or DICOM upload's body as generated (bytes or text): the daemon must
+    refuse any that is not a calibration zip, or a plan's DICOM, with a 4xx."""
     return value if isinstance(value, bytes) else str(value).encode()
 
 

@@ -2,22 +2,26 @@
 models and the reference pose of each fraction.
 
 Physicists create and change patients, import eye models and set reference poses (from the plan
-or captured at set-up); any token reads them. Nothing is ever deleted: a new model or reference
-is a new version, and the newest is used. Patient ids reach the audit file only hashed.
+— also from the plan's DICOM, :mod:`eyeserver.io.dicom` — or captured at set-up); any token
+reads them. Nothing is ever deleted: a new model or reference is a new version, and the newest
+is used. Patient ids reach the audit file only hashed.
 """
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
-from fastapi import APIRouter, Depends, Path, Response
-from pydantic import BaseModel, ConfigDict, Field
+from fastapi import APIRouter, Depends, Path, Request, Response
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.concurrency import run_in_threadpool
 
 from eyeserver.api.auth import PhysicistDep
 from eyeserver.api.deps import ServiceDep, app_state
+from eyeserver.api.routers.calibrations import _read_limited
 from eyeserver.api.schemas import MAX_SQL_INT, ErrorResponse
 from eyeserver.core.validation import NumbersOnly
+from eyeserver.errors import FormatError
+from eyeserver.io import dicom
 from eyeserver.service.patients import (
     DEFAULT_MIN_CONFIDENCE,
     DEFAULT_TOLERANCE_GAZE_DEG,
@@ -35,6 +39,8 @@ from eyeserver.service.storage import UnknownIdError
 from eyeserver.service.verification import PoseVerification
 
 __all__ = ["PatientIdPath", "router"]
+
+_Spec = TypeVar("_Spec", bound=BaseModel)
 
 router = APIRouter(prefix="/patients", tags=["patients"])
 
@@ -247,3 +253,72 @@ async def list_references(patient_id: PatientIdPath, fraction: FractionPath,
     """Every version, oldest first; the last is in use."""
     records = await run_in_threadpool(patients.references, patient_id, fraction)
     return ReferenceList(items=[_reference(r) for r in records])
+
+
+class DicomPlanResponse(BaseModel):
+    """What an import of the plan's DICOM stored, and what it read."""
+
+    eye_model: EyeModelResponse = Field(description="The new eye-model version.")
+    reference: ReferenceResponse | None = Field(description="The fraction's new reference "
+                                                "version; null when none was set (see notes).")
+    read: dict[str, Any] = Field(description="planned_eye (the structure set's UID, the ROIs "
+                                 "used and their fits in its frame, mm), registration_uid, "
+                                 "wcs_frame_of_reference_uid, notes (what was not set, why).")
+
+
+def _from_dicom(spec: type[_Spec], fields: dict[str, Any]) -> _Spec:
+    """``fields`` read from DICOM as ``spec``; a figure out of its range is the file's fault
+    (422 naming it), not the request's shape."""
+    try:
+        return spec.model_validate(fields)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(part) for part in first["loc"])
+        raise FormatError("<uploaded DICOM>", where or None,
+                          f"{first['msg']} (read: {first.get('input')!r})") from exc
+
+
+@router.post("/{patient_id}/fractions/{fraction}/dicom", status_code=201,
+             summary="Import the planned eye from DICOM",
+             openapi_extra={"requestBody": {"required": True, "content": {
+                 "application/zip": {"schema": {"type": "string", "format": "binary"}},
+                 "application/dicom": {"schema": {"type": "string", "format": "binary"}}}}},
+             responses={**_UNKNOWN,
+                        413: {"model": ErrorResponse, "description": "The upload is too "
+                              "large."},
+                        422: {"model": ErrorResponse, "description": "Not one RT Structure Set "
+                              "(and at most one Spatial Registration) with a globe ROI; the "
+                              "reason names the object and attribute."}})
+async def import_dicom_plan(patient_id: PatientIdPath, fraction: FractionPath, request: Request,
+                            patients: PatientsDep, caller: PhysicistDep) -> DicomPlanResponse:
+    """Read the planned eye from the plan's RT Structure Set and, with a Spatial Registration
+    from its frame to the room's WCS, the planned pose; store them as the patient's next eye
+    model and the fraction's next reference version (physicists only).
+
+    The body is one DICOM object (``application/dicom``) or a zip of them
+    (``application/zip``): one RT Structure Set, at most one Spatial Registration. The eye
+    model: the globe ROI's ellipsoid turned into the WCS by the registration (without one, its
+    sphere), the cornea ROI's radius and the limbus ROI's diameter where they exist. The
+    reference pose (globe centre, gaze to the limbus or cornea, limbus centre; WCS) needs the
+    registration and a cornea or limbus ROI; ``read.notes`` says why it was not set.
+    """
+    limit = request.app.state.settings.max_upload_mb * 2**20
+    body = await _read_limited(request, limit)
+    content_type = request.headers.get("content-type", "").split(";")[0].strip().lower()
+
+    def store() -> DicomPlanResponse:
+        patient = patients.get(patient_id)
+        plan = dicom.read_plan(dicom.dicom_objects(body, content_type, limit), patient.eye)
+        model = _from_dicom(EyeModelSpec, plan.eye_model)
+        reference = None if plan.reference is None else _from_dicom(ReferencePoseSpec,
+                                                                     plan.reference)
+        stored_model = patients.add_eye_model(patient_id, model, actor=caller.name)
+        stored_reference = None if reference is None else patients.set_reference(
+            patient_id, fraction, reference.pose(), source="plan", plan=reference.plan,
+            actor=caller.name)
+        return DicomPlanResponse(
+            eye_model=_model(stored_model),
+            reference=None if stored_reference is None else _reference(stored_reference),
+            read=plan.to_dict())
+
+    return await run_in_threadpool(store)

@@ -3,21 +3,27 @@
 ``POST /pose/measure`` captures the patient's eye, fits its model and compares the pose with
 the fraction's reference (measured − reference, WCS), answering the pose, the deviation, the
 verdict and the evidence; the measurement is stored and found again by id or by patient and
-fraction (:mod:`eyeserver.service.verification`). Any token may measure and read.
+fraction (:mod:`eyeserver.service.verification`), also as DICOM (:mod:`eyeserver.io.dicom`).
+Any token may measure and read.
 """
 
 from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Response
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
+import eyeserver
 from eyeserver.api.auth import OperatorDep
+from eyeserver.api.deps import ServiceDep
 from eyeserver.api.routers.patients import VerificationDep
 from eyeserver.api.schemas import MAX_SQL_INT, ErrorResponse
+from eyeserver.io import dicom
+from eyeserver.service.core import NoCloudError
 from eyeserver.service.patients import PATIENT_ID_PATTERN
+from eyeserver.service.storage import UnknownIdError
 
 __all__ = ["router"]
 
@@ -117,3 +123,43 @@ async def list_measurements(
 async def get_measurement(measurement_id: str, verification: VerificationDep) -> Measurement:
     """A stored measurement with its evidence, also after a restart."""
     return Measurement.model_validate(await run_in_threadpool(verification.get, measurement_id))
+
+
+@router.get("/measurements/{measurement_id}/dicom", summary="One measurement as DICOM",
+            response_class=Response,
+            responses={200: {"content": {"application/zip": {}, "application/dicom": {}},
+                             "description": "Without ``object``: a zip of registration.dcm "
+                             "and surface.dcm; with it, that one object."},
+                       404: {"model": ErrorResponse, "description": "No such measurement."},
+                       409: {"model": ErrorResponse, "description": "The measurement has no "
+                             "reference pose to register against."}})
+async def get_measurement_dicom(
+    measurement_id: str, verification: VerificationDep, service: ServiceDep,
+    dicom_object: Annotated[dicom.DicomObject | None, Query(
+        alias="object", description="registration: the Spatial Registration alone; surface: "
+        "the Surface Segmentation alone (application/dicom).")] = None,
+) -> Response:
+    """A stored measurement as a DICOM Spatial Registration (the eye's rigid motion from the
+    fraction's reference pose to the measured pose, 4 × 4, RIGID) and a DICOM Surface
+    Segmentation (the measured points near the eye and the fitted globe), both in the
+    fraction's Frame of Reference (the room's WCS, mm; :mod:`eyeserver.io.dicom`)."""
+    def export() -> dict[str, bytes]:
+        document = verification.get(measurement_id)
+        patient = verification.patients.get(document["patient_id"])
+        try:  # the capture is the measurement's evidence; its cloud may have gone (none)
+            cloud = service.cloud_path(str(document["evidence"]["capture_id"]))
+        except (NoCloudError, UnknownIdError, KeyError, TypeError):
+            cloud = None
+        return dicom.export_measurement(
+            document, patient_key=patient.key,
+            equipment=dicom.Equipment.this_host(eyeserver.__version__), cloud_path=cloud,
+            objects=("registration", "surface") if dicom_object is None else (dicom_object,))
+
+    files = await run_in_threadpool(export)
+    if dicom_object is not None:
+        return Response(files[dicom.DICOM_OBJECTS[dicom_object]], media_type="application/dicom",
+                        headers={"Content-Disposition": f'attachment; filename="{measurement_id}'
+                                 f'-{dicom_object}.dcm"'})
+    return Response(dicom.zip_objects(files), media_type="application/zip",
+                    headers={"Content-Disposition": f'attachment; filename="{measurement_id}'
+                             '-dicom.zip"'})
