@@ -12,6 +12,7 @@ import errno
 import functools
 import io
 import json
+import re
 import socket
 import sqlite3
 import threading
@@ -445,10 +446,20 @@ def test_the_api_documents_are_open_or_need_a_token_as_configured(tmp_path: Path
         anonymous = client.get(f"{API}/openapi.json", headers={"Authorization": ""})
         with_token = client.get(f"{API}/openapi.json")
         docs = client.get(f"{API}/docs", headers={"Authorization": ""})
+        assets = {url: client.get(url, headers={"Authorization": ""})
+                  for url in re.findall(r'(?:src|href)="([^"]+)"', docs.text)}
 
     assert anonymous.status_code == (200 if public else 401)
     assert with_token.status_code == 200 and "/api/v1/status" in with_token.json()["paths"]
     assert docs.status_code == (200 if public else 404)
+    if public:
+        # Every asset of the page comes from the daemon (a room PC has no internet).
+        assert set(assets) == {f"{API}/docs/assets/swagger-ui.css",
+                               f"{API}/docs/assets/swagger-ui-bundle.js",
+                               f"{API}/docs/assets/favicon-32x32.png"}
+        assert all(answer.status_code == 200 for answer in assets.values())
+        assert "SwaggerUIBundle" in assets[f"{API}/docs/assets/swagger-ui-bundle.js"].text
+        assert "://" not in docs.text.replace("http://www.w3.org", "")
 
 
 def test_the_document_describes_every_answer_and_errors_have_one_shape(client: Client) -> None:

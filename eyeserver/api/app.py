@@ -17,6 +17,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.types import Receive, Scope, Send
 
 import eyeserver
+from eyeserver.api import apidocs
 from eyeserver.api.auth import Caller, TokenTable, require
 from eyeserver.api.errors import AUTH_RESPONSES, install_error_handlers
 from eyeserver.api.fastpath import ReadFastPath
@@ -25,6 +26,7 @@ from eyeserver.api.routers import (
     calibration_sessions,
     calibrations,
     captures,
+    console,
     devices,
     events,
     health,
@@ -35,6 +37,7 @@ from eyeserver.api.routers import (
     sim,
     status,
     tracking,
+    whoami,
 )
 from eyeserver.config import Settings
 from eyeserver.service.calibration_session import CalibrationSessions
@@ -122,11 +125,13 @@ def create_app(settings: Settings) -> FastAPI:
         version=eyeserver.__version__,
         lifespan=_lifespan(settings),
         openapi_url=f"{API_PREFIX}/openapi.json" if settings.public_api_docs else None,
-        docs_url=f"{API_PREFIX}/docs" if settings.public_api_docs else None,
+        docs_url=None,  # served with its assets, not from a CDN (apidocs.mount below)
         redoc_url=None,
     )
     app.state.settings = settings
-    if not settings.public_api_docs:
+    if settings.public_api_docs:
+        apidocs.mount(app, API_PREFIX)
+    else:
         async def openapi_document(_: Annotated[Caller, Depends(require("operator"))]
                                    ) -> JSONResponse:
             return JSONResponse(app.openapi())
@@ -142,11 +147,13 @@ def create_app(settings: Settings) -> FastAPI:
     authenticated = [Depends(require("operator"))]
     for router in (status.router, devices.router, captures.router, calibrations.router,
                    sim.router, audit.router, jobs.router, calibration_sessions.router,
-                   patients.router, pose.router, tracking.router):
+                   patients.router, pose.router, tracking.router, whoami.router):
         app.include_router(router, prefix=API_PREFIX, dependencies=authenticated,
                            responses=AUTH_RESPONSES)
     # Where Prometheus looks by default, outside the versioned API; a token all the same.
     app.include_router(metrics.router, dependencies=authenticated, responses=AUTH_RESPONSES)
+    # The browser console's files (no data, no token): /console/.
+    console.mount(app)
     _document_every_answer(app)
     return app
 
