@@ -42,7 +42,7 @@ fi
 # otherwise. A root that cannot install them stops here; without root the venv goes without
 # PyGObject and the GenICam tests skip, saying why.
 extras="dev,basler"
-if bash scripts/system-packages.sh; then
+if bash scripts/system-packages.sh --dev; then
     extras="dev,basler,genicam"
 elif [[ "$(id -u)" -eq 0 ]]; then
     say "the system packages above could not be installed" && exit 1
@@ -54,7 +54,7 @@ fi
 # editable install points at it), which Python the venv has and which extras it gets.
 wanted="$(
     {
-        cat pyproject.toml
+        cat pyproject.toml clients/python/pyproject.toml
         pwd
         "$venv/bin/python" --version 2>&1
         echo "$extras"
@@ -75,7 +75,9 @@ if "$venv/bin/python" -m pip show opencv-python-headless >/dev/null 2>&1; then
         opencv-contrib-python-headless >"$venv/setup.log" 2>&1
 fi
 # The build backend's chatter goes to the log; it is shown only when the install fails.
-if ! "$venv/bin/python" -m pip install -e ".[$extras]" >"$venv/setup.log" 2>&1; then
+# The daemon and the Python client (clients/python, whose tests run against the daemon).
+if ! "$venv/bin/python" -m pip install -e ".[$extras]" -e ./clients/python \
+    >"$venv/setup.log" 2>&1; then
     tail -n 60 "$venv/setup.log" >&2
     say "pip install failed; the whole log is in $venv/setup.log"
     exit 1

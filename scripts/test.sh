@@ -17,9 +17,10 @@ bash scripts/setup.sh
 step() { printf '\n== %s\n' "$*" >&2; }
 
 step "ruff check"
-.venv/bin/ruff check eyeserver tests
-step "mypy (strict, eyeserver/)"
+.venv/bin/ruff check eyeserver tests clients
+step "mypy (strict, eyeserver/ and the Python client)"
 .venv/bin/mypy
+.venv/bin/mypy --strict clients/python/src
 step "import-linter (layers)"
 .venv/bin/lint-imports
 step "pytest"

@@ -1,0 +1,170 @@
+"""The physicist's guided calibration: stereo views, plate heights, solve, compare, activate.
+
+Run against a daemon (a physicist's token in ``$EYESERVER_TOKEN``)::
+
+    python guided_calibration.py                       # stereo, then phase-to-height on it
+    python guided_calibration.py --parent cal-…        # phase-to-height on a stored one
+    python guided_calibration.py --simulated --activate
+
+In a real room the script asks you to place the chessboard (then the reference plane) and
+waits for Enter; the plate moves on the motorised stage. With ``--simulated`` it places them
+itself in the simulated room. The daemon says after each view which cameras found the board
+and which image cells still lack corners: add views until it says the session is ready.
+Nothing is activated unless you ask (``--activate``): compare first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+
+from eyeserver_client import Client, EyeserverError
+from eyeserver_client.models import CalibrationResponse
+
+#: Chessboard poses (position mm, rotation degrees) that calibrate the simulated room: the
+#: first is the origin board; the others tilt and turn it so each camera sees it
+#: foreshortened several ways.
+SIMULATED_BOARD_POSES: list[tuple[tuple[float, float, float], tuple[float, float, float]]] = [
+    ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
+    ((0.0, 0.0, 5.0), (20.0, 0.0, 0.0)),
+    ((0.0, 0.0, 5.0), (-20.0, 0.0, 0.0)),
+    ((0.0, 0.0, -5.0), (0.0, 22.0, 0.0)),
+    ((0.0, 0.0, -5.0), (0.0, -22.0, 0.0)),
+    ((3.0, -2.0, 10.0), (15.0, 15.0, 10.0)),
+    ((-3.0, 2.0, 10.0), (-15.0, -15.0, -10.0)),
+    ((2.0, 3.0, -8.0), (18.0, -18.0, 25.0)),
+    ((-2.0, -3.0, -8.0), (-18.0, 18.0, -25.0)),
+    ((0.0, 0.0, 15.0), (0.0, 0.0, 90.0)),
+    ((0.0, 0.0, 0.0), (10.0, -25.0, 180.0)),
+    ((4.0, 0.0, 3.0), (-25.0, 10.0, 45.0)),
+]
+
+#: Plate heights (mm, WCS) for phase-to-height: steps under half a fringe's depth (≈ 5.3 mm on
+#: the simulated room, so the unwrapping along Z cannot slip) over more than one fringe.
+PLATE_HEIGHTS_MM = (-4.0, -2.0, 0.0, 2.0, 4.0)
+REFERENCE_Z_MM = 10.0
+
+Prompt = Callable[[str], None]
+"""Asks the physicist to do something and returns when it is done."""
+
+
+def ask(what: str) -> None:
+    """The real room's prompt: say what to do, wait for Enter."""
+    input(f"{what}, then press Enter ")
+
+
+def stereo(client: Client, place_board: Callable[[int], bool], *, say: Prompt = print
+           ) -> CalibrationResponse:
+    """A stereo session: views until ready, then the solve. ``place_board(n)`` puts the board
+    in its ``n``-th pose (False: no more poses). Returns the new calibration."""
+    session = client.open_stereo_session()
+    try:
+        view = None
+        for n in range(100):
+            if not place_board(n):
+                break
+            view = client.add_view(session.id)
+            found = ", ".join(c for c, ok in view.found.items() if ok) or "no camera"
+            say(f"view {n + 1}: board found by {found}; "
+                + ("ready" if view.ready else f"{len(view.missing)} thing(s) missing"))
+            if view.ready:
+                break
+        if view is None or not view.ready:
+            raise EyeserverError("the stereo session is not ready: "
+                                 + "; ".join(view.missing if view else ["no views"]))
+    except BaseException:
+        client.close_calibration_session(session.id)  # release the daemon
+        raise
+    return _solve(client, session.id, say)
+
+
+def phase_height(client: Client, parent_id: str, *, heights_mm: Sequence[float],
+                 place_reference: Prompt, say: Prompt = print) -> CalibrationResponse:
+    """A phase-to-height session on ``parent_id``'s geometry: the plate at each height (moved
+    by the stage), the reference plane (placed by hand), the solve."""
+    session = client.open_phase_height_session(parent_id)
+    try:
+        for z_mm in heights_mm:
+            step = client.add_plate(session.id, z_mm, move_stage=True)
+            say(f"plate at {step.z_mm:+.1f} mm: capture {step.capture_id}")
+        place_reference(f"put the reference plane at {REFERENCE_Z_MM:+.1f} mm")
+        step_ref = client.add_reference_plane(session.id, REFERENCE_Z_MM)
+        if not step_ref.ready:
+            raise EyeserverError("the phase-height session is not ready: "
+                                 + "; ".join(step_ref.missing))
+    except BaseException:
+        client.close_calibration_session(session.id)
+        raise
+    return _solve(client, session.id, say)
+
+
+def _solve(client: Client, session_id: str, say: Prompt) -> CalibrationResponse:
+    job = client.solve_calibration_session(session_id)  # the daemon is free again now
+    say(f"solving as job {job.id} …")
+    job = client.wait_for_job(job.id, timeout_s=1800.0)
+    if job.state != "succeeded" or job.result is None:
+        raise EyeserverError(f"the solve {job.state}: {job.error}")
+    calibration = client.calibration(str(job.result["calibration_id"]))
+    say(f"new calibration {calibration.id} (version {calibration.version}): "
+        f"{calibration.quality}")
+    return calibration
+
+
+def run(client: Client, *, parent_id: str | None = None, simulated: bool = False,
+        activate: bool = False, heights_mm: Sequence[float] = PLATE_HEIGHTS_MM,
+        say: Prompt = print) -> CalibrationResponse:
+    """The whole guided calibration; returns the new (phase-to-height) calibration."""
+    if parent_id is None:
+        def place_board(n: int) -> bool:
+            if not simulated:
+                ask(f"place the chessboard ({'origin board' if n == 0 else f'view {n + 1}'})")
+                return True
+            if n >= len(SIMULATED_BOARD_POSES):
+                return False
+            position, rotation = SIMULATED_BOARD_POSES[n]
+            client.set_sim_chessboard(position_mm=position, rotation_deg=rotation)
+            return True
+
+        parent_id = stereo(client, place_board, say=say).id
+
+    def place_reference(what: str) -> None:
+        if simulated:
+            client.set_sim_scene({"kind": "reference", "position_mm": [0, 0, REFERENCE_Z_MM]})
+        else:
+            ask(what)
+
+    made = phase_height(client, parent_id, heights_mm=heights_mm,
+                        place_reference=place_reference, say=say)
+    active = client.status().active_calibration_id
+    if active is not None and active != made.id:
+        drift = client.compare_calibrations(active, made.id).summary
+        say(f"against the active {active}: rotation ≤ {drift.max_rotation_deg:.4f}°, shift ≤ "
+            f"{drift.max_centre_shift_mm:.4f} mm, height change ≤ "
+            f"{drift.max_height_change_mm} mm")
+    if activate:
+        made = client.activate_calibration(made.id)
+        say(f"{made.id} is active")
+    return made
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--url", help="the daemon (default $EYESERVER_URL or 127.0.0.1:8000)")
+    parser.add_argument("--parent", help="phase-to-height only, on this stored calibration")
+    parser.add_argument("--simulated", action="store_true",
+                        help="place board and reference plane in the simulated room")
+    parser.add_argument("--activate", action="store_true", help="activate the result")
+    args = parser.parse_args(argv)
+    try:
+        with Client(args.url) as client:
+            run(client, parent_id=args.parent, simulated=args.simulated,
+                activate=args.activate)
+    except EyeserverError as exc:
+        print(f"guided calibration: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

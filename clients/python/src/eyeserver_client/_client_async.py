@@ -1,0 +1,742 @@
+"""The client of the eyeserver API on asyncio (:class:`AsyncClient`).
+
+``scripts/unasync.py`` writes the blocking :class:`~eyeserver_client.Client`
+(``_client_sync.py``) from this file, so both have the same methods with the same arguments
+and answers: edit this one, then run ``python clients/python/scripts/unasync.py``.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Mapping, Sequence
+from datetime import datetime
+from pathlib import Path
+from typing import Any, Literal, TypeVar
+
+import httpx
+from pydantic import BaseModel
+
+from eyeserver_client import _io_async as io
+from eyeserver_client import _operations as ops
+from eyeserver_client._config import Connection, resolve
+from eyeserver_client._http import RetryPolicy, error_for, parse, transport_error, url_for
+from eyeserver_client._operations import Operation
+from eyeserver_client._streams_async import AsyncMessageStream
+from eyeserver_client.errors import EyeserverError, RequestTimeoutError
+from eyeserver_client.extras import (
+    CalibrationComparison,
+    CalibrationSession,
+    PlateStep,
+    ReferencePlaneStep,
+    ViewStep,
+)
+from eyeserver_client.messages import parse_event_message, parse_pose_message
+from eyeserver_client.models import (
+    AuditLine,
+    AuditList,
+    CalibrationList,
+    CalibrationResponse,
+    CaptureList,
+    CaptureResponse,
+    DeviceResponse,
+    EllipsoidSpec,
+    EyeModelList,
+    EyeModelResponse,
+    HealthResponse,
+    JobList,
+    JobResponse,
+    Measurement,
+    MeasurementList,
+    MotionSpec,
+    PatientResponse,
+    PrerenderResponse,
+    ReconstructionResponse,
+    ReferenceList,
+    ReferenceResponse,
+    SceneSpec,
+    SimDeviceResponse,
+    SimEyeResponse,
+    StatusResponse,
+    TrackingStatus,
+    WhoAmIResponse,
+)
+
+__all__ = ["AsyncClient"]
+
+M = TypeVar("M", bound=BaseModel)
+
+DEFAULT_TIMEOUT_S = 60.0
+"""Seconds to wait for an answer: a pose measurement (capture, reconstruction, fit) or the start
+of live tracking (its workers load the calibration) take seconds on a loaded machine."""
+DEFAULT_CONNECT_TIMEOUT_S = 5.0
+"""Seconds to wait for a connection to the daemon."""
+POSE_SILENCE_S = 2.0
+"""The pose stream sends a heartbeat after 1 s without anything else; a link silent for this
+long is taken as dead (the README: a beam controller must then hold the beam)."""
+
+JOB_FINISHED = ("succeeded", "failed", "cancelled")
+
+
+def _body(**fields: Any) -> dict[str, Any]:
+    """A JSON body of the fields given (None: left out, so the daemon's default applies)."""
+    return {name: value for name, value in fields.items() if value is not None}
+
+
+def _dump(value: BaseModel | Mapping[str, Any]) -> dict[str, Any]:
+    """A request body from a model (only the fields that were set) or a mapping."""
+    if isinstance(value, BaseModel):
+        return value.model_dump(mode="json", exclude_unset=True)
+    return dict(value)
+
+
+def _time(value: datetime | str | None) -> str | None:
+    """A time filter as the daemon reads it: ISO 8601 with a time zone."""
+    if isinstance(value, datetime):
+        if value.tzinfo is None:
+            raise EyeserverError("a time filter needs a time zone (e.g. datetime.now(UTC))")
+        return value.isoformat()
+    return value
+
+
+class AsyncClient:
+    """A client of one eyeserver daemon's HTTP API and streams (asyncio).
+
+    Parameters
+    ----------
+    base_url
+        The daemon's address, e.g. ``https://room-pc:8443`` (``/api/v1`` may be included);
+        default ``$EYESERVER_URL``, else ``http://127.0.0.1:8000``.
+    token
+        The bearer token; default the file ``token_file``, else ``$EYESERVER_TOKEN``, else the
+        file named by ``$EYESERVER_TOKEN_FILE``. Without one only :meth:`health` answers.
+    token_file
+        A file holding the token (read once, here).
+    ca_file
+        PEM file of the CA that signed the daemon's certificate (``https`` only); default the
+        system's trust store.
+    verify
+        False turns certificate verification off (for a bench, never in a treatment room).
+    client_cert
+        For a daemon that wants client certificates (mutual TLS): a PEM file with certificate
+        and key, or a ``(certificate, key)`` pair.
+    timeout_s
+        Seconds to wait for an answer (default 60: a measurement takes seconds).
+    connect_timeout_s
+        Seconds to wait for a connection.
+    retries
+        How often a request is sent again when that is safe (see
+        :class:`~eyeserver_client._http.RetryPolicy`: never a request that creates something
+        and may have reached the daemon).
+    transport
+        An httpx transport to use instead of the network (tests).
+
+    Use it as a context manager, or call :meth:`aclose`, to release its connections.
+    """
+
+    def __init__(self, base_url: str | None = None, *, token: str | None = None,
+                 token_file: str | os.PathLike[str] | None = None,
+                 ca_file: str | os.PathLike[str] | None = None, verify: bool = True,
+                 client_cert: str | os.PathLike[str] | tuple[str | os.PathLike[str],
+                                                             str | os.PathLike[str]] | None
+                 = None,
+                 timeout_s: float = DEFAULT_TIMEOUT_S,
+                 connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S, retries: int = 2,
+                 transport: httpx.AsyncBaseTransport | None = None) -> None:
+        self.connection: Connection = resolve(base_url, token, token_file, ca_file, verify,
+                                              client_cert)
+        self.retry = RetryPolicy(retries)
+        self._http = httpx.AsyncClient(
+            headers={**self.connection.headers(), "Accept": "application/json"},
+            verify=self.connection.verify,
+            timeout=httpx.Timeout(timeout_s, connect=connect_timeout_s),
+            transport=transport)
+
+    @property
+    def base_url(self) -> str:
+        """The API's base URL (``…/api/v1``)."""
+        return self.connection.api
+
+    async def aclose(self) -> None:
+        """Close the client's connections."""
+        await self._http.aclose()
+
+    async def __aenter__(self) -> AsyncClient:
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.aclose()
+
+    # --- the one way requests go ---------------------------------------------------------
+
+    async def _call(self, operation: Operation, *, path: Mapping[str, object] | None = None,
+                    params: Mapping[str, Any] | None = None, json: Any = None,
+                    content: bytes | None = None, headers: Mapping[str, str] | None = None,
+                    timeout_s: float | None = None) -> httpx.Response:
+        """Send ``operation``, retrying where :attr:`retry` allows; the successful answer.
+
+        Raises the :mod:`~eyeserver_client.errors` tree's exception for an error answer (with
+        the daemon's reason) or a request that got none.
+        """
+        url = url_for(self.connection, operation, path)
+        query = None if params is None else {k: v for k, v in params.items() if v is not None}
+        extra: dict[str, Any] = {}
+        if timeout_s is not None:
+            extra["timeout"] = httpx.Timeout(timeout_s, connect=self._http.timeout.connect)
+        attempt = 0
+        while True:
+            try:
+                response = await self._http.request(
+                    operation.method, url, params=query, json=json, content=content,
+                    headers=headers, **extra)
+            except httpx.TransportError as exc:
+                wait_s = self.retry.after_failure(operation, exc, attempt)
+                if wait_s is None:
+                    raise transport_error(exc, operation.method, url) from exc
+            else:
+                if response.is_success:
+                    return response
+                await response.aread()
+                error = error_for(response)
+                wait_s = self.retry.after_answer(operation, error, attempt)
+                if wait_s is None:
+                    raise error
+            attempt += 1
+            await io.sleep(wait_s)
+
+    async def _get(self, operation: Operation, kind: type[M], **kwargs: Any) -> M:
+        return parse(await self._call(operation, **kwargs), kind)
+
+    # --- the daemon --------------------------------------------------------------------------
+
+    async def health(self) -> HealthResponse:
+        """Whether the daemon is up (no token needed): ``status`` ``ok`` and its version."""
+        return await self._get(ops.HEALTH, HealthResponse)
+
+    async def status(self) -> StatusResponse:
+        """The daemon's state (idle, capturing, calibrating, tracking, fault), its devices and
+        units with their health, the active calibration, uptime (s) and tracking's beam hold."""
+        return await self._get(ops.STATUS, StatusResponse)
+
+    async def whoami(self) -> WhoAmIResponse:
+        """Whose token this client presents: the holder's ``name`` (as the audit trail records
+        it), its ``role`` and every role it may act as. Ask this rather than trying a
+        physicist's route, which would leave a ``denied`` line in the audit trail."""
+        return await self._get(ops.WHOAMI, WhoAmIResponse)
+
+    async def devices(self) -> list[DeviceResponse]:
+        """Every device of the rig: kind, driver, unit, open, health and a fault's reason."""
+        return parse(await self._call(ops.DEVICES), list[DeviceResponse])
+
+    async def device(self, device_id: str) -> DeviceResponse:
+        """One device (:class:`~eyeserver_client.errors.NotFound` if unknown)."""
+        return await self._get(ops.DEVICE, DeviceResponse, path={"device_id": device_id})
+
+    async def configure_device(self, device_id: str, *, enabled: bool | None = None,
+                               intensity: float | None = None,
+                               exposure_us: float | None = None,
+                               gain_db: float | None = None) -> DeviceResponse:
+        """Change a device's settings (physicists only; audited; all or nothing).
+
+        A projector takes ``enabled`` and ``intensity`` (drive level 0–1), a camera
+        ``exposure_us`` (microseconds) and ``gain_db`` (dB); settings left None stay as they
+        are. :class:`~eyeserver_client.errors.Invalid` for a setting that does not apply to
+        the device or a value outside its range.
+        """
+        return await self._get(ops.CONFIGURE_DEVICE, DeviceResponse,
+                               path={"device_id": device_id},
+                               json=_body(enabled=enabled, intensity=intensity,
+                                          exposure_us=exposure_us, gain_db=gain_db))
+
+    async def audit(self, limit: int = 100) -> list[AuditLine]:
+        """The newest ``limit`` lines of the audit trail, newest first (physicists only)."""
+        return (await self._get(ops.AUDIT, AuditList, params={"limit": limit})).entries
+
+    async def metrics(self) -> str:
+        """The daemon's Prometheus metrics (text format)."""
+        return (await self._call(ops.METRICS)).text
+
+    # --- captures and reconstructions --------------------------------------------------------
+
+    async def capture(self, unit: str = "all") -> CaptureResponse:
+        """Capture one frame set of ``unit`` (or ``all``, interleaved) and store it.
+
+        Answers once the bundle is durable on disk; waits its turn behind captures already
+        queued. :class:`~eyeserver_client.errors.Conflict` while the daemon is calibrating or
+        tracking, :class:`~eyeserver_client.errors.Unavailable` when a device fails or the
+        acquisition queue is full. Never retried once sent (it would capture twice).
+        """
+        return await self._get(ops.CREATE_CAPTURE, CaptureResponse, json={"unit": unit})
+
+    async def captures(self, *, limit: int = 50, offset: int = 0, unit: str | None = None,
+                       kind: str | None = None, calibration_id: str | None = None,
+                       since: datetime | str | None = None,
+                       until: datetime | str | None = None) -> CaptureList:
+        """One page of stored captures, newest first, with the ``total`` matching.
+
+        ``since`` (inclusive) and ``until`` (exclusive) filter on the creation time; give
+        aware datetimes or ISO 8601 text with a time zone.
+        """
+        return await self._get(ops.LIST_CAPTURES, CaptureList, params={
+            "limit": limit, "offset": offset, "unit": unit, "kind": kind,
+            "calibration_id": calibration_id, "since": _time(since), "until": _time(until)})
+
+    async def get_capture(self, capture_id: str) -> CaptureResponse:
+        """One capture's metadata (also after a restart of the daemon)."""
+        return await self._get(ops.CAPTURE, CaptureResponse, path={"capture_id": capture_id})
+
+    async def delete_capture(self, capture_id: str, *, reason: str) -> None:
+        """Delete a capture with its cloud and summary (physicists only; the reason goes to
+        the audit trail). :class:`~eyeserver_client.errors.Conflict` for a capture kept as
+        evidence (a calibration's input, a measurement's or a captured reference's capture)."""
+        await self._call(ops.DELETE_CAPTURE, path={"capture_id": capture_id},
+                         params={"reason": reason})
+
+    async def capture_bundle(self, capture_id: str) -> bytes:
+        """The capture bundle as a zip (``<id>/bundle.json`` and its PNGs, byte for byte)."""
+        return (await self._call(ops.CAPTURE_BUNDLE, path={"capture_id": capture_id})).content
+
+    async def capture_image(self, capture_id: str, frame: int, camera: str) -> bytes:
+        """One stored image (PNG) of a capture: frame ``frame`` of camera ``camera``."""
+        return (await self._call(ops.CAPTURE_IMAGE, path={
+            "capture_id": capture_id, "frame": frame, "camera": camera})).content
+
+    async def reconstruct(self, capture_id: str, *,
+                          method: Literal["auto", "multi-view", "spatial"] | None = None,
+                          depth_prior_mm: float | None = None,
+                          roi: Sequence[float] | None = None,
+                          min_quality: float | None = None) -> ReconstructionResponse:
+        """Reconstruct a capture with the active calibration and store its cloud.
+
+        Options as for ``eyeserver reconstruct``: the fringe-order ``method``, a
+        ``depth_prior_mm`` (mm) the surface lies near, an ``roi`` box ``[x0, y0, z0, x1, y1,
+        z1]`` (mm, WCS) and a ``min_quality`` (0–1) for points. Takes seconds.
+        :class:`~eyeserver_client.errors.Conflict` when no calibration is active.
+        """
+        return await self._get(ops.RECONSTRUCT, ReconstructionResponse,
+                               path={"capture_id": capture_id},
+                               json=_body(method=method, depth_prior_mm=depth_prior_mm,
+                                          roi=None if roi is None else list(roi),
+                                          min_quality=min_quality))
+
+    async def reconstruction(self, capture_id: str) -> ReconstructionResponse:
+        """The kept summary of a capture's last reconstruction (NotFound before one)."""
+        return await self._get(ops.RECONSTRUCTION, ReconstructionResponse,
+                               path={"capture_id": capture_id})
+
+    async def cloud_ply(self, capture_id: str) -> bytes:
+        """A capture's stored point cloud (PLY, mm, WCS)."""
+        return (await self._call(ops.CLOUD, path={"capture_id": capture_id})).content
+
+    async def preview_png(self, capture_id: str) -> bytes:
+        """A capture's height map as a PNG."""
+        return (await self._call(ops.PREVIEW, path={"capture_id": capture_id})).content
+
+    # --- calibrations ------------------------------------------------------------------------
+
+    async def calibrations(self) -> list[CalibrationResponse]:
+        """Every stored calibration, newest first, with its quality figures and source."""
+        return (await self._get(ops.LIST_CALIBRATIONS, CalibrationList)).items
+
+    async def calibration(self, calibration_id: str) -> CalibrationResponse:
+        """One stored calibration."""
+        return await self._get(ops.CALIBRATION, CalibrationResponse,
+                               path={"calibration_id": calibration_id})
+
+    async def import_calibration(self, archive: bytes | str | os.PathLike[str]
+                                 ) -> CalibrationResponse:
+        """Import a calibration: a zip (its bytes or its path) of a directory made by
+        ``eyeserver calibrate`` or downloaded from a daemon (physicists only; not activated).
+        :class:`~eyeserver_client.errors.Invalid` for an archive the daemon refuses (the reason
+        says why)."""
+        data = archive if isinstance(archive, bytes) else Path(archive).read_bytes()
+        return await self._get(ops.IMPORT_CALIBRATION, CalibrationResponse, content=data,
+                               headers={"Content-Type": "application/zip"})
+
+    async def activate_calibration(self, calibration_id: str) -> CalibrationResponse:
+        """Make a calibration the one captures and measurements use (physicists only;
+        audited). :class:`~eyeserver_client.errors.Conflict` while the daemon is busy."""
+        return await self._get(ops.ACTIVATE_CALIBRATION, CalibrationResponse,
+                               path={"calibration_id": calibration_id})
+
+    async def download_calibration(self, calibration_id: str) -> bytes:
+        """A calibration as a zip (with a guided calibration's input bundles: its evidence)."""
+        return (await self._call(ops.DOWNLOAD_CALIBRATION,
+                                 path={"calibration_id": calibration_id})).content
+
+    async def compare_calibrations(self, a: str, b: str) -> CalibrationComparison:
+        """How far calibration ``b`` has drifted from ``a``, per camera: rotation (degrees),
+        centre shift (mm), focal and principal point change (px), height change (mm)."""
+        return await self._get(ops.COMPARE_CALIBRATIONS, CalibrationComparison,
+                               params={"a": a, "b": b})
+
+    # --- guided calibration (physicists) -----------------------------------------------------
+
+    async def open_stereo_session(self, *, cols: int | None = None, rows: int | None = None,
+                                  square_mm: float | None = None) -> CalibrationSession:
+        """Open a stereo calibration session; the daemon is ``calibrating`` (captures get
+        Conflict) until its solve starts or it is closed.
+
+        The board: inner corners ``cols`` × ``rows`` (one odd, one even) and the square's side
+        in mm; left out, the simulated room's 9 × 6 corners of 4.5 mm.
+        """
+        board = _body(cols=cols, rows=rows, square_mm=square_mm)
+        return await self._get(ops.OPEN_SESSION, CalibrationSession,
+                               json={"kind": "stereo", **({"board": board} if board else {})})
+
+    async def open_phase_height_session(self, calibration_id: str) -> CalibrationSession:
+        """Open a phase-to-height session extending the geometry of a stored calibration (its
+        parent); the new calibration it solves is stored separately, never changing the
+        parent."""
+        return await self._get(ops.OPEN_SESSION, CalibrationSession,
+                               json={"kind": "phase-height", "calibration_id": calibration_id})
+
+    async def calibration_sessions(self) -> list[CalibrationSession]:
+        """The sessions of this run of the daemon, newest first (kept in memory)."""
+        answer = await self._call(ops.LIST_SESSIONS)
+        return parse(answer, _SessionList).items
+
+    async def calibration_session(self, session_id: str) -> CalibrationSession:
+        """A session: its inputs so far, coverage or heights, readiness, job and result."""
+        return await self._get(ops.SESSION, CalibrationSession, path={"session_id": session_id})
+
+    async def close_calibration_session(self, session_id: str) -> CalibrationSession:
+        """Abandon a session still acquiring: the daemon is released; its captures stay."""
+        return await self._get(ops.CLOSE_SESSION, CalibrationSession,
+                               path={"session_id": session_id})
+
+    async def add_view(self, session_id: str, *, origin: bool | None = None) -> ViewStep:
+        """Acquire a chessboard view (all cameras, projectors dark) in a stereo session.
+
+        Answers which cameras found the board and the coverage so far (per camera, the share
+        of 4 × 4 image cells touched by corners), ``ready`` and what is ``missing``: move the
+        board and add views until ``ready``. The first view is the origin board (it defines
+        the WCS) unless posted with ``origin=False``; then one later view needs ``origin=True``.
+        """
+        return await self._get(ops.ADD_VIEW, ViewStep, path={"session_id": session_id},
+                               json=None if origin is None else {"origin": origin})
+
+    async def add_plate(self, session_id: str, z_mm: float, *, move_stage: bool = False
+                        ) -> PlateStep:
+        """Acquire the flat plate at height ``z_mm`` (mm, WCS) in a phase-height session;
+        with ``move_stage`` the daemon's motorised stage puts it there first, otherwise it was
+        put there by hand. Answers what the session still needs."""
+        return await self._get(ops.ADD_PLATE, PlateStep, path={"session_id": session_id},
+                               json={"z_mm": z_mm, "move_stage": move_stage})
+
+    async def add_reference_plane(self, session_id: str, z_mm: float = 10.0
+                                  ) -> ReferencePlaneStep:
+        """Acquire the reference plane at ``z_mm`` (mm; +10 by design) in a phase-height
+        session; a second one replaces the first."""
+        return await self._get(ops.ADD_REFERENCE_PLANE, ReferencePlaneStep,
+                               path={"session_id": session_id}, json={"z_mm": z_mm})
+
+    async def solve_calibration_session(self, session_id: str) -> JobResponse:
+        """Solve a ready session as a job (:meth:`wait_for_job`); its result names the new
+        calibration (``calibration_id``, not activated). The daemon is free again at once.
+        :class:`~eyeserver_client.errors.Conflict` when not ready (the reason lists what is
+        missing)."""
+        return await self._get(ops.SOLVE_SESSION, JobResponse, path={"session_id": session_id})
+
+    # --- jobs --------------------------------------------------------------------------------
+
+    async def jobs(self) -> list[JobResponse]:
+        """The jobs the daemon remembers (in memory: a restart forgets them)."""
+        return (await self._get(ops.LIST_JOBS, JobList)).items
+
+    async def job(self, job_id: str) -> JobResponse:
+        """A job's state, progress (0–1), message, and its result or error."""
+        return await self._get(ops.JOB, JobResponse, path={"job_id": job_id})
+
+    async def cancel_job(self, job_id: str) -> JobResponse:
+        """Ask a job to stop (a queued one at once, a running one at its next step)."""
+        return await self._get(ops.CANCEL_JOB, JobResponse, path={"job_id": job_id})
+
+    async def reconstruct_captures(self, capture_ids: Sequence[str]) -> JobResponse:
+        """Reconstruct several captures with the active calibration as one job."""
+        return await self._get(ops.RECONSTRUCT_BATCH, JobResponse,
+                               json={"capture_ids": list(capture_ids)})
+
+    async def wait_for_job(self, job_id: str, *, timeout_s: float = 600.0,
+                           poll_s: float = 0.25) -> JobResponse:
+        """Poll a job every ``poll_s`` seconds until it has finished (succeeded, failed or
+        cancelled) and answer it; :class:`~eyeserver_client.errors.RequestTimeoutError` after
+        ``timeout_s`` seconds (the job goes on)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            job = await self.job(job_id)
+            if job.state in JOB_FINISHED:
+                return job
+            if time.monotonic() > deadline:
+                raise RequestTimeoutError(f"job {job_id} has not finished after {timeout_s:g} s "
+                                     f"({job.state}, {job.progress:.0%}: {job.message})")
+            await io.sleep(poll_s)
+
+    # --- patients, eye models, references ---------------------------------------------------
+
+    async def put_patient(self, patient_id: str, *, eye: Literal["right", "left"],
+                          unit: str | None = None, tolerance_mm: float | None = None,
+                          tolerance_gaze_deg: float | None = None,
+                          min_confidence: float | None = None) -> PatientResponse:
+        """Create or update a patient (physicists only; audited with the id hashed).
+
+        ``patient_id`` is the OIS's id (printable ASCII without spaces or ``/``, ≤ 128).
+        ``unit`` is the unit whose cameras see the treated eye (default ``all``); the
+        tolerances are the largest accepted translation (mm, default 0.2) and gaze deviation
+        (degrees, default 1), ``min_confidence`` the smallest fit confidence that may pass
+        (default 0.5). A field left out takes the daemon's default: the PUT stores the
+        whole patient, also one that exists.
+        """
+        return await self._get(ops.PUT_PATIENT, PatientResponse,
+                               path={"patient_id": patient_id},
+                               json=_body(eye=eye, unit=unit, tolerance_mm=tolerance_mm,
+                                          tolerance_gaze_deg=tolerance_gaze_deg,
+                                          min_confidence=min_confidence))
+
+    async def patient(self, patient_id: str) -> PatientResponse:
+        """A patient with the eye-model version in use (NotFound if unknown)."""
+        return await self._get(ops.PATIENT, PatientResponse, path={"patient_id": patient_id})
+
+    async def add_eye_model(self, patient_id: str, *, globe_radius_mm: float | None = None,
+                            ellipsoid: EllipsoidSpec | Mapping[str, Any] | None = None,
+                            cornea_radius_mm: float | None = None,
+                            limbus_diameter_mm: float | None = None,
+                            source: str | None = None) -> EyeModelResponse:
+        """Store a new version of the patient's eye model, used from now on (physicists only).
+
+        Nothing given: the population model (globe radius fitted). ``globe_radius_mm`` gives a
+        spherical globe, ``ellipsoid`` the MRI's anterior segment (``semi_axes_mm``,
+        ``orientation``, ``centre_mm``): with it a check against a *planned* reference can
+        pass (without it the globe's unknown shape fails it). Radii and diameter in mm.
+        """
+        return await self._get(ops.ADD_EYE_MODEL, EyeModelResponse,
+                               path={"patient_id": patient_id}, json=_body(
+                                   globe_radius_mm=globe_radius_mm,
+                                   ellipsoid=None if ellipsoid is None else _dump(ellipsoid),
+                                   cornea_radius_mm=cornea_radius_mm,
+                                   limbus_diameter_mm=limbus_diameter_mm, source=source))
+
+    async def eye_models(self, patient_id: str) -> list[EyeModelResponse]:
+        """Every eye-model version of a patient, oldest first (the last is in use)."""
+        return (await self._get(ops.EYE_MODELS, EyeModelList,
+                                path={"patient_id": patient_id})).items
+
+    async def eye_model(self, patient_id: str, version: int) -> EyeModelResponse:
+        """One eye-model version."""
+        return await self._get(ops.EYE_MODEL, EyeModelResponse,
+                               path={"patient_id": patient_id, "version": version})
+
+    async def set_reference(self, patient_id: str, fraction: int, *,
+                            centre_mm: Sequence[float], gaze: Sequence[float],
+                            limbus_centre_mm: Sequence[float] | None = None,
+                            plan: str | None = None) -> ReferenceResponse:
+        """Store the planned pose as the fraction's next reference version (physicists only):
+        globe centre (mm), gaze (normalised by the daemon) and optionally the limbus centre
+        (mm), all in the WCS; ``plan`` says which plan it comes from."""
+        return await self._get(ops.SET_REFERENCE, ReferenceResponse,
+                               path={"patient_id": patient_id, "fraction": fraction},
+                               json=_body(centre_mm=list(centre_mm), gaze=list(gaze),
+                                          limbus_centre_mm=None if limbus_centre_mm is None
+                                          else list(limbus_centre_mm), plan=plan))
+
+    async def capture_reference(self, patient_id: str, fraction: int) -> ReferenceResponse:
+        """Measure the eye at set-up and store its pose as the fraction's next reference
+        version, with its evidence (physicists only). Takes seconds; against a reference
+        captured so, the eye model's unknown globe shape cancels."""
+        return await self._get(ops.CAPTURE_REFERENCE, ReferenceResponse,
+                               path={"patient_id": patient_id, "fraction": fraction})
+
+    async def reference(self, patient_id: str, fraction: int) -> ReferenceResponse:
+        """The fraction's reference in use (NotFound without one)."""
+        return await self._get(ops.REFERENCE, ReferenceResponse,
+                               path={"patient_id": patient_id, "fraction": fraction})
+
+    async def references(self, patient_id: str, fraction: int) -> list[ReferenceResponse]:
+        """Every reference version of a fraction, oldest first (the last is in use)."""
+        return (await self._get(ops.REFERENCES, ReferenceList,
+                                path={"patient_id": patient_id, "fraction": fraction})).items
+
+    # --- position verification ----------------------------------------------------------------
+
+    async def measure_pose(self, patient_id: str, fraction: int) -> Measurement:
+        """Verify the eye's position before irradiation.
+
+        The daemon captures the patient's unit, reconstructs with the active calibration, fits
+        the patient's eye model and compares with the fraction's reference: ``deviation``
+        (measured − reference: ``delta_mm``, ``length_mm``, ``gaze_deg``), ``passed`` with the
+        ``reasons`` when not, the fitted ``pose`` and the ``evidence``. Stored. Takes seconds;
+        never retried once sent (each call is a measurement).
+
+        Raises :class:`~eyeserver_client.errors.NotFound` (no such patient or no reference),
+        :class:`~eyeserver_client.errors.Conflict` (no active calibration, or busy; nothing
+        captured), :class:`~eyeserver_client.errors.Invalid` (no eye could be fitted: the
+        reason says why).
+        """
+        return await self._get(ops.MEASURE, Measurement,
+                               json={"patient_id": patient_id, "fraction": fraction})
+
+    async def measurements(self, patient_id: str, *, fraction: int | None = None,
+                           limit: int = 50, offset: int = 0) -> MeasurementList:
+        """A patient's stored measurements (of one ``fraction`` if given), newest first."""
+        return await self._get(ops.MEASUREMENTS, MeasurementList, params={
+            "patient_id": patient_id, "fraction": fraction, "limit": limit, "offset": offset})
+
+    async def measurement(self, measurement_id: str) -> Measurement:
+        """One stored measurement with its evidence (also after a restart)."""
+        return await self._get(ops.MEASUREMENT, Measurement,
+                               path={"measurement_id": measurement_id})
+
+    async def measurement_dicom(self, measurement_id: str, *,
+                                dicom_object: Literal["registration", "surface"] | None = None,
+                                ) -> bytes:
+        """A measurement as DICOM: a zip of ``registration.dcm`` (Spatial Registration: the
+        eye's rigid motion from the reference) and ``surface.dcm`` (Surface Segmentation), or
+        one of them (``dicom_object``) as the object's bytes.
+        :class:`~eyeserver_client.errors.Conflict` for a measurement without a reference."""
+        params = {"object": dicom_object} if dicom_object is not None else None
+        return (await self._call(ops.MEASUREMENT_DICOM, path={"measurement_id": measurement_id},
+                                 params=params)).content
+
+    async def import_plan_dicom(self, patient_id: str, fraction: int,
+                                data: bytes | str | os.PathLike[str]) -> dict[str, Any]:
+        """Import the plan's eye (physicists only): an RT Structure Set and, optionally, a
+        Spatial Registration, as a zip or one DICOM object (its bytes or its path); a new eye
+        model version and, with the registration, the fraction's reference. The answer says
+        what was read and why anything was not set (``read.notes``)."""
+        content = data if isinstance(data, bytes) else Path(data).read_bytes()
+        kind = "application/zip" if content[:2] == b"PK" else "application/dicom"
+        answer = await self._call(ops.IMPORT_PLAN_DICOM, path={
+            "patient_id": patient_id, "fraction": fraction}, content=content,
+            headers={"Content-Type": kind})
+        imported: dict[str, Any] = answer.json()
+        return imported
+
+    # --- live tracking -----------------------------------------------------------------------
+
+    async def start_tracking(self, patient_id: str, fraction: int, *,
+                             dwell_frames: int | None = None,
+                             hold_on_drop: bool | None = None) -> TrackingStatus:
+        """Start live tracking of the patient's unit at 25 Hz against the fraction's
+        reference; read the poses and the beam-hold flag with :meth:`poses`.
+
+        ``dwell_frames`` good frames in a row lower the beam hold after it rose (default 3);
+        ``hold_on_drop`` holds on a gap of more than two unprocessed frames (default true).
+        Answers once the workers are ready (a few seconds).
+        :class:`~eyeserver_client.errors.Conflict` when no calibration is active, the daemon
+        is busy, or the eye model lacks the globe's shape against a planned reference.
+        """
+        return await self._get(ops.START_TRACKING, TrackingStatus,
+                               json=_body(patient_id=patient_id, fraction=fraction,
+                                          dwell_frames=dwell_frames, hold_on_drop=hold_on_drop))
+
+    async def stop_tracking(self) -> TrackingStatus:
+        """End live tracking; the final counts (Conflict when not tracking)."""
+        return await self._get(ops.STOP_TRACKING, TrackingStatus)
+
+    async def tracking(self) -> TrackingStatus:
+        """The running or last tracking session: frames acquired, processed, dropped, missed
+        and held, the beam hold, a stall, the error that ended it, the last message."""
+        return await self._get(ops.TRACKING, TrackingStatus)
+
+    # --- streams -----------------------------------------------------------------------------
+
+    def events(self, *, reconnect: bool = True, silence_s: float | None = None,
+               max_attempts: int | None = None) -> AsyncMessageStream:
+        """The daemon's event stream (``/ws/events``): a ``Hello``, then every event.
+
+        Yields :mod:`~eyeserver_client.messages` models; reconnects when the connection is
+        lost, yielding ``Disconnected`` at once and ``Resumed`` (how many events went by)
+        once back (see :class:`~eyeserver_client._streams_async.AsyncMessageStream`).
+        ``silence_s``: take the link as dead after that long without a message (the event
+        stream sends nothing while nothing happens: None, the default, waits; the WebSocket's
+        own pings still find a dead peer within about 40 s).
+        """
+        return AsyncMessageStream(self.connection, "/ws/events", parse_event_message,
+                                  reconnect=reconnect, silence_s=silence_s,
+                                  max_attempts=max_attempts)
+
+    def poses(self, *, reconnect: bool = True, silence_s: float = POSE_SILENCE_S,
+              max_attempts: int | None = None) -> AsyncMessageStream:
+        """Live tracking's pose stream (``/ws/pose``): a ``PoseMessage`` per processed frame
+        with the beam-hold flag, ``HoldMessage`` when the daemon holds the beam without a
+        frame, ``Heartbeat`` after a second of silence.
+
+        A link silent for ``silence_s`` seconds (default 2) is taken as dead: ``Disconnected``
+        (``beam_hold`` true) is yielded at once and the stream reconnects.
+        """
+        return AsyncMessageStream(self.connection, "/ws/pose", parse_pose_message,
+                                  reconnect=reconnect, silence_s=silence_s,
+                                  max_attempts=max_attempts)
+
+    # --- the simulated room (demonstrations and tests; NotFound on real hardware) ------------
+
+    async def sim_scene(self) -> SceneSpec:
+        """The scene in front of the simulated cameras."""
+        return await self._get(ops.SIM_SCENE, SceneSpec)
+
+    async def set_sim_scene(self, scene: SceneSpec | Mapping[str, Any]) -> SceneSpec:
+        """Place a scene (``kind``: empty, chessboard, plate, reference, pyramid, wedge,
+        eye_phantom_1/2, eye; ``position_mm``, ``rotation_deg``, …). Conflict while busy."""
+        return await self._get(ops.SET_SIM_SCENE, SceneSpec, json=_dump(scene))
+
+    async def set_sim_stage(self, z_mm: float) -> SceneSpec:
+        """Move the simulated stage's flat plate to ``z_mm`` (mm; travel −15…+30)."""
+        return await self._get(ops.SET_SIM_STAGE, SceneSpec, json={"z_mm": z_mm})
+
+    async def set_sim_chessboard(self, *, position_mm: Sequence[float] | None = None,
+                                 rotation_deg: Sequence[float] | None = None) -> SceneSpec:
+        """Place the calibration chessboard (mm, degrees; left out: the default pose)."""
+        return await self._get(ops.SET_SIM_CHESSBOARD, SceneSpec, json=_body(
+            position_mm=None if position_mm is None else list(position_mm),
+            rotation_deg=None if rotation_deg is None else list(rotation_deg)))
+
+    async def sim_eye(self) -> SimEyeResponse:
+        """The simulated eye's true pose now (ground truth: for people and tests)."""
+        return await self._get(ops.SIM_EYE, SimEyeResponse)
+
+    async def set_sim_eye(self, *, position_mm: Sequence[float] | None = None,
+                          rotation_deg: Sequence[float] | None = None,
+                          gaze_deg: Sequence[float] | None = None,
+                          globe_radius_mm: float | None = None,
+                          cornea_radius_mm: float | None = None,
+                          limbus_diameter_mm: float | None = None,
+                          motion: MotionSpec | Mapping[str, Any] | None = None,
+                          still: bool = False) -> SimEyeResponse:
+        """Pose the simulated eye (the scene becomes the eye); what is left out stays.
+
+        ``motion`` starts a movement (drift, saccades, blinks, a script) now; ``still=True``
+        stops any (``motion: null``). Positions mm, angles degrees.
+        """
+        body = _body(position_mm=None if position_mm is None else list(position_mm),
+                     rotation_deg=None if rotation_deg is None else list(rotation_deg),
+                     gaze_deg=None if gaze_deg is None else list(gaze_deg),
+                     globe_radius_mm=globe_radius_mm, cornea_radius_mm=cornea_radius_mm,
+                     limbus_diameter_mm=limbus_diameter_mm,
+                     motion=None if motion is None else _dump(motion))
+        if still:
+            body["motion"] = None
+        return await self._get(ops.SET_SIM_EYE, SimEyeResponse, json=body)
+
+    async def sim_prerender(self, unit: str, seconds: float) -> PrerenderResponse:
+        """Render what ``unit``'s cameras will see of the moving eye over the next ``seconds``
+        (0–120) before answering, so live tracking measures the daemon, not the renderer."""
+        return await self._get(ops.PRERENDER, PrerenderResponse,
+                               json={"unit": unit, "seconds": seconds})
+
+    async def sim_prerender_status(self) -> dict[str, Any]:
+        """Per camera: pre-rendered frames left, used, and rendered live."""
+        return parse(await self._call(ops.SIM_PRERENDER), dict[str, Any])
+
+    async def sim_truth(self, t_s: float | None = None) -> dict[str, Any]:
+        """The current scene's ground truth (at clock time ``t_s``, s), as
+        ``eyeserver sim render`` writes ``truth.json``."""
+        return parse(await self._call(ops.SIM_TRUTH, params={"t_s": t_s}), dict[str, Any])
+
+    async def connect_sim_device(self, device_id: str, connected: bool) -> SimDeviceResponse:
+        """Unplug (``False``) or replug a simulated device: fault injection (physicists)."""
+        return await self._get(ops.CONNECT_SIM_DEVICE, SimDeviceResponse,
+                               path={"device_id": device_id}, json={"connected": connected})
+
+
+class _SessionList(BaseModel):
+    items: list[CalibrationSession]
