@@ -78,8 +78,10 @@ from eyeserver.errors import (
 from eyeserver.hardware.drivers.camerathread import (
     MONO_PIXEL_FORMATS,
     FrameQueue,
+    NodeMapLink,
     StreamingCamera,
     check_region_read_back,
+    check_trigger_read_back,
 )
 from eyeserver.hardware.registry import DriverContext, register_driver
 
@@ -152,7 +154,7 @@ def _readback(value: Any) -> float:
     return round(float(value), _READBACK_DECIMALS)
 
 
-class _PylonLink:
+class _PylonLink(NodeMapLink):
     """One opened camera: the only code that calls pylon.
 
     Control calls are serialised by a re-entrant lock (one GenICam conversation at a time, a
@@ -263,13 +265,7 @@ class _PylonLink:
             return node.GetValue()
         return self._call(f"setting {name} to {value!r}", write)
 
-    def set_enum(self, name: str, entry: str) -> str:
-        """Set the enumeration feature ``name`` to ``entry``, which must be on offer; return the
-        entry read back."""
-        offered = self.entries(name)
-        if entry not in offered:
-            raise DeviceValueError(self.device_id, f"the camera's {name} has no {entry!r} (it "
-                                                   f"has {', '.join(offered) or 'none'})")
+    def _write_entry(self, name: str, entry: str) -> str:
         return str(self.set(name, entry))
 
     def bounds(self, name: str) -> tuple[float, float]:
@@ -291,20 +287,6 @@ class _PylonLink:
         return {"vendor": str(info.GetVendorName()), "model": str(info.GetModelName()),
                 "serial_number": str(info.GetSerialNumber()),
                 "user_id": str(info.GetUserDefinedName()), "transport": transport}
-
-    def set_region(self, x: int, y: int, width: int | None,
-                   height: int | None) -> tuple[int, int, int, int]:
-        """Set the region of interest (pixels; None: the rest of the sensor from the offset);
-        return it as read back (x, y, width, height). Offsets go to 0 first, so that the new
-        size is never refused for the old offset."""
-        self.set("OffsetX", 0)
-        self.set("OffsetY", 0)
-        if width is None:
-            width = int(self.bounds("Width")[1]) - x
-        if height is None:
-            height = int(self.bounds("Height")[1]) - y
-        read_width, read_height = int(self.set("Width", width)), int(self.set("Height", height))
-        return int(self.set("OffsetX", x)), int(self.set("OffsetY", y)), read_width, read_height
 
     def set_trigger(self, source: str) -> str:
         """Expose every frame on a rising edge of ``source``: every trigger selector's
@@ -440,15 +422,9 @@ class BaslerCamera(StreamingCamera[_PylonLink]):
         The camera's TriggerSource for each frame: ``Line1`` (the opto-coupled input, the
         trigger controller's cable), or ``Software`` to expose on :meth:`software_trigger`
         (tests, bench without a trigger).
-    offset_x, offset_y : int
-        Top-left corner of the region of interest on the sensor, pixels.
-    width, height : int or None
-        Size of the region of interest, pixels; None for the rest of the sensor from the
-        offset. Until the first ``open()`` the size reads as configured, or 1 when it comes from
-        the sensor.
-    queue_size : int
-        Frames held for :meth:`read_frame`; frames that arrive when it is full are dropped
-        (counted in :attr:`dropped_frames`).
+    offset_x, offset_y, width, height, queue_size
+        The region of interest and the frames held for :meth:`read_frame`: as for
+        :class:`~eyeserver.hardware.drivers.camerathread.StreamingCamera`.
     device_class : str or None
         The pylon transport layer to look in: ``BaslerGigE``, ``BaslerUsb`` or ``BaslerCamEmu``
         (pylon's camera emulation); None looks in all of them, which costs GigE discovery's
@@ -510,9 +486,7 @@ class BaslerCamera(StreamingCamera[_PylonLink]):
         check_region_read_back(self.id, self._roi, region)
 
         source = link.set_trigger(self.trigger_source)
-        if source != self.trigger_source:
-            raise DeviceValueError(self.id, f"TriggerSource reads {source} after setting "
-                                            f"{self.trigger_source}")
+        check_trigger_read_back(self.id, self.trigger_source, source)
         if link.has("AcquisitionMode"):
             link.set_enum("AcquisitionMode", "Continuous")
         # A frame-rate limit left on would silently swallow triggers that come faster.

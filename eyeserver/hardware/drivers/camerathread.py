@@ -26,9 +26,14 @@ the rest, once:
     :class:`~eyeserver.errors.DeviceDisconnectedError` (or any other failure, logged) marks the
     session lost, which wakes the reader.
 
+:class:`NodeMapLink`
+    What the links to SDKs that expose the camera's node map (pylon, IDS peak) build on their
+    feature reads and writes: enumerations checked against their entries, the region of
+    interest.
+
 and the small checks behind :class:`StreamingCamera` and the drivers' ``open()``
 (:data:`MONO_PIXEL_FORMATS`, :func:`check_region`, :func:`check_region_read_back`,
-:func:`narrow_range`, :func:`clamp`).
+:func:`check_trigger_read_back`, :func:`narrow_range`, :func:`clamp`).
 
 Time. A camera stamps each frame with its own clock, taken here as the start of the exposure
 (the SFNC's frame-start latch), in nanoseconds. :class:`ClockMapping` puts it onto the rig clock
@@ -53,7 +58,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Final, Generic, Protocol, TypeVar
+from typing import Any, Final, Generic, Protocol, TypeVar
 
 from eyeserver.core.clock import Clock
 from eyeserver.core.frames import Frame, FrameMeta
@@ -73,9 +78,11 @@ __all__ = [
     "ClockMapping",
     "FrameIdGaps",
     "FrameQueue",
+    "NodeMapLink",
     "StreamingCamera",
     "check_region",
     "check_region_read_back",
+    "check_trigger_read_back",
     "clamp",
     "narrow_range",
     "skipped_frame_ids",
@@ -394,6 +401,19 @@ def check_region_read_back(device_id: str, asked: tuple[int, int, int | None, in
                                           f"{read[2]}x{read[3]}+{read[0]}+{read[1]}")
 
 
+def check_trigger_read_back(device_id: str, asked: str, read: str) -> None:
+    """Check that the camera took the TriggerSource asked for.
+
+    Raises
+    ------
+    DeviceValueError
+        When it reads back as another source: the frames would wait for a trigger that never
+        comes on that line.
+    """
+    if read != asked:
+        raise DeviceValueError(device_id, f"TriggerSource reads {read} after setting {asked}")
+
+
 def narrow_range(device_id: str, name: str, policy: tuple[float, float],
                  device: tuple[float, float],
                  decimals: int | None = None) -> tuple[float, float]:
@@ -445,6 +465,65 @@ class CameraLink(Protocol):
 
 LinkT = TypeVar("LinkT", bound=CameraLink)
 """A driver's link type."""
+
+
+class NodeMapLink(abc.ABC):
+    """The GenICam features of a camera an SDK opened through its node map (pylon, IDS peak):
+    the link reads and writes features through its SDK, and this class builds on those what
+    does not depend on the SDK.
+
+    Attributes
+    ----------
+    device_id : str
+        The camera's id in the rig; every error names it.
+    """
+
+    device_id: str
+
+    @abc.abstractmethod
+    def entries(self, name: str) -> list[str]:
+        """The entries the enumeration feature ``name`` offers now."""
+
+    @abc.abstractmethod
+    def set(self, name: str, value: float) -> Any:
+        """Set the number feature ``name`` to ``value``; return its value read back."""
+
+    @abc.abstractmethod
+    def bounds(self, name: str) -> tuple[float, float]:
+        """The least and greatest values the feature ``name`` takes now."""
+
+    @abc.abstractmethod
+    def _write_entry(self, name: str, entry: str) -> str:
+        """Set the enumeration feature ``name`` to ``entry``; return the entry read back."""
+
+    def set_enum(self, name: str, entry: str) -> str:
+        """Set the enumeration feature ``name`` to ``entry``, which must be on offer; return the
+        entry read back.
+
+        Raises
+        ------
+        DeviceValueError
+            When the feature does not offer ``entry`` now.
+        """
+        offered = self.entries(name)
+        if entry not in offered:
+            raise DeviceValueError(self.device_id, f"the camera's {name} has no {entry!r} (it "
+                                                   f"has {', '.join(offered) or 'none'})")
+        return self._write_entry(name, entry)
+
+    def set_region(self, x: int, y: int, width: int | None,
+                   height: int | None) -> tuple[int, int, int, int]:
+        """Set the region of interest (pixels; None: the rest of the sensor from the offset);
+        return it as read back (x, y, width, height). Offsets go to 0 first, so that the new
+        size is never refused for the old offset."""
+        self.set("OffsetX", 0)
+        self.set("OffsetY", 0)
+        if width is None:
+            width = int(self.bounds("Width")[1]) - x
+        if height is None:
+            height = int(self.bounds("Height")[1]) - y
+        read_width, read_height = int(self.set("Width", width)), int(self.set("Height", height))
+        return int(self.set("OffsetX", x)), int(self.set("OffsetY", y)), read_width, read_height
 
 
 class StreamingCamera(Camera, Generic[LinkT]):

@@ -44,9 +44,9 @@ from __future__ import annotations
 import logging
 import re
 
-from eyeserver.errors import DeviceDisconnectedError, DeviceError
+from eyeserver.errors import DeviceError
 from eyeserver.hardware.base import Projector
-from eyeserver.hardware.drivers.serialline import ReplyError, SerialLine
+from eyeserver.hardware.drivers.serialline import ReplyError, SerialLine, answered
 from eyeserver.hardware.registry import DriverContext, register_driver
 
 __all__ = ["PROBE_BAUDRATE", "GardasoftProjector", "probe"]
@@ -285,10 +285,7 @@ def probe(port: str, timeout_s: float = 0.3, *, baudrate: int = PROBE_BAUDRATE) 
 
     line.open()
     try:
-        return line.request("VR", version)
-    except DeviceDisconnectedError:
-        raise
-    except DeviceError:  # silence, garbage or another reply: not a Gardasoft controller
-        return None
+        # Silence, garbage or another reply: not a Gardasoft controller.
+        return answered(lambda: line.request("VR", version))
     finally:
         line.close()

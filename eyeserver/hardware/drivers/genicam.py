@@ -71,6 +71,7 @@ from eyeserver.hardware.drivers.camerathread import (
     FrameQueue,
     StreamingCamera,
     check_region_read_back,
+    check_trigger_read_back,
 )
 from eyeserver.hardware.registry import DriverContext, register_driver
 
@@ -430,18 +431,16 @@ class GenicamCamera(StreamingCamera[_AravisLink]):
     trigger_source : str
         The camera's TriggerSource for each frame: ``Line1`` (the trigger controller's cable),
         or ``Software`` to expose on :meth:`software_trigger` (tests, bench without a trigger).
-    offset_x, offset_y : int
-        Top-left corner of the region of interest on the sensor, pixels.
-    width, height : int or None
-        Size of the region of interest, pixels; None for the rest of the sensor from the
-        offset. Tracking narrows it to the eye to raise the frame rate. Until the first
-        ``open()`` the size reads as configured, or 1 when it comes from the sensor.
+    offset_x, offset_y, width, height
+        The region of interest: as for
+        :class:`~eyeserver.hardware.drivers.camerathread.StreamingCamera`. Tracking narrows it
+        to the eye to raise the frame rate.
     packet_size : int or None
         GigE Vision packet size, bytes (at most the link's MTU); None negotiates the largest
         that passes.
     queue_size : int
-        Frames held for :meth:`read_frame`; frames that arrive when it is full are dropped
-        (counted in :attr:`dropped_frames`).
+        Frames held for :meth:`read_frame`: as for
+        :class:`~eyeserver.hardware.drivers.camerathread.StreamingCamera`.
     liveness_s : float
         After this long without a buffer, the acquisition thread asks a GigE Vision camera
         whether it is still there (see the module's notes), seconds.
@@ -534,9 +533,7 @@ class GenicamCamera(StreamingCamera[_AravisLink]):
                                             f"{self.trigger_source!r} (it has "
                                             f"{', '.join(sources) or 'none'})")
         source = link.set_trigger(self.trigger_source)
-        if source != self.trigger_source:
-            raise DeviceValueError(self.id, f"TriggerSource reads {source} after setting "
-                                            f"{self.trigger_source}")
+        check_trigger_read_back(self.id, self.trigger_source, source)
         self._restore_exposure_and_gain(link, link.exposure_bounds_us(), link.gain_bounds())
 
         self.width, self.height = region[2], region[3]

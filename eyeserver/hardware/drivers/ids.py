@@ -113,8 +113,10 @@ from eyeserver.errors import DeviceDisconnectedError, DeviceError, DeviceValueEr
 from eyeserver.hardware.drivers.camerathread import (
     MONO_PIXEL_FORMATS,
     FrameQueue,
+    NodeMapLink,
     StreamingCamera,
     check_region_read_back,
+    check_trigger_read_back,
 )
 from eyeserver.hardware.registry import DriverContext, register_driver
 
@@ -187,7 +189,7 @@ def _exceptions(peak: Any, *names: str) -> tuple[type[Exception], ...]:
     return tuple(cls for cls in found if isinstance(cls, type) and issubclass(cls, Exception))
 
 
-class _PeakLink:
+class _PeakLink(NodeMapLink):
     """One opened camera and its data stream: the only code that calls IDS peak.
 
     Control calls are serialised by a lock; the data stream's ``WaitForFinishedBuffer`` (which
@@ -322,14 +324,7 @@ class _PeakLink:
             return node.Value()
         return self._call(f"setting {name} to {value!r}", write)
 
-    def set_enum(self, name: str, entry: str) -> str:
-        """Set the enumeration feature ``name`` to ``entry``, which must be on offer; return the
-        entry read back."""
-        offered = self.entries(name)
-        if entry not in offered:
-            raise DeviceValueError(self.device_id, f"the camera's {name} has no {entry!r} (it "
-                                                   f"has {', '.join(offered) or 'none'})")
-
+    def _write_entry(self, name: str, entry: str) -> str:
         def write() -> str:
             node = self._find(name)
             node.SetCurrentEntry(entry)
@@ -352,20 +347,6 @@ class _PeakLink:
         self._call(f"executing {name}", run)
 
     # --- settings ---------------------------------------------------------------------------
-
-    def set_region(self, x: int, y: int, width: int | None,
-                   height: int | None) -> tuple[int, int, int, int]:
-        """Set the region of interest (pixels; None: the rest of the sensor from the offset);
-        return it as read back (x, y, width, height). Offsets go to 0 first, so that the new
-        size is never refused for the old offset."""
-        self.set("OffsetX", 0)
-        self.set("OffsetY", 0)
-        if width is None:
-            width = int(self.bounds("Width")[1]) - x
-        if height is None:
-            height = int(self.bounds("Height")[1]) - y
-        read_width, read_height = int(self.set("Width", width)), int(self.set("Height", height))
-        return int(self.set("OffsetX", x)), int(self.set("OffsetY", y)), read_width, read_height
 
     def set_trigger(self, source: str) -> tuple[str, str]:
         """Expose one frame on each rising edge of ``source``: every trigger selector's
@@ -520,15 +501,9 @@ class IdsCamera(StreamingCamera[_PeakLink]):
     trigger_source : str
         The camera's TriggerSource for each frame: ``Line0`` (the trigger input of IDS cameras,
         the trigger controller's cable), or ``Software`` to expose on :meth:`software_trigger`.
-    offset_x, offset_y : int
-        Top-left corner of the region of interest on the sensor, pixels.
-    width, height : int or None
-        Size of the region of interest, pixels; None for the rest of the sensor from the
-        offset. Until the first ``open()`` the size reads as configured, or 1 when it comes from
-        the sensor.
-    queue_size : int
-        Frames held for :meth:`read_frame`; frames that arrive when it is full are dropped
-        (counted in :attr:`dropped_frames`).
+    offset_x, offset_y, width, height, queue_size
+        The region of interest and the frames held for :meth:`read_frame`: as for
+        :class:`~eyeserver.hardware.drivers.camerathread.StreamingCamera`.
 
     Notes
     -----
@@ -568,9 +543,7 @@ class IdsCamera(StreamingCamera[_PeakLink]):
         region = link.set_region(*self._roi)
         check_region_read_back(self.id, self._roi, region)
         selector, source = link.set_trigger(self.trigger_source)
-        if source != self.trigger_source:
-            raise DeviceValueError(self.id, f"TriggerSource reads {source} after setting "
-                                            f"{self.trigger_source}")
+        check_trigger_read_back(self.id, self.trigger_source, source)
         if link.has("AcquisitionMode"):
             link.set_enum("AcquisitionMode", "Continuous")
         for auto in ("ExposureAuto", "GainAuto"):

@@ -89,6 +89,7 @@ from eyeserver.errors import (
     DeviceTimeoutError,
 )
 from eyeserver.hardware.base import Projector
+from eyeserver.hardware.drivers.serialline import answered
 from eyeserver.hardware.registry import DriverContext, register_driver
 
 __all__ = ["PROBE_BAUDRATE", "PROBE_PARITY", "PROBE_UNIT_ID", "OptoProjector", "probe"]
@@ -553,18 +554,14 @@ def probe(port: str, timeout_s: float = 0.3, *, unit_id: int = PROBE_UNIT_ID,
                               trace=link.trace)
     link.open()
     try:
-        try:
-            device_type = link.read(DEVICE_TYPE, 1, "DEVICE_TYPE (register 0)")[0]
-        except DeviceDisconnectedError:
-            raise
-        except DeviceError:  # silence, garbage or refused: not the controller
-            return None
-        try:
-            boot, mcu, fpga = link.read(VERSIONS, 3, "BOOT/MCU/FPGA_VERSION (registers 1-3)")
-        except DeviceDisconnectedError:
-            raise
-        except DeviceError:
-            return f"DEVICE_TYPE {device_type:#06x}"
-        return f"DEVICE_TYPE {device_type:#06x}, firmware {_firmware(boot, mcu, fpga)}"
+        device_type = answered(lambda: link.read(DEVICE_TYPE, 1, "DEVICE_TYPE (register 0)"))
+        if device_type is None:
+            return None  # silence, garbage or refused: not the controller
+        versions = answered(lambda: link.read(VERSIONS, 3,
+                                              "BOOT/MCU/FPGA_VERSION (registers 1-3)"))
+        if versions is None:
+            return f"DEVICE_TYPE {device_type[0]:#06x}"
+        boot, mcu, fpga = versions
+        return f"DEVICE_TYPE {device_type[0]:#06x}, firmware {_firmware(boot, mcu, fpga)}"
     finally:
         link.close()

@@ -41,7 +41,7 @@ from eyeserver.errors import (
     DeviceTimeoutError,
 )
 
-__all__ = ["ReplyError", "SerialLine"]
+__all__ = ["ReplyError", "SerialLine", "answered"]
 
 _T = TypeVar("_T")
 
@@ -52,6 +52,24 @@ try:  # termios is POSIX-only; pyserial raises its error from tcflush on a hung-
                                                      termios.error)
 except ImportError:  # pragma: no cover - not on the Linux hosts eyeserver runs on
     _PORT_ERRORS = (serial.SerialException, OSError)
+
+
+def answered(request: Callable[[], _T]) -> _T | None:
+    """``request()``'s result, or None where the device did not answer as one that a probe
+    looks for: silence, garbage, a rejected reply (any :class:`~eyeserver.errors.DeviceError`
+    but a lost port). A probe tells "no such device here" from "no port" with it.
+
+    Raises
+    ------
+    DeviceDisconnectedError
+        The port is missing or failed.
+    """
+    try:
+        return request()
+    except DeviceDisconnectedError:
+        raise
+    except DeviceError:
+        return None
 
 
 class ReplyError(Exception):

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 from eyeserver.errors import DeviceDisconnectedError, DeviceError, DeviceTimeoutError
 from eyeserver.hardware.base import Stage
-from eyeserver.hardware.drivers.serialline import ReplyError, SerialLine
+from eyeserver.hardware.drivers.serialline import ReplyError, SerialLine, answered
 from eyeserver.hardware.registry import DriverContext, register_driver
 
 __all__ = ["PROBE_BAUDRATE", "ZaberDevice", "ZaberStage", "probe"]
@@ -335,12 +335,8 @@ def probe(port: str, timeout_s: float = 0.3, *,
                       write_terminator=b"\n", reply_terminator=b"\r\n", ignore=skip)
     line.open()
     try:
-        try:
-            line.request("/", str)
-        except DeviceDisconnectedError:
-            raise
-        except DeviceError:  # the window's end (a timeout), or garbage: keep who answered
-            pass
+        # The window's end (a timeout) or garbage is no failure here: keep who answered.
+        answered(lambda: line.request("/", str))
         broadcasting = False
         return [ZaberDevice(address, _product_id(line, address))
                 for address in sorted(addresses)]

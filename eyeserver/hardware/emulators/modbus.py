@@ -49,18 +49,15 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
-import queue
 import selectors
 import socket
 import struct
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from types import TracebackType
-from typing import Self
 
-from eyeserver.hardware.emulators.serialpty import Behaviour, SerialPtyEmulator
+from eyeserver.hardware.emulators.serialpty import SerialPtyEmulator
+from eyeserver.hardware.emulators.served import Behaviour, ServedEmulator
 
 __all__ = [
     "Behaviour",
@@ -84,10 +81,6 @@ ILLEGAL_FUNCTION, ILLEGAL_DATA_ADDRESS, ILLEGAL_DATA_VALUE = 1, 2, 3
 GATEWAY_TARGET_FAILED = 0x0B
 
 _READ_HOLDING, _WRITE_SINGLE, _WRITE_MULTIPLE = 0x03, 0x06, 0x10
-
-_CALL_TIMEOUT_S = 5.0
-"""How long a control call (unplug, replug, stop) waits for the TCP serving thread, seconds."""
-
 
 def crc16(data: bytes) -> int:
     """The Modbus RTU CRC of ``data`` (CRC-16/MODBUS: reflected 0xA001, initial 0xFFFF); a
@@ -340,38 +333,38 @@ class OptoRtuEmulator(SerialPtyEmulator):
         return {"transport": "rtu", "port": self.port, "unit_id": self.unit_id, "parity": "N"}
 
     def reply(self, command: str) -> bytes | None:
-        """Not used: RTU frames are binary and length-delimited, not lines (see ``_feed``)."""
+        """Not used: RTU frames are binary and length-delimited, not lines (see
+        :meth:`split_request`)."""
         return None
 
-    def _feed(self, data: bytes) -> None:
-        # The base class splits lines; an RTU request is cut by its function code's length
-        # instead. A real server ends a frame at 3.5 characters of silence; on a pty a
-        # request arrives in one write, so the length alone is enough here.
-        self._buffer += data
-        while True:
-            length = _rtu_request_length(self._buffer)
-            if length is None:
-                return
-            if length == 0:
-                length = len(self._buffer)  # unknown function: take all that came
-            if len(self._buffer) < length:
-                return
-            frame, self._buffer = self._buffer[:length], self._buffer[length:]
-            self._answer_frame(frame)
+    def split_request(self, buffer: bytes) -> tuple[bytes, bytes] | None:
+        """The first RTU request frame in ``buffer``, cut by its function code's length (the
+        base class cuts lines). A real server ends a frame at 3.5 characters of silence; on a
+        pty a request arrives in one write, so the length alone is enough here."""
+        length = _rtu_request_length(buffer)
+        if length is None:
+            return None
+        if length == 0:
+            length = len(buffer)  # unknown function: take all that came
+        if len(buffer) < length:
+            return None
+        return buffer[:length], buffer[length:]
 
-    def _answer_frame(self, frame: bytes) -> None:
-        if len(frame) < 4 or crc16(frame[:-2]) != int.from_bytes(frame[-2:], "little"):
+    def handle_request(self, request: bytes) -> None:
+        """Execute one request frame and send its response frame (none for a broadcast, a
+        wrong CRC or another unit's request)."""
+        if len(request) < 4 or crc16(request[:-2]) != int.from_bytes(request[-2:], "little"):
             self.bad_frames += 1  # a server drops a frame with a wrong CRC without a word
             return
-        unit, pdu = frame[0], frame[1:-2]
+        unit, pdu = request[0], request[1:-2]
         if unit not in (0, self.unit_id):
             return  # another device's request on the bus
-        self.received.append(frame.hex())
+        self.received.append(request.hex())
         try:
             response = self.controller.handle(pdu)
         except Exception as exc:
             # An emulator bug, not a device behaviour: stop() raises it (see the base class).
-            _log.exception("emulator failed to answer %s", frame.hex())
+            _log.exception("emulator failed to answer %s", request.hex())
             self.failures.append(exc)
             return
         behaviour = self.behaviour
@@ -381,12 +374,10 @@ class OptoRtuEmulator(SerialPtyEmulator):
         answer += crc16(answer).to_bytes(2, "little")
         if behaviour is Behaviour.GARBAGE:
             answer = answer[:-1] + bytes([answer[-1] ^ 0x5A])  # a noisy line: the CRC is wrong
-        if self._master is not None:
-            with contextlib.suppress(OSError):
-                os.write(self._master, answer)
+        self.send(answer)
 
 
-class OptoTcpEmulator:
+class OptoTcpEmulator(ServedEmulator):
     """The controller on Modbus TCP on a loopback port; use as a context manager or
     start()/stop().
 
@@ -402,6 +393,11 @@ class OptoTcpEmulator:
     port : int
         The TCP port; 0 picks a free one (then kept across :meth:`unplug`/:meth:`replug`).
 
+    Notes
+    -----
+    :meth:`unplug` closes every connection and stops listening (connecting is refused);
+    :meth:`replug` listens again on the same port.
+
     Attributes
     ----------
     behaviour : Behaviour
@@ -416,20 +412,14 @@ class OptoTcpEmulator:
                  host: str = "127.0.0.1", port: int = 0) -> None:
         if not 0 <= unit_id <= 255:
             raise ValueError(f"unit_id must be 0 to 255, not {unit_id}")
+        super().__init__()
         self.controller = controller if controller is not None else OptoController()
         self.unit_id = unit_id
         self.host = host
         self._port = port
-        self.behaviour = Behaviour.NORMAL
         self.connections = 0
-        self.failures: list[Exception] = []
         self._listener: socket.socket | None = None
         self._clients: dict[socket.socket, bytes] = {}
-        self._selector: selectors.BaseSelector | None = None
-        self._wake_r: int | None = None
-        self._wake_w: int | None = None
-        self._thread: threading.Thread | None = None
-        self._calls: queue.SimpleQueue[tuple[str, threading.Event]] = queue.SimpleQueue()
 
     @property
     def port(self) -> int:
@@ -447,94 +437,18 @@ class OptoTcpEmulator:
         return {"transport": "tcp", "host": self.host, "tcp_port": self.port,
                 "unit_id": self.unit_id}
 
-    def start(self) -> None:
-        """Listen and start serving. Idempotent."""
-        if self._thread is not None:
-            return
-        self._selector = selectors.DefaultSelector()
-        self._wake_r, self._wake_w = os.pipe()
-        self._selector.register(self._wake_r, selectors.EVENT_READ)
-        try:
-            self._listen()
-        except BaseException:
-            self._close_all()
-            raise
-        self._thread = threading.Thread(target=self._serve, name=f"modbus-tcp-{self._port}",
-                                        daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        """Stop serving and close every socket. Idempotent.
-
-        Raises
-        ------
-        RuntimeError
-            The emulator failed while serving (the first exception is its cause).
-        """
-        if self._thread is not None:
-            self._call("stop")
-            self._thread.join(_CALL_TIMEOUT_S)
-            self._thread = None
-        self._close_all()
-        if self.failures:
-            failures, self.failures = self.failures, []
-            raise RuntimeError(f"the emulator failed {len(failures)} time(s)") from failures[0]
-
-    def unplug(self) -> None:
-        """Pull the cable: close every connection and stop listening (connecting is refused)."""
-        self._call("unplug")
-
-    def replug(self) -> None:
-        """Plug it back: listen again on the same port."""
-        self._call("replug")
-
-    def __enter__(self) -> Self:
-        self.start()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 traceback: TracebackType | None) -> None:
-        self.stop()
-
     # --- the serving thread: it alone opens and closes sockets ---------------------------
 
-    def _call(self, action: str) -> None:
-        if self._thread is None or self._wake_w is None:
-            raise RuntimeError(f"cannot {action}: the emulator is not started")
-        done = threading.Event()
-        self._calls.put((action, done))
-        os.write(self._wake_w, b"x")
-        if not done.wait(_CALL_TIMEOUT_S):
-            raise RuntimeError(f"the emulator's thread did not {action} within "
-                               f"{_CALL_TIMEOUT_S} s")
+    def _thread_name(self) -> str:
+        return f"modbus-tcp-{self._port}"
 
-    def _serve(self) -> None:
-        selector = self._selector
-        assert selector is not None
-        while True:
-            for key, _ in selector.select():
-                if key.fd == self._wake_r:
-                    os.read(key.fd, 512)
-                    if self._run_calls():
-                        return
-                elif key.fileobj is self._listener:
-                    self._accept()
-                elif isinstance(key.fileobj, socket.socket) and key.fileobj in self._clients:
-                    self._receive(key.fileobj)
+    def _readable(self, key: selectors.SelectorKey) -> None:
+        if key.fileobj is self._listener:
+            self._accept()
+        elif isinstance(key.fileobj, socket.socket) and key.fileobj in self._clients:
+            self._receive(key.fileobj)
 
-    def _run_calls(self) -> bool:
-        stopping = False
-        while not self._calls.empty():
-            action, done = self._calls.get()
-            if action in ("unplug", "stop"):
-                self._unplug()
-                stopping = action == "stop"
-            elif action == "replug" and self._listener is None:
-                self._listen()
-            done.set()
-        return stopping
-
-    def _listen(self) -> None:
+    def _plug(self) -> None:
         listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         # The same port again after unplug(), though the old connections linger in TIME_WAIT.
         listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -616,18 +530,3 @@ class OptoTcpEmulator:
             self._selector.unregister(self._listener)
             self._listener.close()
             self._listener = None
-
-    def _close_all(self) -> None:
-        for connection in list(self._clients):
-            connection.close()
-        self._clients.clear()
-        if self._listener is not None:
-            self._listener.close()
-            self._listener = None
-        if self._selector is not None:
-            self._selector.close()
-            self._selector = None
-        for fd in (self._wake_r, self._wake_w):
-            if fd is not None:
-                os.close(fd)
-        self._wake_r = self._wake_w = None

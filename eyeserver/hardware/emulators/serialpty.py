@@ -17,48 +17,34 @@ does), :attr:`Behaviour.SILENT` reads commands and answers nothing (a device wit
 behind a live adapter).
 
 A subclass implements :meth:`~SerialPtyEmulator.reply` (the device's protocol) and may override
-:meth:`~SerialPtyEmulator.garbage`. All file descriptors are opened and closed by the serving
-thread (control calls are handed to it), so none is closed under a ``select`` that still uses it.
+:meth:`~SerialPtyEmulator.garbage`; a device whose requests are not lines (Modbus RTU's binary
+frames) overrides the framing instead: :meth:`~SerialPtyEmulator.split_request` and
+:meth:`~SerialPtyEmulator.handle_request`. The serving thread and its control calls are
+:class:`~eyeserver.hardware.emulators.served.ServedEmulator`'s.
 """
 
 from __future__ import annotations
 
 import abc
 import contextlib
-import enum
 import logging
 import os
 import pty
-import queue
 import selectors
 import shutil
 import tempfile
 import threading
 import tty
 from pathlib import Path
-from types import TracebackType
-from typing import Self
+
+from eyeserver.hardware.emulators.served import Behaviour, ServedEmulator
 
 __all__ = ["Behaviour", "SerialPtyEmulator"]
 
 _log = logging.getLogger(__name__)
 
-_CALL_TIMEOUT_S = 5.0
-"""How long a control call (unplug, replug, stop) waits for the serving thread, seconds."""
 
-
-class Behaviour(enum.Enum):
-    """How the emulator answers the commands it reads."""
-
-    NORMAL = "normal"
-    """As the device does."""
-    GARBAGE = "garbage"
-    """With bytes that are not a reply (see :meth:`SerialPtyEmulator.garbage`)."""
-    SILENT = "silent"
-    """Not at all."""
-
-
-class SerialPtyEmulator(abc.ABC):
+class SerialPtyEmulator(ServedEmulator):
     """A serial device emulated on a pty; use as a context manager or call start()/stop().
 
     Parameters
@@ -85,23 +71,19 @@ class SerialPtyEmulator(abc.ABC):
     command_terminators: bytes = b"\r\n"
     """Any of these bytes ends a command line; empty lines are ignored."""
 
+    _failure_message = "the emulator failed to answer {count} command(s)"
+
     def __init__(self, *, link_dir: str | Path | None = None, name: str = "tty") -> None:
         if not name or "/" in name:
             raise ValueError(f"name must be a plain file name, not {name!r}")
+        super().__init__()
         self._link_dir_given = link_dir is not None
         self._link_dir = Path(link_dir) if link_dir is not None else None
         self._name = name
-        self.behaviour = Behaviour.NORMAL
         self.received: list[str] = []
-        self.failures: list[Exception] = []
         self.lock = threading.RLock()
         self._master: int | None = None
         self._slave: int | None = None
-        self._wake_r: int | None = None
-        self._wake_w: int | None = None
-        self._thread: threading.Thread | None = None
-        self._calls: queue.SimpleQueue[tuple[str, threading.Event]] = queue.SimpleQueue()
-        self._selector: selectors.BaseSelector | None = None
         self._buffer = b""
 
     # --- the protocol: subclasses -------------------------------------------------------
@@ -119,6 +101,34 @@ class SerialPtyEmulator(abc.ABC):
         at once instead of waiting for its timeout."""
         return b"\xfe\x92~\x00\x8f?#\r\n"
 
+    def split_request(self, buffer: bytes) -> tuple[bytes, bytes] | None:
+        """The first request in ``buffer`` (the bytes read and not yet handled) and the bytes
+        after it; None while it is incomplete. By default a command line, ended by any of
+        :attr:`command_terminators` (the terminator is dropped).
+
+        Called on the serving thread; the request must not be empty while ``buffer`` is not
+        consumed, or the thread would loop."""
+        cut = min((i for i in (buffer.find(bytes([t])) for t in self.command_terminators)
+                   if i >= 0), default=-1)
+        if cut < 0:
+            return None
+        return buffer[:cut], buffer[cut + 1:]
+
+    def handle_request(self, request: bytes) -> None:
+        """Answer one request :meth:`split_request` cut: by default a command line, recorded in
+        :attr:`received` and answered as :attr:`behaviour` says (:meth:`reply` or
+        :meth:`garbage`); an empty one is ignored. Called on the serving thread."""
+        if request:
+            self._answer(request.decode("ascii", errors="replace"))
+
+    def send(self, data: bytes) -> None:
+        """Write ``data`` to the driver, as the device. Bytes the driver cannot get are lost,
+        as on a real line: when unplugged, when the pty's buffer is full (nobody reads), or
+        after a hang-up."""
+        if data and self._master is not None:
+            with contextlib.suppress(OSError):
+                os.write(self._master, data)
+
     # --- life cycle ---------------------------------------------------------------------
 
     @property
@@ -133,114 +143,27 @@ class SerialPtyEmulator(abc.ABC):
         """Whether the device is reachable at :attr:`port`."""
         return self._master is not None
 
-    def start(self) -> None:
-        """Make the pty, point :attr:`port` at it and start serving. Idempotent."""
-        if self._thread is not None:
-            return
-        if self._link_dir is None:
-            self._link_dir = Path(tempfile.mkdtemp(prefix="eyeserver-pty-"))
-        self._wake_r, self._wake_w = os.pipe()
-        self._selector = selectors.DefaultSelector()
-        self._selector.register(self._wake_r, selectors.EVENT_READ)
-        try:
-            self._plug()
-        except BaseException:
-            self._close_all()
-            raise
-        self._thread = threading.Thread(target=self._serve, name=f"serialpty-{self._name}",
-                                        daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        """Stop serving, close the pty and remove the symlink (and its temporary directory).
-        Idempotent.
-
-        Raises
-        ------
-        RuntimeError
-            :meth:`reply` raised while serving (the first such exception is its cause).
-        """
-        if self._thread is not None:
-            self._call("stop")
-            self._thread.join(_CALL_TIMEOUT_S)
-            self._thread = None
-        self._close_all()
-        if self.failures:
-            failures, self.failures = self.failures, []
-            raise RuntimeError(f"the emulator failed to answer {len(failures)} command(s)"
-                               ) from failures[0]
-
-    def unplug(self) -> None:
-        """Pull the cable: close the pty and remove :attr:`port`."""
-        self._call("unplug")
-
-    def replug(self) -> None:
-        """Plug the cable back in: a new pty behind the same :attr:`port`."""
-        self._call("replug")
-
-    def __enter__(self) -> Self:
-        self.start()
-        return self
-
-    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
-                 traceback: TracebackType | None) -> None:
-        self.stop()
-
     # --- the serving thread -------------------------------------------------------------
 
-    def _call(self, action: str) -> None:
-        if self._thread is None or self._wake_w is None:
-            raise RuntimeError(f"cannot {action}: the emulator is not started")
-        done = threading.Event()
-        self._calls.put((action, done))
-        os.write(self._wake_w, b"x")
-        if not done.wait(_CALL_TIMEOUT_S):
-            raise RuntimeError(f"the emulator's thread did not {action} within "
-                               f"{_CALL_TIMEOUT_S} s")
+    def _thread_name(self) -> str:
+        return f"serialpty-{self._name}"
 
-    def _serve(self) -> None:
-        selector = self._selector
-        assert selector is not None
-        while True:
-            for key, _ in selector.select():
-                if key.fd == self._wake_r:
-                    os.read(key.fd, 512)
-                    if self._run_calls():
-                        return
-                elif key.fd == self._master:
-                    try:
-                        data = os.read(key.fd, 4096)
-                    except OSError:
-                        data = b""  # the driver's side hung up; nothing to answer
-                    if data:
-                        self._feed(data)
-
-    def _run_calls(self) -> bool:
-        """Run the queued control calls; True when told to stop."""
-        stopping = False
-        while not self._calls.empty():
-            action, done = self._calls.get()
-            if action == "unplug":
-                self._unplug()
-            elif action == "replug":
-                if self._master is None:
-                    self._plug()
-            elif action == "stop":
-                self._unplug()
-                stopping = True
-            done.set()
-        return stopping
+    def _readable(self, key: selectors.SelectorKey) -> None:
+        if key.fd != self._master:
+            return
+        try:
+            data = os.read(key.fd, 4096)
+        except OSError:
+            data = b""  # the driver's side hung up; nothing to answer
+        if data:
+            self._feed(data)
 
     def _feed(self, data: bytes) -> None:
+        """Every byte read from the pty passes here."""
         self._buffer += data
-        while True:
-            cut = min((i for i in (self._buffer.find(bytes([t]))
-                                   for t in self.command_terminators) if i >= 0), default=-1)
-            if cut < 0:
-                return
-            line, self._buffer = self._buffer[:cut], self._buffer[cut + 1:]
-            if line:
-                self._answer(line.decode("ascii", errors="replace"))
+        while (cut := self.split_request(self._buffer)) is not None:
+            request, self._buffer = cut
+            self.handle_request(request)
 
     def _answer(self, command: str) -> None:
         with self.lock:
@@ -257,12 +180,12 @@ class SerialPtyEmulator(abc.ABC):
                 _log.exception("emulator failed to answer %r", command)
                 self.failures.append(exc)
                 return
-        if answer and self._master is not None:
-            # A full pty buffer (nobody reads) or a hang-up loses the bytes, as on a real line.
-            with contextlib.suppress(OSError):
-                os.write(self._master, answer)
+        if answer:
+            self.send(answer)
 
     def _plug(self) -> None:
+        if self._link_dir is None:
+            self._link_dir = Path(tempfile.mkdtemp(prefix="eyeserver-pty-"))
         master, slave = pty.openpty()
         # Raw on both sides of the pty whatever the driver does: no echo, no CR/LF translation.
         tty.setraw(slave)
@@ -290,14 +213,7 @@ class SerialPtyEmulator(abc.ABC):
             self._slave = None
 
     def _close_all(self) -> None:
-        self._unplug()
-        if self._selector is not None:
-            self._selector.close()
-            self._selector = None
-        for fd in (self._wake_r, self._wake_w):
-            if fd is not None:
-                os.close(fd)
-        self._wake_r = self._wake_w = None
+        super()._close_all()
         if self._link_dir is not None and not self._link_dir_given:
             shutil.rmtree(self._link_dir, ignore_errors=True)
             self._link_dir = None
