@@ -17,42 +17,8 @@ enumeration entry the camera lacks
 anything else (the camera in use elsewhere, ...)   ``DeviceError``
 =================================================  ================================
 
-Acquisition. ``open()`` finds the camera by serial number or user id (``DeviceUserID``), turns
-its test image off (or on, to the one asked for: a camera left showing a test image by someone's
-pylon Viewer session would otherwise deliver a convincing but fake picture), sets the pixel
-format, the region of interest, the hardware trigger (``FrameStart`` from ``trigger_source`` on
-the rising edge, every other trigger selector off), continuous acquisition without a frame-rate
-limit (the trigger sets the rate), exposure and gain by hand (auto functions off) at the values
-last asked for, and starts grabbing one by one into ``max(4, queue_size)`` pylon buffers. A thread
-then calls ``RetrieveResult`` with a short timeout, copies each image out, releases the result
-and queues the frame for :meth:`~BaslerCamera.read_frame`.
-
-Why a thread calling ``RetrieveResult`` rather than pylon's image event handlers (pylon's own
-grab loop calling Python back): the loop is eyeserver's, shared with the other camera drivers
-(:mod:`~eyeserver.hardware.drivers.camerathread`), so ``close()`` stops and joins it like theirs;
-an exception in it is ours to see (one raised in a pylon callback is printed by the binding and
-lost, leaving the reader to time out); the removal check needs no callback either, since each
-empty wait also asks ``IsCameraDeviceRemoved``; and pypylon releases the GIL while it waits, so
-the poll costs nothing.
-
-Dropped frames. A result that did not succeed (``GrabSucceeded()`` false: an incomplete or
-failed buffer) and every block id skipped between two whole frames (a frame lost whole) count as
-dropped frames, as does a frame that arrives when the queue is full or is not the configured
-size and format; they are counted in :attr:`~BaslerCamera.dropped_frames` and ``describe()``,
-never returned.
-
-Time. The frame's ``GetTimeStamp()`` is the camera's timestamp of the frame start: ticks of
-``GevTimestampTickFrequency`` on GigE cameras, nanoseconds on USB3 Vision ones. It goes onto the
-rig clock (``context.clock``) with one offset per session, as
-:mod:`~eyeserver.hardware.drivers.camerathread` describes. pylon's camera emulation stamps 0, and
-such frames get their arrival time minus half the exposure.
-
-Disconnection. pylon notices a camera that goes away itself (a USB unplug at once, a GigE camera
-when its heartbeat times out, 3 s by default) and then answers ``IsCameraDeviceRemoved()`` true;
-the acquisition thread asks after every empty wait and every failed retrieval, and control calls
-ask when they fail. Waiting and later reads then raise
-:class:`~eyeserver.errors.DeviceDisconnectedError` (queued frames are still handed out first);
-``close()`` and ``open()`` recover once the camera is back, in the same process.
+How it acquires, keeps time, counts dropped frames and notices a lost device, and what
+it assumes of the SDK: docs/notes/camera-drivers.md (BaslerCamera).
 """
 
 from __future__ import annotations

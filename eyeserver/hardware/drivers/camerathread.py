@@ -35,18 +35,7 @@ and the small checks behind :class:`StreamingCamera` and the drivers' ``open()``
 (:data:`MONO_PIXEL_FORMATS`, :func:`check_region`, :func:`check_region_read_back`,
 :func:`check_trigger_read_back`, :func:`narrow_range`, :func:`clamp`).
 
-Time. A camera stamps each frame with its own clock, taken here as the start of the exposure
-(the SFNC's frame-start latch), in nanoseconds. :class:`ClockMapping` puts it onto the rig clock
-with one offset fixed on the first stamped frame of the session::
-
-    offset_ns = rig_time_at_arrival_first - device_ts_first - exposure_first
-    t_ns      = device_ts + offset_ns + exposure / 2          (mid-exposure, rig clock)
-
-that is, the first frame is taken to have ended its exposure when it arrived. The error of that
-guess (readout, transfer, the thread's latency: milliseconds) is the same for every frame of the
-session, so the intervals between frames are the camera's own, to its tick; the two clocks drift
-apart by the camera oscillator's error (tens of ppm) until the next ``open()``. A frame without a
-timestamp (0) gets its arrival time minus half its exposure.
+How a camera's timestamps go onto the rig clock: docs/notes/camera-drivers.md.
 """
 
 from __future__ import annotations

@@ -16,39 +16,8 @@ a value it refuses
 anything else                                      ``DeviceError``
 =================================================  ================================
 
-Acquisition. ``open()`` sets the pixel format, the region of interest, the exposure and gain
-last asked for, and the hardware trigger (``TriggerMode On`` for ``FrameStart`` with the
-configured ``TriggerSource``), starts acquisition and a thread that pops buffers from the Aravis
-stream (Aravis has no Python stream callback, so the thread polls
-``ArvStream.timeout_pop_buffer``), copies each complete image out, pushes the buffer back and
-queues the frame for :meth:`~GenicamCamera.read_frame`; the queue, the thread and the accounting
-are :mod:`~eyeserver.hardware.drivers.camerathread`'s, shared with the other camera drivers. A
-buffer that is not complete (missing packets, timed out, wrong size) and every GVSP frame id
-skipped between two complete buffers (a frame lost whole, or with no free buffer) is a dropped
-frame: counted in :attr:`~GenicamCamera.dropped_frames` and ``describe()``, never returned.
-
-Time. GigE Vision cameras stamp each frame with their own tick counter; Aravis converts the ticks
-to nanoseconds with the camera's ``GevTimestampTickFrequency`` (the tick rate in hertz, shown in
-``describe()``), so a device timestamp here is nanoseconds on the camera's clock, taken as the
-start of the exposure (the SFNC's frame-start latch). It is put onto the rig clock
-(``context.clock``) with one offset fixed on the first buffer after each ``open()``, as
-:mod:`~eyeserver.hardware.drivers.camerathread` describes: the first frame is taken to have
-ended its exposure when Aravis handed it over. The error of that guess (readout, transfer and
-the poll's latency, a few milliseconds at 640 × 512) is the same for every frame of the session,
-so intervals between frames are the camera's own, to its tick. A camera without timestamps (0
-in every buffer) gets ``t_ns`` from the hand-over time minus half the exposure.
-
-Disconnection. A camera that goes away (power, cable, the fake killed) is noticed three ways:
-Aravis's heartbeat emits ``control-lost``; a control call (a setting, a software trigger) gets
-no answer; or, when no buffer has come for ``liveness_s``, the acquisition thread reads the
-camera's control-privilege register (GigE Vision only), which fails when nobody answers and
-reads 0 when a restarted camera no longer knows us as its controller. Then waiting and later
-reads raise :class:`~eyeserver.errors.DeviceDisconnectedError` (queued frames are still handed
-out first); ``close()`` and ``open()`` recover once the camera is back, in the same process.
-With Aravis 0.8's GVCP timing (5 tries of 500 ms, not settable) a dead camera is noticed within
-``liveness_s`` + 2.5 s, and opening an address where nothing answers fails after 2.5 s.
-``close()`` of a camera known to be gone returns at once and leaves Aravis's teardown, whose
-GVCP writes each wait out that timeout, to a thread (:meth:`GenicamCamera.wait_released`).
+How it acquires, keeps time, counts dropped frames and notices a lost device, and what
+it assumes of the SDK: docs/notes/camera-drivers.md (GenicamCamera).
 """
 
 from __future__ import annotations

@@ -3,96 +3,12 @@ IDS peak's Python API, behind the :class:`Camera` interface.
 
 **Untested on real hardware.** IDS peak is not on PyPI for this platform (it comes from IDS's
 website under IDS's licence), so this driver was written against IDS's documented Python samples
-and tested only against a fake of exactly the calls below (tests/test_driver_ids.py). Check it on
-a camera before trusting it; the notes at the end say what to look at first.
+and tested only against a fake of exactly the calls it makes (tests/test_driver_ids.py). Check
+it on a camera before trusting it: docs/notes/camera-drivers.md lists every call and what to
+look at first.
 
-IDS peak (``ids_peak`` and ``ids_peak_ipl``, with the IDS peak runtime; for uEye cameras its uEye
-Transport Layer) is imported when a camera is opened, so this module imports, type-checks and
-registers its driver on machines without it; opening a camera there raises a
-:class:`~eyeserver.errors.DeviceError` that says what to install. Every IDS peak call goes through
-:class:`_PeakLink`, the one place that holds untyped IDS peak objects and turns IDS peak's
-exceptions into eyeserver's (``raise … from``):
-
-=================================================  ================================
-what IDS peak reports                              raised (:mod:`eyeserver.errors`)
-=================================================  ================================
-the device lost (its lost callback, or an          ``DeviceDisconnectedError``
-exception other than a timeout from
-``WaitForFinishedBuffer``), no camera with the
-serial number or user id, ``IOException`` or
-``TimeoutException`` from a control call
-a value out of range or refused, a feature or      ``DeviceValueError``
-enumeration entry the camera lacks
-anything else (the camera in use elsewhere, ...)   ``DeviceError``
-=================================================  ================================
-
-The IDS peak calls used, all of them (``peak`` is ``ids_peak.ids_peak``)::
-
-    peak.Library.Initialize()  peak.Library.Close()       (once per process while cameras are open)
-    peak.DeviceManager.Instance()  .Update()  .Devices()
-    .DeviceLostCallback(f)  .RegisterDeviceLostCallback(cb)  .UnregisterDeviceLostCallback(h)
-    descriptor: .SerialNumber()  .UserDefinedName()  .ModelName()  .Key()
-                .IsOpenable(peak.DeviceAccessType_Control)
-                .OpenDevice(peak.DeviceAccessType_Control)
-    device:     .RemoteDevice().NodeMaps()[0]  .DataStreams()[0].OpenDataStream()
-    node map:   .HasNode(name)  .FindNode(name)
-    nodes:      .Value()  .SetValue(v)  .Minimum()  .Maximum()            (integer, float)
-                .Entries()  .SetCurrentEntry(s)  .CurrentEntry()         (enumeration)
-                entry.SymbolicValue()  entry.AccessStatus()
-                .Execute()  .WaitUntilDone()                             (command)
-    features:   PixelFormat  OffsetX  OffsetY  Width  Height  PayloadSize  ExposureTime
-                GainSelector  Gain  TriggerSelector  TriggerMode  TriggerSource
-                TriggerActivation  TriggerSoftware  AcquisitionMode  AcquisitionStart
-                AcquisitionStop  TLParamsLocked  ExposureAuto  GainAuto
-                AcquisitionFrameRate (read only, for describe())
-    data stream: .NumBuffersAnnouncedMinRequired()  .AllocAndAnnounceBuffer(size)
-                .QueueBuffer(b)  .StartAcquisition()  .WaitForFinishedBuffer(timeout_ms)
-                .StopAcquisition(peak.AcquisitionStopMode_Default)
-                .Flush(peak.DataStreamFlushMode_DiscardAll)  .AnnouncedBuffers()
-                .RevokeBuffer(b)
-    buffer:     .IsIncomplete()  .FrameID()  .Timestamp_ns()
-    ids_peak.ids_peak_ipl_extension.BufferToImage(buffer)
-    image:      .Width()  .Height()  .get_numpy_2D() (Mono8)  .get_numpy_2D_16() (Mono10/12)
-    constants:  peak.NodeAccessStatus_NotAvailable  peak.NodeAccessStatus_NotImplemented
-    exceptions: peak.Exception  peak.TimeoutException  peak.AbortedException  peak.IOException
-                peak.OutOfRangeException  peak.InvalidArgumentException
-                peak.NotFoundException  peak.NotAvailableException
-
-Buffers come from ``AllocAndAnnounceBuffer`` (IDS's samples' way: the transport layer owns the
-memory) rather than ``AnnounceBuffer``, which would need memory that Python could free under it.
-
-Acquisition. ``open()`` finds the camera by serial number or user id, sets the pixel format, the
-region of interest, the hardware trigger (``ExposureStart``, or ``FrameStart`` where the camera
-has no such selector, from ``trigger_source`` on the rising edge; every other selector off),
-continuous acquisition, exposure and analogue gain by hand at the values last asked for, announces
-and queues ``max(NumBuffersAnnouncedMinRequired, 4, queue_size)`` buffers, locks the transport
-parameters (``TLParamsLocked``), starts the stream and ``AcquisitionStart``. A thread then waits
-for finished buffers (``WaitForFinishedBuffer`` with a short timeout), copies each image out,
-queues the buffer again and hands the frame to :meth:`~IdsCamera.read_frame`.
-
-Dropped frames. An incomplete buffer (``IsIncomplete()``), every frame id skipped between two
-whole frames (a frame lost whole, or with no buffer free), a frame that cannot be converted or is
-not the configured size, and one that arrives when the queue is full count as dropped frames:
-counted in :attr:`~IdsCamera.dropped_frames` and ``describe()``, never returned.
-
-Gain. IDS peak gives ``Gain`` as a factor (1.0 is unity), not in decibels; the driver converts,
-``factor = 10 ** (gain_db / 20)``, with ``GainSelector`` on ``AnalogAll`` where the camera has it.
-
-Time. ``Timestamp_ns()`` is the camera's stamp of the frame, nanoseconds on its clock, taken as
-the exposure start; it goes onto the rig clock (``context.clock``) with one offset per session, as
-:mod:`~eyeserver.hardware.drivers.camerathread` describes.
-
-Disconnection. IDS peak calls the device-lost callback of a camera that goes away (reconnection
-left off, its default), and ``WaitForFinishedBuffer`` raises instead of waiting; either marks the
-session lost. Waiting and later reads then raise :class:`~eyeserver.errors.DeviceDisconnectedError`
-(queued frames are still handed out first); ``close()`` and ``open()`` recover once the camera is
-back, in the same process.
-
-What to check first on a camera: that ``Gain`` is a factor on it; which trigger selectors and
-sources it offers (uEye+ cameras have ``ExposureStart`` and ``Line0``); that ``Timestamp_ns()``
-counts the camera's clock (not the host's); that ``ExposureTime``'s maximum, which IDS cameras
-bind to ``AcquisitionFrameRate`` (left as the camera's user set has it, shown in ``describe()``),
-covers the rig's exposures; and how long IDS peak takes to notice an unplugged camera.
+How it acquires, keeps time, counts dropped frames and notices a lost device, and what
+it assumes of the SDK: docs/notes/camera-drivers.md (IdsCamera).
 """
 
 from __future__ import annotations

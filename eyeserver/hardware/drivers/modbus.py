@@ -1,72 +1,9 @@
 """One output of an Opto Engineering LTDVE-series LED strobe controller, over Modbus RTU (RS485)
 or Modbus TCP, as a fringe projector.
 
-What Opto Engineering documents (LTDVE1CH-40F, LTDVE4CH-20 and LTDVE8CH instruction manuals,
-section 14): the controller is a Modbus server ("slave") on RS485 (Modbus/RTU) and on Ethernet
-(Modbus/TCP, Modbus/UDP); it implements Read Holding Registers (0x03), Write Single Register
-(0x06) and Write Multiple Registers (0x10) on a file of 512 sixteen-bit holding registers at
-addresses 0 to 511, starting DEVICE_TYPE (0), BOOT_VERSION (1), MCU_VERSION (2) and an FPGA
-version (3); currents are in 1 mA steps; ERROR_WORD holds error flags in bits 12..0, bit 0 set
-while the power stages have no supply and bit 1 while the LD1/LD2 output stages are too hot.
-
-**The rest of the map is an assumption** -- the register table itself could not be consulted --
-and must be checked against the device's manual (and this table and the emulator,
-:mod:`eyeserver.hardware.emulators.modbus`, corrected) before the driver meets a controller:
-
-======================  =========================  ============================================
-register                address                    meaning
-======================  =========================  ============================================
-DEVICE_TYPE             0 (documented)             read on open, reported by ``describe()``
-BOOT/MCU/FPGA_VERSION   1, 2, 3 (documented)       read on open: ``firmware``
-ERROR_WORD              16 (assumed)               bit 0 no power-stage supply; bits 1-4 the
-                                                   LD1/2, LD3/4, LD5/6, LD7/8 stages too hot;
-                                                   bits 5-12 a fault on LD1-LD8 (bits 2-12
-                                                   assumed)
-MODE                    256 + 16 (c - 1) + 0       0 off, 1 continuous, 2 strobe (on trigger)
-CURRENT_MA              ... + 1                    LED current, mA
-PULSE_US                ... + 2                    strobe pulse width, µs (1 .. 65535)
-DELAY_US                ... + 3                    trigger-to-pulse delay, µs (0 .. 65535)
-STATUS                  ... + 4 (read only)        bit 0 the output drives its LED; faults:
-                                                   bit 1 open load (no LED), 2 short circuit,
-                                                   3 over-current, 4 over-temperature, 5
-                                                   duty-cycle limit (pulses skipped)
-======================  =========================  ============================================
-
-with ``c`` the ``channel`` option (the light output LDc, from 1). Also assumed: the four
-settings of a channel are written with one Write Multiple Registers and applied together; a
-value out of range is refused with exception 3 (illegal data value) and changes nothing, a
-missing output or a read-only register with exception 2 (illegal data address); ERROR_WORD and
-STATUS are live states, not latched events; on RS485 the Modbus-over-serial defaults hold (19200
-baud, even parity; two stop bits when there is no parity).
-
-What the driver does: every change writes MODE, CURRENT_MA, PULSE_US and DELAY_US at once --
-``MODE = 2`` (strobe) or ``1`` (continuous) and ``CURRENT_MA = round(intensity ×
-max_current_ma)`` while enabled, ``MODE = 0`` and 0 mA while disabled and on close (a channel
-left lit would stay lit in the patient's eye after the daemon stops) -- then reads the block
-back with STATUS: a register that does not read what was written (a controller that clamped the
-current to the light's rating, say) or a STATUS fault bit is a
-:class:`~eyeserver.errors.DeviceError` naming the register. :meth:`OptoProjector.check` reads
-ERROR_WORD and the block again: a unit-wide error, an error of this output, a fault bit or
-settings that changed behind the driver's back (a controller power-cycled to its defaults) fail
-it.
-
-Transport faults, whichever the transport, as :mod:`~eyeserver.hardware.drivers.serialline`
-raises them for the serial drivers:
-
-==========================================  ==================================================
-what happened                               raised
-==========================================  ==================================================
-a Modbus exception response (refused)       :class:`~eyeserver.errors.DeviceError`, naming the
-                                            registers and the exception code
-bytes that are no response (bad CRC/header) :class:`~eyeserver.errors.DeviceError`
-nothing within ``timeout_s``                :class:`~eyeserver.errors.DeviceTimeoutError`
-port missing; connection refused or lost    :class:`~eyeserver.errors.DeviceDisconnectedError`
-==========================================  ==================================================
-
-After any fault but a refused request the connection is closed and the next call opens it again,
-so a controller that comes back (cable replugged, power restored) works without reopening the
-driver. pymodbus's own retries are off (``retries=0``): a timed-out write may still have been
-carried out, and the caller, not the transport, decides whether to try again.
+The register map (documented and assumed), what the driver writes and reads, and how
+it maps transport faults: docs/notes/modbus-controller.md. **Most of the register map
+is an assumption** to check against the device's manual before it meets a controller.
 """
 
 from __future__ import annotations
