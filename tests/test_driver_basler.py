@@ -24,7 +24,6 @@ unplugged: pylon's removal flag is simulated by wrapping the emulated camera's p
 
 from __future__ import annotations
 
-import importlib.util
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -41,14 +40,10 @@ from eyeserver.errors import (
     DeviceTimeoutError,
     DeviceValueError,
 )
-from eyeserver.hardware.drivers import basler
 from eyeserver.hardware.drivers.basler import BaslerCamera, ticks_to_ns
 from eyeserver.hardware.registry import DriverContext, create_device, driver_class
-from tests.hardware.contract import MISSING_TIMEOUT_S, READ_TIMEOUT_S, CameraContract
-
-_MISSING = (None if importlib.util.find_spec("pypylon") is not None
-            else f"pypylon is not installed ({basler.INSTALL_HINT})")
-needs_pylon = pytest.mark.skipif(_MISSING is not None, reason=_MISSING or "")
+from tests.hardware.needs import needs_pylon
+from tests.hardware.timeouts import MISSING_TIMEOUT_S, READ_TIMEOUT_S
 
 ROI = {"offset_x": 16, "offset_y": 8, "width": 256, "height": 128}
 """A small region: quick frames, and offsets that show in the test images."""
@@ -109,20 +104,6 @@ def pylon_camera(camera: BaslerCamera) -> Any:
     link = camera._link
     assert link is not None
     return link._camera
-
-
-# --- the contract ---------------------------------------------------------------------------
-
-
-@needs_pylon
-class TestBaslerCameraContract(CameraContract):
-    @pytest.fixture
-    def camera(self, make_camera: Callable[..., BaslerCamera]) -> BaslerCamera:
-        return make_camera()
-
-    @pytest.fixture
-    def expose(self, camera: BaslerCamera) -> Callable[[], None]:
-        return camera.software_trigger
 
 
 # --- settings as the camera reports them ----------------------------------------------------

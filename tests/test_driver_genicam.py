@@ -32,26 +32,12 @@ from eyeserver.errors import (
     DeviceTimeoutError,
     DeviceValueError,
 )
-from eyeserver.hardware.drivers import camerathread, genicam
+from eyeserver.hardware.drivers import camerathread
 from eyeserver.hardware.drivers.genicam import GenicamCamera, image_from_payload
-from eyeserver.hardware.emulators.fakegv import FakeGigECamera, find_fake_camera_program
+from eyeserver.hardware.emulators.fakegv import FakeGigECamera
 from eyeserver.hardware.registry import DriverContext, create_device, driver_class
-from tests.hardware.contract import READ_TIMEOUT_S, CameraContract
-
-
-def _why_no_aravis() -> str | None:
-    if find_fake_camera_program() is None:
-        return ("arv-fake-gv-camera-0.8 is not installed (Debian package aravis-tools: "
-                "scripts/system-packages.sh)")
-    try:
-        genicam._load_aravis()
-    except ImportError as exc:
-        return str(exc)
-    return None
-
-
-_MISSING = _why_no_aravis()
-needs_aravis = pytest.mark.skipif(_MISSING is not None, reason=_MISSING or "")
+from tests.hardware.needs import needs_aravis
+from tests.hardware.timeouts import READ_TIMEOUT_S
 
 ROI = {"offset_x": 16, "offset_y": 8, "width": 256, "height": 128}
 """A small region: 32 kB frames, 24 GVSP packets of 1400 bytes each."""
@@ -104,20 +90,6 @@ def make_camera(fake: FakeGigECamera,
 def read_next(camera: GenicamCamera) -> Frame:
     camera.software_trigger()
     return camera.read_frame(READ_TIMEOUT_S)
-
-
-# --- the contract ---------------------------------------------------------------------------
-
-
-@needs_aravis
-class TestGenicamCameraContract(CameraContract):
-    @pytest.fixture
-    def camera(self, make_camera: Callable[..., GenicamCamera]) -> GenicamCamera:
-        return make_camera()
-
-    @pytest.fixture
-    def expose(self, camera: GenicamCamera) -> Callable[[], None]:
-        return camera.software_trigger
 
 
 # --- settings as the camera reports them ----------------------------------------------------

@@ -31,7 +31,6 @@ from eyeserver.hardware.emulators.modbus import (
     crc16,
 )
 from eyeserver.hardware.registry import DriverContext, create_device, driver_class
-from tests.hardware.contract import ProjectorContract
 
 REPLY_TIMEOUT_S = 0.5  # the emulators answer at once; 0.2 s was missed once at load 13
 """Per-response timeout of the driver under test: short, since the emulator answers at once."""
@@ -69,10 +68,6 @@ def projector(emulator: Emulator) -> Iterator[OptoProjector]:
     projector = make_projector(emulator)
     yield projector
     projector.close()
-
-
-class TestOptoProjectorContract(ProjectorContract):
-    """The projector contract, over the emulated controller on each transport."""
 
 
 def block(emulator: Emulator, channel: int = 1) -> tuple[int, int, int, int]:

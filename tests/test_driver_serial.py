@@ -29,7 +29,6 @@ from eyeserver.hardware.emulators.gardasoft import GardasoftEmulator
 from eyeserver.hardware.emulators.serialpty import Behaviour
 from eyeserver.hardware.emulators.zaber import ZaberEmulator
 from eyeserver.hardware.registry import DriverContext, create_device, driver_class
-from tests.hardware.contract import ProjectorContract
 
 REPLY_TIMEOUT_S = 0.5  # the emulators answer at once; 0.2 s was missed once at load 13
 """Per-reply timeout of the drivers under test: short, since the emulators answer at once."""
@@ -135,10 +134,6 @@ def projector(gardasoft: GardasoftEmulator) -> Iterator[GardasoftProjector]:
     projector = make_projector(gardasoft)
     yield projector
     projector.close()
-
-
-class TestGardasoftProjectorContract(ProjectorContract):
-    """The projector contract, over the emulated controller (the ``projector`` fixture)."""
 
 
 def test_gardasoft_from_configuration(gardasoft: GardasoftEmulator) -> None:

@@ -6,7 +6,7 @@ import json
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from eyeserver.core.clock import Clock, ManualClock, MonotonicClock
+from eyeserver.core.clock import ManualClock, MonotonicClock
 from eyeserver.core.frames import Frame
 from eyeserver.errors import (
     ConfigError,
@@ -46,60 +46,8 @@ from eyeserver.hardware.sim.drivers import (
     sim_hardware_config,
 )
 from eyeserver.hardware.sim.room import SimRoom
-from tests.hardware.contract import (
-    MISSING_TIMEOUT_S,
-    READ_TIMEOUT_S,
-    CameraContract,
-    ProjectorContract,
-    TriggerContract,
-)
-
-START_NS = 1_000_000_000
-BACKGROUND_DN = 20.0
-FRINGE_DN = 100.0
-
-
-class FakeRoom:
-    """A room of two units (P1: S1, S2; P2: S3, S4) rendering a flat grey level plus noise.
-
-    The grey level rises with the lit projectors' intensities, so tests can see what was lit;
-    every render call is recorded. S4 is a 12-bit camera, the others 8-bit.
-    """
-
-    def __init__(self, seed: int = 7, clock: Clock | None = None) -> None:
-        self.clock: Clock = clock if clock is not None else ManualClock(START_NS)
-        self.seed = seed
-        self.renders: list[dict[str, Any]] = []
-        self.prepared: list[tuple[str, tuple[str, ...]]] = []
-        self._lock = threading.Lock()
-
-    def camera_ids(self) -> list[str]:
-        return ["S1", "S2", "S3", "S4"]
-
-    def projector_ids(self) -> list[str]:
-        return ["P1", "P2"]
-
-    def units(self) -> list[tuple[str, str, list[str]]]:
-        return [("left", "P1", ["S1", "S2"]), ("right", "P2", ["S3", "S4"])]
-
-    def camera_format(self, camera_id: str) -> tuple[int, int, int]:
-        return (24, 16, 12) if camera_id == "S4" else (32, 24, 8)
-
-    def prepare(self, camera_id: str, projectors: Sequence[str]) -> None:
-        with self._lock:
-            self.prepared.append((camera_id, tuple(projectors)))
-
-    def render(self, camera_id: str, *, t_s: float, projectors: Mapping[str, float],
-               exposure_us: float, gain_db: float, rng: np.random.Generator) -> np.ndarray:
-        with self._lock:
-            self.renders.append({"camera": camera_id, "t_s": t_s, "projectors": dict(projectors),
-                                 "exposure_us": exposure_us, "gain_db": gain_db,
-                                 "rendered_ns": self.clock.now_ns()})
-        width, height, bit_depth = self.camera_format(camera_id)
-        level = BACKGROUND_DN + FRINGE_DN * sum(projectors.values())
-        image = level + rng.normal(0.0, 2.0, (height, width))
-        dtype = np.uint8 if bit_depth == 8 else np.uint16
-        return np.clip(np.rint(image), 0, 2**bit_depth - 1).astype(dtype)
+from tests.hardware.simroom import BACKGROUND_DN, FRINGE_DN, START_NS, FakeRoom
+from tests.hardware.timeouts import MISSING_TIMEOUT_S, READ_TIMEOUT_S
 
 
 @pytest.fixture
@@ -146,56 +94,6 @@ def fire_step(rig: Rig, cameras: tuple[str, ...], projectors: tuple[str, ...] = 
               pulses: int = 1) -> list[TriggerPulse]:
     rig.trigger.set_sequence([TriggerStep(projectors=projectors, cameras=cameras)])
     return [rig.trigger.fire() for _ in range(pulses)]
-
-
-# --- the contract suites on the simulated drivers -------------------------------------------
-
-
-class TestSimCameraContract(CameraContract):
-    @pytest.fixture(params=["S1", "S4"])
-    def camera(self, request: pytest.FixtureRequest,
-               context: DriverContext) -> Iterator[SimCamera]:
-        camera = SimCamera(request.param, context=context)
-        yield camera
-        camera.close()
-
-    @pytest.fixture
-    def expose(self, camera: SimCamera, context: DriverContext,
-               room: FakeRoom) -> Iterator[Callable[[], None]]:
-        trigger = SimTrigger("T1", context=context)
-        trigger.open()
-        trigger.set_sequence([TriggerStep(projectors=("P1",), cameras=(camera.id,))])
-
-        clock = room.clock
-        assert isinstance(clock, ManualClock)
-
-        def expose() -> None:
-            trigger.fire()
-            clock.advance(0.04)
-
-        yield expose
-        trigger.close()
-
-
-class TestSimProjectorContract(ProjectorContract):
-    @pytest.fixture
-    def projector(self, context: DriverContext) -> Iterator[SimProjector]:
-        projector = SimProjector("P2", context=context)
-        yield projector
-        projector.close()
-
-
-class TestSimTriggerContract(TriggerContract):
-    @pytest.fixture
-    def trigger(self, context: DriverContext) -> Iterator[SimTrigger]:
-        trigger = SimTrigger("T1", context=context)
-        yield trigger
-        trigger.close()
-
-    @pytest.fixture
-    def steps(self) -> list[TriggerStep]:
-        return [TriggerStep(projectors=("P1",), cameras=("S1", "S2")),
-                TriggerStep(projectors=("P2",), cameras=("S3", "S4"))]
 
 
 # --- registry -------------------------------------------------------------------------------

@@ -277,6 +277,33 @@ class Trigger(Device):
         super().__init__(device_id)
         self._rate_hz = 25.0
         self._sequence: tuple[TriggerStep, ...] = ()
+        self._missed: dict[str, int] = {}
+        self._missed_lock = threading.Lock()
+
+    def open(self) -> None:
+        """Connect to the device. Idempotent; the missed-trigger counts start again at 0, as
+        the pulse indices do."""
+        if not self.is_open:
+            with self._missed_lock:
+                self._missed = {}
+        super().open()
+
+    @property
+    def missed_triggers(self) -> int:
+        """Pulses that exposed no frame, counted once per camera that did not deliver one,
+        since :meth:`open` (:meth:`record_missed`)."""
+        with self._missed_lock:
+            return sum(self._missed.values())
+
+    def record_missed(self, pulse: TriggerPulse, camera_id: str) -> None:
+        """Count ``pulse`` as missed by ``camera_id``: it was fired for that camera, and no
+        frame of it arrived (the rig calls this when it gives up waiting). A camera that misses
+        triggers has a trigger cable, input or exposure setting to look at; the count is in
+        :meth:`describe`, so the device's status shows it."""
+        with self._missed_lock:
+            self._missed[camera_id] = self._missed.get(camera_id, 0) + 1
+        _log.warning("trigger %s: pulse %d exposed no frame of camera %s", self.id,
+                     pulse.index, camera_id, extra={"device_id": self.id})
 
     @property
     def rate_hz(self) -> float:
@@ -337,9 +364,12 @@ class Trigger(Device):
         """Stop free-running pulses. Idempotent."""
 
     def describe(self) -> dict[str, object]:
+        with self._missed_lock:
+            missed = dict(self._missed)
         return {**super().describe(), "rate_hz": self.rate_hz,
                 "sequence": [{"projectors": list(s.projectors), "cameras": list(s.cameras)}
-                             for s in self.sequence]}
+                             for s in self.sequence],
+                "missed_triggers": sum(missed.values()), "missed_by_camera": missed}
 
 
 class PacedTrigger(Trigger):

@@ -3,7 +3,7 @@
 A driver is a :class:`~eyeserver.hardware.base.Camera`,
 :class:`~eyeserver.hardware.base.Projector`, :class:`~eyeserver.hardware.base.Trigger` or
 :class:`~eyeserver.hardware.base.Stage` subclass registered under its kind and a name of the form
-``<Vendor><Kind>`` (``SimCamera``, ``BaslerCamera``, ``ArduinoTrigger``, ``ZaberStage``)::
+``<Vendor><Kind>`` (``SimCamera``, ``BaslerCamera``, ``TriggerBoxTrigger``, ``ZaberStage``)::
 
     @register_driver("camera", "SimCamera")
     class SimCamera(Camera):
@@ -60,6 +60,7 @@ _BUILTIN_DRIVER_MODULES: Final[tuple[str, ...]] = (
     "eyeserver.hardware.drivers.ids",
     "eyeserver.hardware.drivers.modbus",
     "eyeserver.hardware.drivers.softtrigger",
+    "eyeserver.hardware.drivers.triggerbox",
     "eyeserver.hardware.drivers.zaber",
 )
 

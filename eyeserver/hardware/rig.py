@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -22,7 +23,7 @@ from pydantic import AfterValidator, Field, model_validator
 
 from eyeserver.core.frames import Frame, is_valid_id
 from eyeserver.core.validation import StrictModel
-from eyeserver.errors import ConfigError
+from eyeserver.errors import ConfigError, DeviceTimeoutError
 from eyeserver.hardware.base import Camera, Device, Projector, Trigger, TriggerPulse, TriggerStep
 from eyeserver.hardware.registry import DriverContext, create_device
 
@@ -350,10 +351,34 @@ class Rig:
                 for projector_id in step.projectors:  # a projector that is gone fails here
                     self._projector_by_id[projector_id].check()
                 pulse = self._trigger.fire(at_ns if n == 0 else None)
-                frames = {camera_id: self._camera_by_id[camera_id].read_frame(timeout_s)
+                frames = {camera_id: self._frame_of(pulse, camera_id, timeout_s)
                           for camera_id in pulse.step.cameras}
                 acquired.append(AcquiredStep(pulse=pulse, frames=frames))
             return acquired
+
+    def _frame_of(self, pulse: TriggerPulse, camera_id: str, timeout_s: float) -> Frame:
+        """The frame ``pulse`` exposed in camera ``camera_id``, matched by time.
+
+        A frame's time is mid-exposure, after its pulse's. A frame from more than half the
+        timeout before the pulse is a late frame of an earlier pulse that the rig already gave
+        up on (its camera's queue kept it): it is discarded, so that it is never taken for this
+        pulse's. No frame in time is a missed trigger, counted on the trigger
+        (:meth:`~eyeserver.hardware.base.Trigger.record_missed`) before the timeout is raised.
+        """
+        camera = self._camera_by_id[camera_id]
+        earliest_ns = pulse.t_ns - round(timeout_s * 1e9 / 2)
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                frame = camera.read_frame(max(deadline - time.monotonic(), 1e-3))
+            except DeviceTimeoutError:
+                self._trigger.record_missed(pulse, camera_id)
+                raise
+            if frame.meta.t_ns >= earliest_ns:
+                return frame
+            _log.warning("camera %s: discarded a late frame of an earlier pulse (%.3f s before "
+                         "pulse %d)", camera_id, (pulse.t_ns - frame.meta.t_ns) / 1e9,
+                         pulse.index, extra={"device_id": camera_id})
 
     def spec(self) -> dict[str, object]:
         """The rig file's content (FORMATS.md, ``eyeserver.rig/1``) as plain JSON-ready data."""
