@@ -46,8 +46,8 @@ from pydantic_settings import (
 from eyeserver.core.validation import StrictModel
 from eyeserver.errors import ConfigError
 
-__all__ = ["ENV_PREFIX", "MIN_TOKEN_LENGTH", "ROLES", "ClientCertMode", "LogLevel", "Role",
-           "Settings", "TokenConfig"]
+__all__ = ["ENV_PREFIX", "MIN_TOKEN_LENGTH", "ROLES", "ClientCertMode", "LogLevel", "QaSettings",
+           "QaThresholds", "Role", "Settings", "TokenConfig"]
 
 #: Prefix of the environment variables that override settings.
 ENV_PREFIX = "EYESERVER_"
@@ -89,6 +89,60 @@ _PATH_KEYS = ("data_dir", "room_file", "tls_certfile", "tls_keyfile", "tls_ca_ce
               "audit_log")
 # Keys whose values are never repeated in an error message.
 _SECRET_KEYS = ("tokens",)
+
+
+class QaThresholds(StrictModel):
+    """The daily QA's pass limits, each figure at most this (mm; docs/qa.md justifies them).
+
+    AAPM TG-302 asks ≤ 1 mm of an SGRT system's daily static localisation; a proton beam on an
+    eye, given at PSI only within 0.2 mm of the plan, needs QA limits well inside that 0.2 mm
+    tolerance and above what the healthy system measures (docs/qa.md gives the simulated
+    room's figures beside each).
+    """
+
+    localisation_mm: float = Field(
+        default=0.10, gt=0, le=5.0,
+        description="The phantom's ball centre, located by its dots, against the drawing's QA "
+        "position: half the 0.2 mm clinical tolerance.")
+    surface_mm: float = Field(
+        default=0.05, gt=0, le=5.0,
+        description="Median |distance| of the measured surface to the drawing placed where the "
+        "phantom stands: the design's surface goal.")
+    fiducial_mm: float = Field(
+        default=0.05, gt=0, le=5.0,
+        description="Median distance of the triangulated dots to the drawing's, after the "
+        "phantom's placement: the design's fiducial goal.")
+    cross_unit_mm: float = Field(
+        default=0.05, gt=0, le=5.0,
+        description="Median |distance| between the two units' surfaces where both see the "
+        "phantom.")
+    static_noise_mm: float = Field(
+        default=0.03, gt=0, le=5.0,
+        description="Frame-to-frame height spread of the still phantom, worst camera: the "
+        "design's repeatability goal.")
+    drift_mm: float = Field(
+        default=0.05, gt=0, le=5.0,
+        description="Change of the units' relative view of the phantom since the active "
+        "calibration's QA baseline: a quarter of the clinical tolerance.")
+
+
+class QaSettings(StrictModel):
+    """The daily QA and its lockout (``[qa]`` in the TOML file; ``EYESERVER_QA__REQUIRED``,
+    ``EYESERVER_QA__THRESHOLDS__SURFACE_MM`` … in the environment)."""
+
+    required: bool = Field(
+        default=True,
+        description="Position verification and tracking answer 409 until the day's QA passed "
+        "with the active calibration (or a physicist overrode it). Off only for benches, tests "
+        "and demonstrations.")
+    max_consecutive_failures: int = Field(
+        default=1, ge=1, le=10,
+        description="Failed QA runs in a row, after the day's pass, that lock again (1: any "
+        "failure does).")
+    frames: int = Field(
+        default=4, ge=2, le=20,
+        description="Captures of the still phantom a QA run takes (the static noise needs 2).")
+    thresholds: QaThresholds = Field(default_factory=QaThresholds)
 
 
 def _default_data_dir() -> Path:
@@ -189,6 +243,11 @@ class Settings(BaseSettings):
     ``retention_days``
         Captures older than this many days are deleted (audited as ``retention``) by an hourly
         task. Unset (default): captures are kept forever.
+    ``qa``
+        The daily QA (:class:`QaSettings`, a ``[qa]`` table): ``required`` (default ``true``:
+        position verification and tracking answer 409 until the day's QA has passed with the
+        active calibration), ``max_consecutive_failures`` (``1``), ``frames`` (``4``) and the
+        ``[qa.thresholds]`` in mm (docs/qa.md).
 
     Build it with :meth:`load`; constructing ``Settings()`` directly reads only the defaults and
     the environment.
@@ -325,6 +384,11 @@ class Settings(BaseSettings):
         default=None,
         gt=0,
         description="Delete captures older than this many days (audited); unset: keep forever.",
+    )
+    qa: QaSettings = Field(
+        default_factory=QaSettings,
+        description="The daily QA: whether it locks verification and tracking, its captures "
+        "and its thresholds (docs/qa.md).",
     )
 
     @field_validator("tokens", mode="before")

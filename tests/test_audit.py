@@ -114,7 +114,7 @@ def test_import_activation_and_deletion_are_audited_with_the_callers_name(
 
     listed = client.get(f"{API}/audit", params={"limit": 2})
     assert listed.status_code == 200, listed.text
-    entries = listed.json()["entries"]
+    entries = listed.json()["items"]
     assert [e["action"] for e in entries] == ["delete_capture", "activate_calibration"]
     assert entries[0]["actor"] == "physicist"
 
@@ -155,7 +155,7 @@ def test_a_request_the_role_may_not_make_is_audited_as_denied(client: Client,
     assert last["detail"] == {"needs": "physicist"}
     assert "P-SECRET-7" not in service.audit.path.read_text()
     physicist = client.get(f"{API}/audit").json()
-    assert physicist["entries"][0]["outcome"] == "denied"
+    assert physicist["items"][0]["outcome"] == "denied"
 
 
 # --- the pieces -----------------------------------------------------------------------------

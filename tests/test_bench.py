@@ -78,6 +78,11 @@ def test_accuracy_bench_reports_the_papers_figures(calibrated_rooms: Any,
     assert report["static_noise"]["repeats"] == 4 and report["seam"]["points"] > 0
     assert "eye_phantom_1#0" in {m["case"] for m in report["measurements"]}
     assert {"phantom", "base"} <= set(report["measurements"][0]["by_surface"])
+    # The daily QA as the daemon runs it (docs/qa.md): the healthy room passes every threshold,
+    # and the phantom moved by 0.3 mm fails its localisation.
+    qa = report["qa"]
+    assert qa["passed"] and qa["frames"] == 2, qa["figures"]
+    assert qa["moved"]["localisation_fails"], qa["moved"]
     page = render(report, {"frameset_2cam_ms": 123.4, "pending": {}})
     assert "| reprojection error, median (px) | 0.88 (IQR 1.44) | ≤ 0.15 |" in page
     assert "`frameset_2cam_ms` | 123.4 |" in page

@@ -323,6 +323,8 @@ def test_errors_are_typed_and_carry_the_daemons_reason(
     with pytest.raises(ec.Conflict) as conflict:
         operator.stop_tracking()
     assert conflict.value.status == 409 and conflict.value.reason == "no live tracking is running"
+    with pytest.raises(ec.Conflict, match="a preview shows the frames of a tracking session"):
+        operator.tracking_preview("S1")
 
     with pytest.raises(ec.AuthError) as forbidden:  # a physicist's route, an operator's token
         operator.configure_device("P1", intensity=0.5)

@@ -6,33 +6,42 @@ result, activated, reconstructs a pyramid within 0.05 mm (median) of its exact s
 
 To keep the module near two minutes, the stereo session takes the poses of the offline
 calibration set in order only until the daemon answers ``ready`` (eight of the twelve), and the
-plate stack 2 mm steps from −8 to +10 mm (10 heights, covering the pyramid's −6…+6 mm)
-instead of 36 heights in 1 mm steps: 2 mm moves each pixel's phase by ≈ 2.4 rad, still below
-the π the unwrapping along Z allows (docs/design.md §5).
+phase-to-height session covers −8…+10 mm (the pyramid's −6…+6 mm and the reference plane) at
+the heights the session asks for: it measures the room's fringe sensitivity on the reference
+plane and a probe plate 1 mm from it (≈ 1.4 rad/mm at the steepest pixels) and plans planes
+at most 1.7 mm apart, so that no step of the unwrapping along Z moves a phase by π
+(docs/design.md §5).
 """
 
 from __future__ import annotations
 
 import io
+import itertools
+import math
 import threading
 import time
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from eyeserver.bench.daemon import zip_directory
+from eyeserver.calibration.phase_height import heights_needed, safe_step_mm
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.scoring import score_cloud
 from eyeserver.hardware.sim.sessions import calibration_poses
 from eyeserver.io import read_ply
+from eyeserver.service.calibration_session import PlateStep, Session
 from eyeserver.service.events import EventBus
 from eyeserver.service.jobs import JobContext, Jobs
 from eyeserver.service.workers import QueueFullError
 from tests.apiclient import API, OPERATOR_TOKEN, Client, auth
 
-PLATE_HEIGHTS = [float(z) for z in range(-8, 11, 2)]
+Z_RANGE = [-8.0, 10.0]
 REFERENCE_Z = 10.0
+PROBE_Z = 9.0
 
 
 def _ok(response: Any, status: int = 200) -> Any:
@@ -192,20 +201,40 @@ def test_guided_calibration_end_to_end(client: Client, tmp_path: Path) -> None:
     assert _ok(client.get(f"{API}/calibration-sessions/{sid}"))["state"] == "done"
     stereo_s = time.monotonic() - started
 
-    # --- phase to height on the stage ---
-    session = _ok(client.post(f"{API}/calibration-sessions",
-                              json={"kind": "phase-height", "calibration_id": stereo_id}), 201)
+    # --- phase to height on the stage, at the heights the session asks for ---
+    session = _ok(client.post(f"{API}/calibration-sessions", json={
+        "kind": "phase-height", "calibration_id": stereo_id, "z_range_mm": Z_RANGE}), 201)
     pid = session["id"]
-    for z in PLATE_HEIGHTS:
+    # A stereo parent says nothing of the fringes: the session asks for the probe first.
+    assert session["plan"]["needed_heights_mm"] is None and not session["ready"]
+    assert "probe plate 1 mm from it" in session["plan"]["next"]
+    _ok(client.put(f"{API}/sim/scene", json={"kind": "reference",
+                                             "position_mm": [0, 0, REFERENCE_Z]}))
+    reference = _ok(client.post(f"{API}/calibration-sessions/{pid}/reference",
+                                json={"z_mm": REFERENCE_Z}), 201)
+    assert reference["plan"]["next"] == "a probe plate at Z = +9.00 or +11.00 mm, to measure " \
+        "this rig's fringe sensitivity"
+    probe = _ok(client.post(f"{API}/calibration-sessions/{pid}/plates",
+                            json={"z_mm": PROBE_Z, "move_stage": True}), 201)
+    plan = probe["plan"]
+    assert set(plan["sensitivity_rad_per_mm"]) == {"S1", "S2", "S3", "S4"}
+    assert all(1.0 < s < 2.0 for s in plan["sensitivity_rad_per_mm"].values()), plan
+    assert plan["sensitivity_source"].startswith("measured: the plate at Z = +9.00 mm")
+    assert 1.2 <= plan["max_step_mm"] <= 2.0
+    planes = sorted([REFERENCE_Z, PROBE_Z, *plan["needed_heights_mm"]])
+    assert planes[0] == Z_RANGE[0] and planes[-1] == Z_RANGE[1]
+    assert max(b - a for a, b in itertools.pairwise(planes)) <= plan[
+        "max_step_mm"] + 0.01
+    assert any("no two neighbouring planes" in m for m in probe["missing"])
+    refused = client.post(f"{API}/calibration-sessions/{pid}/solve")  # not ready: says why
+    assert refused.status_code == 409 and "the plate at Z = " in refused.json()["detail"]
+    for z in plan["needed_heights_mm"]:
         step = _ok(client.post(f"{API}/calibration-sessions/{pid}/plates",
                                json={"z_mm": z, "move_stage": True}), 201)
         assert step["moved_by_stage"]
-    assert _ok(client.get(f"{API}/sim/scene"))["position_mm"][2] == PLATE_HEIGHTS[-1]
-    assert client.post(f"{API}/calibration-sessions/{pid}/solve").status_code == 409  # no ref
-    _ok(client.put(f"{API}/sim/scene", json={"kind": "reference",
-                                             "position_mm": [0, 0, REFERENCE_Z]}))
-    _ok(client.post(f"{API}/calibration-sessions/{pid}/reference",
-                    json={"z_mm": REFERENCE_Z}), 201)
+    assert step["ready"], step["missing"]
+    assert step["plan"]["needed_heights_mm"] == [] and step["plan"]["next"] == "solve"
+    plates = len(plan["needed_heights_mm"]) + 1
     job = _ok(client.post(f"{API}/calibration-sessions/{pid}/solve"), 202)
     p2h = _wait_job(client, job["id"])
     assert p2h["state"] == "succeeded", p2h["error"]
@@ -249,7 +278,7 @@ def test_guided_calibration_end_to_end(client: Client, tmp_path: Path) -> None:
     assert f"{p2h_id}/calibration.json" in names and f"{p2h_id}/arrays.npz" in names
     inputs = {n.split("/")[2] for n in names if n.startswith(f"{p2h_id}/inputs/")}
     # Its own plates and reference, and the parent's chessboard views it inherits.
-    assert len(inputs) == len(PLATE_HEIGHTS) + 1 + len(answers)
+    assert len(inputs) == plates + 1 + len(answers)
     assert client.get(f"{API}/calibrations/compare",
                       params={"a": p2h_id, "b": "cal-nope"}).status_code == 404
     # A download uploads again (another daemon, a reinstall): the calibration, not its inputs.
@@ -286,3 +315,96 @@ def test_a_closed_session_releases_the_daemon_and_a_view_refuses_a_second_origin
     assert _ok(client.delete(f"{API}/calibration-sessions/{sid}"))["state"] == "closed"
     assert _ok(client.get(f"{API}/status"))["state"] in ("idle", "fault")
     assert client.post(f"{API}/calibration-sessions/{sid}/views").status_code == 409
+
+
+@pytest.mark.slow
+def test_a_failed_phase_height_solve_takes_more_plates_and_solves_again(
+        client: Client, calibrated_rooms: Callable[[str], tuple[Path, Path]]) -> None:
+    # A parent with its own phase-to-height models: the session knows the room's sensitivity
+    # at the opening and lists the heights at once.
+    _, caldir = calibrated_rooms("default")
+    parent = _ok(client.post(f"{API}/calibrations", content=zip_directory(caldir),
+                             headers={"content-type": "application/zip"}), 201)["id"]
+    session = _ok(client.post(f"{API}/calibration-sessions", json={
+        "kind": "phase-height", "calibration_id": parent, "z_range_mm": [6.0, 10.0]}), 201)
+    sid, plan = session["id"], session["plan"]
+    assert plan["sensitivity_source"] == f"the phase-to-height models of {parent}"
+    assert all(1.0 < s < 2.5 for s in plan["sensitivity_rad_per_mm"].values()), plan
+    assert plan["needed_heights_mm"][0] == 6.0 and plan["needed_heights_mm"][-1] == 10.0
+    _ok(client.put(f"{API}/sim/scene", json={"kind": "reference",
+                                             "position_mm": [0, 0, REFERENCE_Z]}))
+    plan = _ok(client.post(f"{API}/calibration-sessions/{sid}/reference",
+                           json={"z_mm": REFERENCE_Z}), 201)["plan"]
+    heights = plan["needed_heights_mm"]
+    assert len(heights) >= 3 and 10.0 not in heights  # the reference covers its own height
+    # One plate is not there: the physicist typed its height with the plate out of the room.
+    wrong = heights[1]
+    for z in heights:
+        if z == wrong:
+            _ok(client.put(f"{API}/sim/scene", json={"kind": "empty"}))
+        answer = _ok(client.post(f"{API}/calibration-sessions/{sid}/plates",
+                                 json={"z_mm": z, "move_stage": z != wrong}), 201)
+    assert answer["ready"], answer["missing"]
+    failed = _wait_job(client, _ok(client.post(f"{API}/calibration-sessions/{sid}/solve"),
+                                   202)["id"])
+    # The walk along Z finds no fringe there and slips: the plane after it is reported off.
+    assert failed["state"] == "failed" and "the unwrapping along Z slipped" in failed["error"]
+    after = _ok(client.get(f"{API}/calibration-sessions/{sid}"))
+    assert after["state"] == "failed" and after["error"] == failed["error"]
+    assert after["failures"] == []  # recorded when the session is extended
+    # After a slip the plan asks for planes half as far apart.
+    assert after["plan"]["max_step_mm"] == math.floor(10 * plan["max_step_mm"] / 2) / 10
+    assert after["plan"]["needed_heights_mm"] and not after["ready"]
+    assert _ok(client.get(f"{API}/status"))["state"] in ("idle", "fault")
+
+    # Extended: the plate again at the height it was said to be (it replaces the wrong one),
+    # then whatever the plan asks for; the session calibrates again and solves.
+    again = _ok(client.post(f"{API}/calibration-sessions/{sid}/plates",
+                            json={"z_mm": wrong, "move_stage": True}), 201)
+    assert _ok(client.get(f"{API}/status"))["state"] == "calibrating"
+    for z in again["plan"]["needed_heights_mm"]:
+        again = _ok(client.post(f"{API}/calibration-sessions/{sid}/plates",
+                                json={"z_mm": z, "move_stage": True}), 201)
+    assert again["ready"], again["missing"]
+    extended = _ok(client.get(f"{API}/calibration-sessions/{sid}"))
+    assert extended["state"] == "acquiring"
+    assert [(f["job_id"], f["error"]) for f in extended["failures"]] == [
+        (failed["id"], failed["error"])]
+    assert sorted(p["z_mm"] for p in extended["plates"]).count(wrong) == 1
+    solved = _wait_job(client, _ok(client.post(f"{API}/calibration-sessions/{sid}/solve"),
+                                   202)["id"])
+    assert solved["state"] == "succeeded", solved["error"]
+    made = _ok(client.get(f"{API}/calibrations/{solved['result']['calibration_id']}"))
+    assert made["parent_id"] == parent
+    assert made["quality"]["p2h_residual_median_mm"] < 0.05
+    assert _ok(client.get(f"{API}/calibration-sessions/{sid}"))["state"] == "done"
+
+
+def test_the_plan_spaces_the_planes_under_the_safe_step() -> None:
+    # Without planes: the range evenly; with some: the gaps split, the ends reached.
+    assert heights_needed([], (0.0, 4.0), 1.5) == [0.0, 1.33, 2.67, 4.0]
+    assert heights_needed([10.0, 9.0], (6.0, 10.0), 1.4) == [6.0, 7.0, 8.0]
+    assert heights_needed([10.0, 9.0, 6.0], (6.0, 10.0), 1.4) == [7.0, 8.0]
+    assert heights_needed([10.0, 9.0, 8.0, 7.0, 6.0], (6.0, 10.0), 1.4) == []
+    assert heights_needed([12.0], (6.0, 10.0), 3.0) == [6.0, 9.0]  # the plane beyond counts
+    # 0.8 π per step at the steepest pixels, to 0.1 mm down.
+    assert safe_step_mm(1.4) == 1.7 and safe_step_mm(math.pi) == 0.8
+    with pytest.raises(ValueError, match="max_step_mm"):
+        heights_needed([], (0.0, 1.0), 0.0)
+
+
+def test_a_slipped_solve_halves_the_step_of_the_plan() -> None:
+    session = Session(id="cs-test", kind="phase-height", actor="physicist", created="now",
+                      z_range_mm=(6.0, 10.0), sensitivity={"S1": 1.4, "S2": 1.2},
+                      reference=PlateStep("cap-ref", 10.0, False))
+    assert session.plate_plan()["max_step_mm"] == 1.7  # the steeper camera decides
+    assert session.plate_plan()["needed_heights_mm"] == [6.0, 7.33, 8.67]
+    session.state, session.error = "failed", ("camera S1: the plane at Z = +7.3 mm is off by "
+                                              "5.2 mm after the fit; the unwrapping along Z "
+                                              "slipped by a fringe there")
+    assert session.plate_plan()["max_step_mm"] == 0.8
+    session.failures.append({"job_id": "job-1", "error": session.error, "heights_mm": []})
+    session.error = "no usable fringes"  # a failure of another kind does not halve it again
+    assert session.plate_plan()["max_step_mm"] == 0.8
+    status = session.phase_height_status()
+    assert not status["ready"] and "more than 0.8 mm apart" in status["missing"][-1]

@@ -54,10 +54,14 @@ def test_changing_patients_needs_a_physicist(client: Client) -> None:
         client.post(f"{API}/patients/P-0002/eye-models", json={}, headers=OPERATOR),
         client.put(f"{API}/patients/P-0002/fractions/1/reference",
                    json={"centre_mm": [0, 0, -10], "gaze": [0, 0, 1]}, headers=OPERATOR),
-        client.post(f"{API}/patients/P-0002/fractions/1/reference/capture", headers=OPERATOR),
     ]
+    # The therapist at set-up captures the reference: an operator may (here no calibration is
+    # active, so the daemon says that instead of 403).
+    captured = client.post(f"{API}/patients/P-0002/fractions/1/reference/capture",
+                           headers=OPERATOR)
 
-    assert [r.status_code for r in responses] == [403] * 4
+    assert [r.status_code for r in responses] == [403] * 3
+    assert captured.status_code == 409 and "no calibration is active" in captured.json()["detail"]
     assert client.get(f"{API}/patients/P-0002", headers={"Authorization": ""}).status_code == 401
 
 

@@ -17,6 +17,7 @@ from contextlib import ExitStack
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import httpx
 import numpy as np
 import numpy.typing as npt
@@ -35,6 +36,7 @@ from eyeserver.hardware.rig import AcquiredStep
 from eyeserver.service.events import EventBus
 from eyeserver.service.frame_pose import FrameSet, PoseFinder
 from eyeserver.service.patients import Tolerances
+from eyeserver.service.preview import camera_jpeg
 from eyeserver.service.tracking import (
     FOLLOW_LOST_S,
     LatestFrame,
@@ -820,6 +822,87 @@ def test_the_pose_stream_beats_when_there_is_nothing_to_send_and_status_shows_th
     assert message["stalled"] is None and "time" in message
     summary = _get(base_url, "/status")["tracking"]
     assert summary == {"running": False, "beam_hold": True, "stalled": None}
+
+
+class _ImageSource(ScriptedSource):
+    """A scripted source whose frame ``n`` carries images of cameras S1 and S2 (12-bit, 64 ×
+    48): S1 all at ``(16 n) mod 4096``, S2 a left-to-right ramp, so a preview tells which
+    frame and camera it shows."""
+
+    def next_frame(self) -> FrameSet | None:
+        frame_set = super().next_frame()
+        if frame_set is None:
+            return None
+        n = frame_set.frame
+        images = {"S1": np.full((48, 64), (16 * n) % 4096, np.uint16),
+                  "S2": np.tile(np.linspace(0, 4095, 64).astype(np.uint16), (48, 1))}
+        frames = {c: Frame(image, FrameMeta(c, n, frame_set.t_ns, 2000.0, 0.0, 0, 12))
+                  for c, image in images.items()}
+        step = AcquiredStep(TriggerPulse(n, frame_set.t_ns, TriggerStep(("P1",), ("S1", "S2"))),
+                            frames)
+        return FrameSet(n, frame_set.t_ns, [step], data=frame_set.data)
+
+
+@pytest.mark.slow
+def test_the_preview_shows_the_tracked_units_newest_frame_and_says_why_not(
+    base_url: str, tracking: TrackingControl
+) -> None:
+    def preview(camera: str) -> httpx.Response:
+        return httpx.get(f"{base_url}{API}/tracking/preview/{camera}.jpg",
+                         headers=auth(OPERATOR_TOKEN), timeout=TIMEOUT_S)
+
+    idle = preview("S1")
+    assert idle.status_code == 409
+    assert idle.json() == {"detail": "no live tracking is running: a preview shows the frames "
+                                     "of a tracking session"}
+    assert httpx.get(f"{base_url}{API}/tracking/preview/S1.jpg").status_code == 401
+    original = tracking.source_factory
+    tracking.source_factory = lambda service, units, c: _ImageSource(c, pace_s=0.01)
+    try:
+        started = _post(base_url, "/tracking/start", {"patient_id": "P-T1", "fraction": 1})
+        assert started.status_code == 201, started.text
+        deadline = time.monotonic() + TIMEOUT_S
+        while _get(base_url, "/tracking")["frames_acquired"] < 3:
+            assert time.monotonic() < deadline, "no frames acquired"
+            time.sleep(0.01)
+        shown = [preview("S1") for _ in range(3)]
+        ramp = preview("S2")
+        unknown = preview("S9")
+    finally:
+        stopped = _post(base_url, "/tracking/stop")
+        tracking.source_factory = original
+    assert stopped.status_code == 200, stopped.text
+
+    numbers = []
+    for answer in shown:
+        assert answer.status_code == 200 and answer.headers["content-type"] == "image/jpeg"
+        assert answer.headers["cache-control"] == "no-store"
+        image = cv2.imdecode(np.frombuffer(answer.content, np.uint8), cv2.IMREAD_UNCHANGED)
+        assert image.shape == (48, 64) and image.dtype == np.uint8
+        number = int(answer.headers["x-frame"])
+        numbers.append(number)
+        # 12 bits shown as 8: the frame's level over 16, within the JPEG's error.
+        assert abs(float(image.mean()) - ((16 * number) % 4096) / 16) < 2.0
+    assert numbers == sorted(numbers) and numbers[-1] <= stopped.json()["frames_acquired"]
+    gradient = cv2.imdecode(np.frombuffer(ramp.content, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert gradient[:, :8].mean() < 20 and gradient[:, -8:].mean() > 235  # S2's own image
+    assert unknown.status_code == 404
+    assert unknown.json()["detail"] == "camera 'S9' is not one of the tracked unit's"
+    assert preview("S1").status_code == 409  # stopped: no preview
+
+
+def test_a_camera_image_becomes_a_small_grey_jpeg() -> None:
+    image = np.tile(np.arange(1280, dtype=np.uint16) % 1024, (960, 1))  # 10 bits
+    decoded = cv2.imdecode(np.frombuffer(camera_jpeg(image, bit_depth=10, max_side_px=640),
+                                         np.uint8), cv2.IMREAD_UNCHANGED)
+    assert decoded.shape == (480, 640)
+    # Half size: column k averages source columns 2k, 2k + 1 of 1023; 10 bits shown as 8.
+    assert decoded[:, 0].mean() < 3 and abs(decoded[:, 254].mean() - 127) < 3
+    assert decoded[:, 510].mean() > 250
+    with pytest.raises(ValueError, match="image"):
+        camera_jpeg(np.zeros((4, 4, 3), np.uint8))
+    with pytest.raises(ValueError, match="bit_depth"):
+        camera_jpeg(np.zeros((4, 4), np.uint16), bit_depth=4)
 
 
 def test_tracking_with_two_workers_publishes_in_order(

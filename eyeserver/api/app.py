@@ -17,7 +17,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.types import Receive, Scope, Send
 
 import eyeserver
-from eyeserver.api import apidocs
+from eyeserver.api import apidocs, asyncapi, examples
 from eyeserver.api.auth import Caller, TokenTable, require
 from eyeserver.api.errors import AUTH_RESPONSES, install_error_handlers
 from eyeserver.api.fastpath import ReadFastPath
@@ -34,6 +34,7 @@ from eyeserver.api.routers import (
     metrics,
     patients,
     pose,
+    qa,
     sim,
     status,
     tracking,
@@ -138,6 +139,7 @@ def create_app(settings: Settings) -> FastAPI:
 
         app.add_api_route(f"{API_PREFIX}/openapi.json", openapi_document,
                           include_in_schema=False)
+    asyncapi.mount(app, API_PREFIX, public=settings.public_api_docs)
     install_error_handlers(app)
     app.include_router(health.router, prefix=API_PREFIX)
     # WebSocket routes authenticate themselves before accepting (websocket_caller).
@@ -147,7 +149,7 @@ def create_app(settings: Settings) -> FastAPI:
     authenticated = [Depends(require("operator"))]
     for router in (status.router, devices.router, captures.router, calibrations.router,
                    sim.router, audit.router, jobs.router, calibration_sessions.router,
-                   patients.router, pose.router, tracking.router, whoami.router):
+                   patients.router, pose.router, tracking.router, whoami.router, qa.router):
         app.include_router(router, prefix=API_PREFIX, dependencies=authenticated,
                            responses=AUTH_RESPONSES)
     # Where Prometheus looks by default, outside the versioned API; a token all the same.
@@ -155,6 +157,7 @@ def create_app(settings: Settings) -> FastAPI:
     # The browser console's files (no data, no token): /console/.
     console.mount(app)
     _document_every_answer(app)
+    examples.install(app, API_PREFIX)
     return app
 
 

@@ -7,7 +7,8 @@ scores every cloud against the scene's exact surface: the median |distance| and 
 paper's "ICP RMSE after rigid registration" (the cloud registered point-to-plane onto a dense
 sampling of the exact surface, then scored by its exact distance to it). The phantoms' dots,
 found in the images, are located by the fringe surface around them and compared with their
-stereo triangulation: the paper's headline figure.
+stereo triangulation: the paper's headline figure. The daily QA's figures (docs/qa.md) are
+measured as the daemon measures them, against the QA phantom's drawing.
 
 Figures the bench does not measure yet are reported under ``pending`` with the reason, never
 invented.
@@ -33,6 +34,7 @@ from eyeserver.bench.plots import error_map, write_figures
 from eyeserver.bench.public import score_ftm
 from eyeserver.bench.simcal import calibrate_room
 from eyeserver.calibration.artefact import load_calibration
+from eyeserver.config import QaThresholds
 from eyeserver.core.types import Progress, quiet
 from eyeserver.errors import EyeserverError
 from eyeserver.hardware.sim.config import RoomConfig
@@ -56,9 +58,13 @@ from eyeserver.reconstruction import (
     unit_pairs,
     z_range,
 )
+from eyeserver.service.qa_figures import EYE_PHANTOM_1, calibration_drift_mm, measure_phantom
 
 STATIC_REPEATS = {True: 4, False: 10}
 """Captures of the still surface for the repeatability figure (quick, full)."""
+
+QA_MOVE_MM = 0.3
+"""How far the daily QA's phantom is moved along X to show its localisation failing."""
 
 ICP_SAMPLE = 5000
 """Cloud points each ICP iteration pairs (of a few hundred thousand)."""
@@ -267,6 +273,39 @@ def static_noise(config: RoomConfig, caldir: Path, work: Path, seed: int, repeat
             "median_mm": float(np.nanmedian(list(spreads.values()))) if spreads else None}
 
 
+def qa_figures(config: RoomConfig, caldir: Path, work: Path, seed: int, frames: int,
+               progress: Progress = quiet) -> dict[str, Any]:
+    """The daily QA on the simulated room (docs/qa.md), as the daemon runs it: eye phantom 1
+    at its QA position captured ``frames`` times with every unit and measured against its
+    drawing (never the scene's truth) twice, a baseline and a later run (fresh noise), the
+    drift between them; then the phantom moved by :data:`QA_MOVE_MM` along X, which its
+    localisation must catch. Each figure beside its default threshold."""
+    runs = []
+    placements = {"baseline": (0.0, 0.0, 0.0), "daily": (0.0, 0.0, 0.0),
+                  "moved": (QA_MOVE_MM, 0.0, 0.0)}
+    for n, (name, position) in enumerate(placements.items()):
+        progress(f"daily QA: {name} run ({frames} captures of the phantom)")
+        spec = SceneSpec(kind="eye_phantom_1", position_mm=position)
+        bundles = []
+        with SimSession.open(config, seed=seed + 10 + n) as session:
+            for frame in range(frames):
+                bundles.append(session.record(spec, work / "qa" / f"{name}_{frame}",
+                                              overwrite=True))
+        runs.append(measure_phantom(caldir, bundles, EYE_PHANTOM_1))
+    baseline, daily, moved = runs
+    figures: dict[str, float | None] = {
+        **daily.figures, "drift_mm": calibration_drift_mm(daily.drift_vectors_mm,
+                                                          baseline.drift_vectors_mm)}
+    thresholds = QaThresholds().model_dump()
+    return {"phantom": EYE_PHANTOM_1.name, "frames": frames, "figures": figures,
+            "thresholds": thresholds,
+            "passed": all(v is not None and v <= thresholds[k] for k, v in figures.items()),
+            "baseline_figures": baseline.figures, "problems": daily.problems,
+            "moved": {"by_mm": [QA_MOVE_MM, 0.0, 0.0], "figures": moved.figures,
+                      "localisation_fails": moved.figures["localisation_mm"] is not None
+                      and moved.figures["localisation_mm"] > thresholds["localisation_mm"]}}
+
+
 def _error_map(truth: dict[str, Any], cloud: PointCloud, config: RoomConfig,
                ) -> dict[str, Any]:
     """X, Y and |distance| to the exact surface of a cloud's points, per unit and fused."""
@@ -342,6 +381,7 @@ def run(config: RoomConfig, *, quick: bool = False, seed: int = 0, out: Path | N
         report["measurements"] = measurements
         report["static_noise"] = static_noise(config, caldir, work, seed,
                                               STATIC_REPEATS[quick], progress)
+        report["qa"] = qa_figures(config, caldir, work, seed, 2 if quick else 4, progress)
     vectors = np.asarray([f["error_mm"] for f in fiducials], dtype=np.float64).reshape(-1, 3)
     distance = np.linalg.norm(vectors, axis=1)
     report["fiducials"] = {
@@ -443,6 +483,15 @@ def format_text(report: dict[str, Any]) -> str:
     if static["median_mm"] is not None:
         lines.append(f"static surface: {static['repeats']} captures of a still phantom, per-pixel "
                      f"height spread (std) median {static['median_mm']:.4f} mm")
+    qa = report.get("qa")
+    if qa:
+        shown = ", ".join(f"{k} {v:.4f}" if v is not None else f"{k} —"
+                          for k, v in qa["figures"].items())
+        moved = qa["moved"]["figures"]["localisation_mm"]
+        lines.append(f"daily QA ({qa['frames']} captures of eye phantom 1 at its QA position, "
+                     f"{'passes' if qa['passed'] else 'FAILS'}): {shown}; moved "
+                     f"{qa['moved']['by_mm'][0]} mm: localisation "
+                     f"{'—' if moved is None else f'{moved:.3f}'} mm")
     public = report.get("public_fringes")
     if public:
         lines.append(f"public 4-step set ({public['pixels']} object pixels): single-shot phase "

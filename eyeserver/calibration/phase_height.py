@@ -16,6 +16,7 @@ volume; the multi-view fringe order needs a clear margin (docs/design.md §4 ste
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -126,6 +127,139 @@ def fringe_order_margin(model_a: PhaseHeightModel, model_b: PhaseHeightModel,
         if not found:
             break
     return {"margin_rad": smallest, "orders_checked": orders}
+
+
+SAFE_STEP_SHARE = 0.8
+"""A step between neighbouring planes may move a pixel's phase by at most this share of π: the
+walk along Z takes the nearest 2π multiple, so π is where it slips, and noise and the few pixels
+steeper than the percentile need the rest."""
+SENSITIVITY_PERCENTILE = 99.0
+"""The phase sensitivity of a camera is this percentile over its valid pixels: the steepest
+part of the view (the fringes are denser where the plate is nearer the projector) decides."""
+
+
+def phase_sensitivity(plate_path: str | Path, reference_path: str | Path,
+                      plate_index: int | None = None) -> dict[str, float]:
+    """Each camera's fringe-phase sensitivity to height (rad/mm), measured between the reference
+    plane and one plate near it.
+
+    The phase difference of the plate and the reference is taken wrapped, so the plate must be
+    close enough that no pixel's phase moved by π or more: a probe 1 mm from the reference is,
+    for any rig whose fringes span more than 2 mm of height.
+
+    Parameters
+    ----------
+    plate_path, reference_path : path
+        A ``plate`` bundle (its frame ``plate_index`` is used; default the one nearest the
+        reference but not at its height) and the ``reference`` bundle.
+
+    Returns
+    -------
+    dict of str to float
+        Per camera with fringe images in both: the :data:`SENSITIVITY_PERCENTILE` percentile
+        of |Δφ| / |Δz| over the pixels with fringes in both, rad/mm.
+
+    Raises
+    ------
+    CalibrationError
+        The plate lies at the reference's height, or its phase moved by more than
+        :data:`SAFE_STEP_SHARE` π somewhere (too far for a wrapped difference to be trusted).
+    """
+    plate, reference = read_bundle(plate_path), read_bundle(reference_path)
+    found: dict[str, float] = {}
+    for camera_id in reference.rig.camera_ids:
+        ref_frames, plate_frames = (_fringe_frames(reference, camera_id),
+                                    _fringe_frames(plate, camera_id))
+        if not ref_frames or not plate_frames:
+            continue
+        z_reference = reference.frame(ref_frames[0]).z_mm or 0.0
+        if plate_index is None:
+            # The nearest height that is not the reference's own (a stack may hold that too).
+            away = [i for i in plate_frames
+                    if abs((plate.frame(i).z_mm or 0.0) - z_reference) > 1e-6] or plate_frames
+            index = min(away, key=lambda i: abs((plate.frame(i).z_mm or 0.0) - z_reference))
+        else:
+            index = plate_index
+        dz = (plate.frame(index).z_mm or 0.0) - z_reference
+        if abs(dz) < 1e-6:
+            raise CalibrationError(f"{plate.path}: the plate is at the reference's height "
+                                   f"({z_reference:+.2f} mm); its phase says nothing of height")
+        ref_image = reference.load_image(ref_frames[0], camera_id)
+        carrier = measure_carrier(ref_image)
+        ref = demodulate(ref_image, carrier)
+        moved = demodulate(plate.load_image(index, camera_id), carrier)
+        valid = (_valid(ref.modulation) & _valid(moved.modulation)
+                 & border_mask(ref_image.shape, math.ceil(carrier.period_px)))
+        if not np.any(valid):
+            raise CalibrationError(f"camera {camera_id}: no pixel with fringes in both the "
+                                   "plate and the reference")
+        change = np.abs(phase_difference(moved.surface_phase(), ref.surface_phase()))[valid]
+        steepest = float(np.percentile(change, SENSITIVITY_PERCENTILE))
+        if steepest > SAFE_STEP_SHARE * math.pi:
+            raise CalibrationError(
+                f"camera {camera_id}: the plate {dz:+.2f} mm from the reference moved the phase "
+                f"by {steepest:.2f} rad, too near π to measure the sensitivity; put a probe "
+                "plate nearer the reference (0.5 mm)")
+        found[camera_id] = steepest / abs(dz)
+    return found
+
+
+def safe_step_mm(sensitivity_rad_per_mm: float) -> float:
+    """The largest spacing of neighbouring planes (the reference among them) that keeps every
+    step of the walk along Z under :data:`SAFE_STEP_SHARE` π, rounded down to 0.1 mm."""
+    if not sensitivity_rad_per_mm > 0:
+        raise ValueError(f"sensitivity_rad_per_mm must be positive, got {sensitivity_rad_per_mm}")
+    return math.floor(10 * SAFE_STEP_SHARE * math.pi / sensitivity_rad_per_mm) / 10
+
+
+def model_sensitivity(document: dict[str, Any]) -> dict[str, float]:
+    """Each camera's fringe-phase sensitivity to height (rad/mm) from a calibration's own
+    phase-to-height models (its ``phase_to_height`` section): the
+    :data:`SENSITIVITY_PERCENTILE` percentile of |∂Δφ/∂Z| over the image (every 8th pixel) and
+    the calibrated Z range. Empty without such a section."""
+    section = document.get("phase_to_height") or {}
+    found: dict[str, float] = {}
+    for camera_id, entry in (section.get("cameras") or {}).items():
+        cam = document["cameras"][camera_id]
+        model = PhaseHeightModel.from_dict(entry["model"])
+        x_grid, y_grid = pixel_grid_normalised(cam["width"], cam["height"], cam["K"],
+                                               cam["dist"])
+        xs, ys = x_grid[4::8, 4::8].ravel(), y_grid[4::8, 4::8].ravel()
+        low, high = entry["z_range_mm"]
+        slopes = []
+        for z in np.linspace(low, high - 0.5, 8):
+            slopes.append(np.abs(model.phase(xs, ys, np.full(xs.shape, z + 0.5))
+                                 - model.phase(xs, ys, np.full(xs.shape, z))) / 0.5)
+        every = np.concatenate(slopes)
+        every = every[np.isfinite(every)]
+        if every.size:
+            found[camera_id] = float(np.percentile(every, SENSITIVITY_PERCENTILE))
+    return found
+
+
+def heights_needed(acquired_mm: list[float], z_range_mm: tuple[float, float],
+                   max_step_mm: float) -> list[float]:
+    """Plate heights (mm, ascending, to 0.01 mm) that, added to ``acquired_mm`` (the plates and
+    the reference plane), cover ``z_range_mm`` with no two neighbouring planes more than
+    ``max_step_mm`` apart: the largest gaps split evenly, the range's ends reached exactly.
+
+    >>> heights_needed([10.0, 9.0], (5.0, 10.0), 2.0)
+    [5.0, 7.0]
+    """
+    low, high = sorted(z_range_mm)
+    if not max_step_mm > 0:
+        raise ValueError(f"max_step_mm must be positive, got {max_step_mm}")
+    have = sorted(set(acquired_mm))
+    if not have:
+        count = max(1, math.ceil((high - low) / max_step_mm - 1e-9))
+        return [round(low + (high - low) * k / count, 2) for k in range(count + 1)]
+    needed: list[float] = []
+    ends = ([low] if have[0] > low else []) + have + ([high] if have[-1] < high else [])
+    for a, b in itertools.pairwise(ends):
+        count = math.ceil((b - a) / max_step_mm - 1e-9)
+        needed += [round(a + (b - a) * k / count, 2) for k in range(1, count)]
+    needed += ([low] if have[0] > low else []) + ([high] if have[-1] < high else [])
+    return sorted(set(needed))
 
 
 def calibrate_phase_height(document: dict[str, Any], plate_path: str | Path,

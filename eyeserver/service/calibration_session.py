@@ -19,8 +19,18 @@ stored views, run as a job; its result is stored as a new calibration.
 
 A **phase-height** session starts from a stored calibration (its parent): it acquires the flat
 plate at nominal heights, each typed by the physicist (the plate was put there by hand) or
-reached by the daemon's motorised stage, then the reference plane, each lit unit in turn and
-stored as a ``plate`` or ``reference`` capture. The solve (a job) runs
+reached by the daemon's motorised stage, and the reference plane, each lit unit in turn and
+stored as a ``plate`` or ``reference`` capture. Which heights it needs depends on the rig: the
+solve walks each pixel's phase along Z from plane to plane, which slips by a fringe wherever
+one step moves the phase by π or more, so neighbouring planes (the reference among them) may
+be at most :func:`~eyeserver.calibration.phase_height.safe_step_mm` of the fringe phase's
+sensitivity to height apart, over the session's Z range. The sensitivity comes from the parent's
+own phase-to-height models when it has them (known at the opening), else it is measured on the
+reference plane and the first plate acquired near it (the session asks for that probe first).
+The session's ``plan`` then lists every height still needed, and it is ``ready`` only once they
+are acquired. A solve that fails (a slip, a plate that was not where it was said to be) leaves
+the session ``failed`` but open to more plates: the next plate (or reference) takes the daemon
+again and the session acquires and solves anew. The solve (a job) runs
 :func:`~eyeserver.calibration.phase_height.calibrate_phase_height` on the plate stack and the
 reference with the parent's geometry and stores the result as a *new* calibration whose
 ``lineage.parent_id`` names the parent: a calibration never changes once stored.
@@ -35,6 +45,7 @@ memory; a restart forgets them (their stored captures stay).
 from __future__ import annotations
 
 import logging
+import math
 import secrets
 import statistics
 import tempfile
@@ -49,8 +60,14 @@ import numpy as np
 
 from eyeserver.calibration.artefact import load_calibration, stereo_document, write_calibration
 from eyeserver.calibration.chessboard import detect_chessboard
-from eyeserver.calibration.phase_height import calibrate_phase_height
-from eyeserver.calibration.stereo import MIN_BOARDS, calibrate_stereo
+from eyeserver.calibration.phase_height import (
+    calibrate_phase_height,
+    heights_needed,
+    model_sensitivity,
+    phase_sensitivity,
+    safe_step_mm,
+)
+from eyeserver.calibration.stereo import MIN_BOARDS, CalibrationError, calibrate_stereo
 from eyeserver.errors import StateConflictError
 from eyeserver.io import BundleFrameData, ChessboardSpec, bundle_hash, read_bundle, write_bundle
 from eyeserver.service.core import Service
@@ -60,7 +77,9 @@ from eyeserver.service.storage import CalibrationRecord, UnknownIdError
 
 __all__ = [
     "COVERAGE_GRID",
+    "DEFAULT_Z_RANGE_MM",
     "MIN_PLATE_HEIGHTS",
+    "PROBE_MM",
     "READY_COVERAGE",
     "CalibrationSessions",
     "PlateStep",
@@ -81,6 +100,14 @@ READY_COVERAGE = 0.75
 distortion fit needs corners out towards the edges, not only in the middle."""
 MIN_PLATE_HEIGHTS = 3
 """Plate heights the phase-to-height fit needs at the least (it fits a model along Z)."""
+DEFAULT_Z_RANGE_MM = (-10.0, 25.0)
+"""The Z range a phase-height session calibrates unless told (that of ``eyeserver sim
+calibration-set``: the eye's surface and the reference plane at +10 mm with room to spare), or
+the parent's calibrated range when it has one."""
+PROBE_MM = 1.0
+"""How far from the reference plane the probe plate that measures the sensitivity should be:
+near enough that its phase moves by well under π on any rig whose fringes span 2 mm of height
+or more."""
 
 _log = logging.getLogger(__name__)
 
@@ -126,6 +153,13 @@ class Session:
     job_id: str | None = None
     calibration_id: str | None = None
     error: str | None = None
+    z_range_mm: tuple[float, float] = DEFAULT_Z_RANGE_MM
+    sensitivity: dict[str, float] | None = None
+    """Phase-height: rad/mm per camera (None until known)."""
+    sensitivity_source: str | None = None
+    sensitivity_error: str | None = None
+    failures: list[dict[str, Any]] = field(default_factory=list)
+    """Phase-height: the solves that failed (job id, error, heights then), oldest first."""
     lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     def coverage(self) -> dict[str, Any]:
@@ -161,15 +195,71 @@ class Session:
                                    "in the WCS would be unknown; repeat it in a new session")
         return {"cameras": cameras, "ready": not missing, "missing": missing}
 
+    def acquired_heights(self) -> list[float]:
+        """The heights of the plates and the reference plane so far (mm, ascending)."""
+        heights = {p.z_mm for p in self.plates}
+        if self.reference is not None:
+            heights.add(self.reference.z_mm)
+        return sorted(heights)
+
+    def plate_plan(self) -> dict[str, Any]:
+        """Phase-height: the rig's sensitivity, the largest safe step between planes and every
+        height still needed over :attr:`z_range_mm` (None until the sensitivity is known), with
+        what to do next."""
+        low, high = self.z_range_mm
+        plan: dict[str, Any] = {"z_range_mm": [low, high], "sensitivity_rad_per_mm": None,
+                                "sensitivity_source": self.sensitivity_source,
+                                "max_step_mm": None, "needed_heights_mm": None}
+        if self.sensitivity:
+            # A solve whose walk along Z slipped all the same (the sensitivity is steeper
+            # somewhere than where it was measured) halves the step for the next attempt.
+            errors = [f["error"] or "" for f in self.failures] + [self.error or ""]
+            slips = sum("slipped" in error for error in errors)
+            step = max(0.1, math.floor(10 * safe_step_mm(max(self.sensitivity.values()))
+                                       / 2**slips) / 10)
+            needed = heights_needed(self.acquired_heights(), (low, high), step)
+            plan.update(sensitivity_rad_per_mm=dict(self.sensitivity), max_step_mm=step,
+                        needed_heights_mm=needed)
+            if self.reference is None:
+                plan["next"] = "the reference plane (POST …/reference)"
+            elif needed:
+                plan["next"] = ("the plate at Z = " + ", ".join(f"{z:+.2f}" for z in needed)
+                                + " mm (any order)")
+            elif len(self.plates) < MIN_PLATE_HEIGHTS:
+                plan["next"] = f"the plate at {MIN_PLATE_HEIGHTS} heights at the least"
+            else:
+                plan["next"] = "solve"
+        elif self.reference is None:
+            plan["next"] = (f"the reference plane (POST …/reference), then a probe plate "
+                            f"{PROBE_MM:g} mm from it: the session measures this rig's fringe "
+                            "sensitivity on the two and lists the heights it needs")
+        else:
+            z = self.reference.z_mm
+            plan["next"] = (f"a probe plate at Z = {z - PROBE_MM:+.2f} or {z + PROBE_MM:+.2f} "
+                            "mm, to measure this rig's fringe sensitivity")
+        if self.sensitivity_error is not None:
+            plan["sensitivity_error"] = self.sensitivity_error
+        return plan
+
     def phase_height_status(self) -> dict[str, Any]:
-        """What the phase-height session holds and what it still needs."""
+        """What the phase-height session holds and what it still needs (``plan``: the
+        heights)."""
         missing = []
         if len(self.plates) < MIN_PLATE_HEIGHTS:
             missing.append(f"plate at {len(self.plates)} height(s), needs at least "
                            f"{MIN_PLATE_HEIGHTS}")
         if self.reference is None:
             missing.append("no reference plane yet")
-        return {"ready": not missing, "missing": missing}
+        plan = self.plate_plan()
+        if plan["needed_heights_mm"] is None:
+            missing.append("the fringe sensitivity of this rig is not known yet: "
+                           + (self.sensitivity_error or plan["next"]))
+        elif plan["needed_heights_mm"]:
+            missing.append(f"no two neighbouring planes may be more than {plan['max_step_mm']} "
+                           "mm apart over Z " + f"{plan['z_range_mm'][0]:+g}…"
+                           f"{plan['z_range_mm'][1]:+g} mm: the plate at Z = "
+                           + ", ".join(f"{z:+.2f}" for z in plan["needed_heights_mm"]) + " mm")
+        return {"ready": not missing, "missing": missing, "plan": plan}
 
 
 def _cells(corners: np.ndarray, width: int, height: int) -> set[tuple[int, int]]:
@@ -197,11 +287,13 @@ class CalibrationSessions:
     # --- opening, reading, closing --------------------------------------------------------
 
     def open(self, kind: SessionKind, *, actor: str, board: ChessboardSpec | None = None,
-             calibration_id: str | None = None) -> Session:
+             calibration_id: str | None = None,
+             z_range_mm: tuple[float, float] | None = None) -> Session:
         """Open a session and put the daemon in ``calibrating``.
 
         Stereo sessions take the ``board`` (the default board of the simulated room unless
-        given); phase-height sessions the id of the calibration whose geometry they extend.
+        given); phase-height sessions the id of the calibration whose geometry they extend, and
+        the Z range to calibrate (default: the parent's, else :data:`DEFAULT_Z_RANGE_MM`).
 
         Raises
         ------
@@ -213,16 +305,27 @@ class CalibrationSessions:
             A phase-height session without ``calibration_id``.
         """
         service = self._service
+        session = Session(id=f"cs-{secrets.token_hex(6)}", kind=kind, actor=actor,
+                          created=event_time(), parent_id=calibration_id,
+                          board=(board or ChessboardSpec(9, 6, 4.5, origin=False))
+                          if kind == "stereo" else None)
         if kind == "phase-height":
             if calibration_id is None:
                 raise ValueError("calibration_id: a phase-height session extends a stored "
                                  "calibration; name it")
             parent = service.store.get_calibration(calibration_id)
-            load_calibration(parent.path, service.rig_spec())
-        session = Session(id=f"cs-{secrets.token_hex(6)}", kind=kind, actor=actor,
-                          created=event_time(), parent_id=calibration_id,
-                          board=(board or ChessboardSpec(9, 6, 4.5, origin=False))
-                          if kind == "stereo" else None)
+            document = load_calibration(parent.path, service.rig_spec())
+            sensitivity = model_sensitivity(document)
+            if sensitivity:
+                session.sensitivity = sensitivity
+                session.sensitivity_source = f"the phase-to-height models of {calibration_id}"
+            ranges = [c["z_range_mm"] for c in (document.get("phase_to_height") or {}).get(
+                "cameras", {}).values()]
+            if z_range_mm is not None:
+                session.z_range_mm = (float(min(z_range_mm)), float(max(z_range_mm)))
+            elif ranges:
+                session.z_range_mm = (float(min(r[0] for r in ranges)),
+                                      float(max(r[1] for r in ranges)))
         if kind == "stereo":
             session.cells = {cid: set() for cid in service.rig_spec().camera_ids}
         service.hold_session(session.id)
@@ -249,12 +352,14 @@ class CalibrationSessions:
 
     def close(self, session_id: str) -> Session:
         """Abandon a session that is still acquiring (the daemon is released; its captures
-        stay). A session past its acquisition is left as it is."""
+        stay), or a failed one (it takes no more plates). A session solving or done is left as
+        it is."""
         session = self.get(session_id)
         with session.lock:
-            if session.state == "acquiring":
+            if session.state in ("acquiring", "failed"):
+                if session.state == "acquiring":
+                    self._service.release_session(session.id)
                 session.state = "closed"
-                self._service.release_session(session.id)
                 _log.info("calibration session closed", extra={"session_id": session.id})
         return session
 
@@ -268,6 +373,15 @@ class CalibrationSessions:
     def _acquiring(self, session: Session, kind: SessionKind) -> None:
         if session.kind != kind:
             raise SessionError(f"session {session.id} is a {session.kind} session")
+        if session.state == "failed" and kind == "phase-height":
+            # Extended after a failed solve: it holds the daemon again and acquires anew
+            # (StateConflictError while the daemon is busy: the session stays failed).
+            self._service.hold_session(session.id)
+            session.failures.append({"job_id": session.job_id, "error": session.error,
+                                     "heights_mm": session.acquired_heights()})
+            session.state, session.job_id, session.error = "acquiring", None, None
+            _log.info("calibration session extended after a failed solve",
+                      extra={"session_id": session.id})
         if session.state != "acquiring":
             raise SessionError(f"session {session.id} is {session.state}; it acquires no more")
 
@@ -321,12 +435,15 @@ class CalibrationSessions:
     def add_plate(self, session_id: str, z_mm: float, *, move_stage: bool = False,
                   reference: bool = False) -> PlateStep:
         """Acquire and store the plate (or, with ``reference``, the reference plane) at nominal
-        ``z_mm``; with ``move_stage`` the daemon's stage puts the plate there first.
+        ``z_mm``; with ``move_stage`` the daemon's stage puts the plate there first. A height
+        acquired before is acquired anew and replaces the earlier plate (a plate that was not
+        where it was said to be, found by a failed solve), as a second reference plane replaces
+        the first. A session whose solve failed acquires again (it holds the daemon anew).
 
         Raises
         ------
         SessionError
-            Not a phase-height session, no longer acquiring, or a height acquired twice.
+            Not a phase-height session, or solving, done or closed.
         StateConflictError
             ``move_stage`` and the daemon has no stage.
         DeviceValueError
@@ -338,8 +455,6 @@ class CalibrationSessions:
         service = self._service
         with session.lock:
             self._acquiring(session, "phase-height")
-            if not reference and any(abs(p.z_mm - z_mm) < 1e-6 for p in session.plates):
-                raise SessionError(f"the plate was acquired at Z = {z_mm} mm already")
             frames, bit_depth = service.acquire_for_session(
                 session.id, lit=True, z_mm=float(z_mm), move_stage=move_stage)
             record = service.store.add_capture(
@@ -348,13 +463,43 @@ class CalibrationSessions:
                 extra={"calibration_session": session.id,
                        "simulated": service.simulated})
             step = PlateStep(record.id, float(z_mm), move_stage)
+            replaced = (session.reference is not None) if reference else any(
+                abs(p.z_mm - z_mm) < 1e-6 for p in session.plates)
             if reference:
                 session.reference = step
             else:
+                session.plates = [p for p in session.plates if abs(p.z_mm - z_mm) >= 1e-6]
                 session.plates.append(step)
+            if replaced and (session.sensitivity_source or "").startswith("measured"):
+                session.sensitivity = None  # it may have been measured on the replaced one
+            if session.sensitivity is None:
+                self._measure_sensitivity(session)
         service.events.publish("calibration_session.plate", session_id=session.id,
                                capture_id=record.id, z_mm=z_mm, reference=reference)
         return step
+
+    def _measure_sensitivity(self, session: Session) -> None:
+        """Measure the rig's fringe sensitivity on the reference plane and the plate nearest
+        it, once both are there (under the session's lock)."""
+        if session.reference is None or not session.plates:
+            return
+        z_reference = session.reference.z_mm
+        probe = min(session.plates, key=lambda p: (abs(p.z_mm - z_reference) < 1e-6,
+                                                   abs(p.z_mm - z_reference)))
+        if abs(probe.z_mm - z_reference) < 1e-6:
+            return
+        store = self._service.store
+        try:
+            session.sensitivity = phase_sensitivity(store.capture_path(probe.capture_id),
+                                                    store.capture_path(session.reference.capture_id))
+        except CalibrationError as exc:
+            session.sensitivity_error = str(exc)
+            return
+        session.sensitivity_error = None
+        session.sensitivity_source = (f"measured: the plate at Z = {probe.z_mm:+.2f} mm against "
+                                      f"the reference plane at {z_reference:+.2f} mm")
+        _log.info("fringe sensitivity measured", extra={
+            "session_id": session.id, "rad_per_mm": max(session.sensitivity.values())})
 
     # --- solving --------------------------------------------------------------------------
 
@@ -528,6 +673,7 @@ def describe(session: Session) -> dict[str, Any]:
                            "moved_by_stage": p.moved_by_stage} for p in session.plates]
         body["reference"] = None if session.reference is None else {
             "capture_id": session.reference.capture_id, "z_mm": session.reference.z_mm}
+        body["failures"] = list(session.failures)
         body.update(session.phase_height_status())
     return body
 

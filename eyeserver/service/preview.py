@@ -1,4 +1,5 @@
-"""A picture of a reconstructed surface for people: a colour-coded height map, as PNG."""
+"""Pictures for people: a reconstructed surface as a colour-coded height map (PNG), a camera's
+live frame (JPEG)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["height_map_png"]
+__all__ = ["camera_jpeg", "height_map_png"]
 
 
 def height_map_png(points: NDArray[np.floating], *, size_px: int = 512) -> bytes:
@@ -58,4 +59,48 @@ def height_map_png(points: NDArray[np.floating], *, size_px: int = 512) -> bytes
     ok, encoded = cv2.imencode(".png", image)
     if not ok:  # pragma: no cover - OpenCV encodes any 8-bit BGR image
         raise RuntimeError("OpenCV could not encode the height map")
+    return encoded.tobytes()
+
+
+def camera_jpeg(image: NDArray[np.integer], *, bit_depth: int = 8, max_side_px: int = 640,
+                quality: int = 80) -> bytes:
+    """A camera image as a grey JPEG for a screen: scaled to 8 bits and at most ``max_side_px``.
+
+    Parameters
+    ----------
+    image : ndarray, shape (height, width)
+        ``uint8``, or ``uint16`` holding ``bit_depth`` significant bits (unshifted).
+    bit_depth : int, optional
+        Significant bits per pixel (8 to 16).
+    max_side_px : int, optional
+        The longer side is shrunk (area averaging) to at most this many pixels.
+    quality : int, optional
+        JPEG quality, 1 to 100. A 640 × 480 fringe image is 30–60 kB at 80.
+
+    Returns
+    -------
+    bytes
+        A baseline single-channel JPEG.
+    """
+    pixels = np.asarray(image)
+    if pixels.ndim != 2 or pixels.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"image must be a 2-D uint8 or uint16 array, got {pixels.dtype} "
+                         f"with shape {pixels.shape}")
+    if not 8 <= bit_depth <= 16:
+        raise ValueError(f"bit_depth must be 8 to 16, got {bit_depth!r}")
+    if max_side_px < 2:
+        raise ValueError(f"max_side_px must be at least 2, got {max_side_px!r}")
+    if not 1 <= quality <= 100:
+        raise ValueError(f"quality must be 1 to 100, got {quality!r}")
+    grey: NDArray[np.uint8] = (pixels if pixels.dtype == np.uint8
+                               else (pixels >> (bit_depth - 8)).clip(0, 255).astype(np.uint8))
+    height, width = grey.shape
+    scale = max_side_px / max(height, width)
+    if scale < 1:
+        grey = np.asarray(cv2.resize(grey, (max(1, round(width * scale)),
+                                            max(1, round(height * scale))),
+                                     interpolation=cv2.INTER_AREA), dtype=np.uint8)
+    ok, encoded = cv2.imencode(".jpg", grey, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:  # pragma: no cover - OpenCV encodes any 8-bit image
+        raise RuntimeError("OpenCV could not encode the camera image")
     return encoded.tobytes()

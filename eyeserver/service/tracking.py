@@ -53,6 +53,7 @@ from datetime import UTC, datetime
 from typing import Any, Protocol
 
 from eyeserver.core.clock import Clock, MonotonicClock
+from eyeserver.core.frames import Frame
 from eyeserver.errors import DeviceError, EyeserverError, StateConflictError
 from eyeserver.eye import LIMBUS_FROM_IMAGES, EyeModel, EyePose, PoseError
 from eyeserver.hardware.rig import AcquiredStep, Rig
@@ -360,6 +361,7 @@ class TrackingSession:
         self.on_latency = on_latency
         # The watchdog's marks on the clock: the last message published, the last frame set in.
         self._published_ns = self._arrived_ns = clock.now_ns()
+        self._newest: FrameSet | None = None  # the last frame set in, for previews
 
     # --- one step at a time (the threads loop these; tests call them directly) -------------
 
@@ -374,8 +376,15 @@ class TrackingSession:
             with self._counters.lock:
                 self._counters.acquired += 1
                 self._arrived_ns = self.clock.now_ns()
+                self._newest = frame_set
             self.slot.put(frame_set)
         return frame_set
+
+    def newest_frame_set(self) -> FrameSet | None:
+        """The last frame set acquired (processed or not; None before the first): what a
+        preview shows, at no cost to the stream."""
+        with self._counters.lock:
+            return self._newest
 
     def process_once(self, timeout_s: float | None = 0.0) -> dict[str, Any] | None:
         """Process the newest frame set in the slot and publish its message (None: none there)."""
@@ -840,6 +849,28 @@ class TrackingControl:
             self.service.store.add_audit_entries(actor, "stop_tracking", "tracking", [
                 {k: v for k, v in session.status().items() if k != "last_message"}])
         return session.status()
+
+    def newest_frame(self, camera: str) -> tuple[Frame, int]:
+        """The running session's newest frame of ``camera`` and its frame number.
+
+        Raises
+        ------
+        StateConflictError
+            No session is running, or it has acquired no frame yet (HTTP 409).
+        KeyError
+            ``camera`` is not in the tracked unit's frames.
+        """
+        session = self.session
+        if session is None or not session.running:
+            raise StateConflictError("no live tracking is running: a preview shows the frames "
+                                     "of a tracking session")
+        frame_set = session.newest_frame_set()
+        if frame_set is None:
+            raise StateConflictError("tracking has acquired no frame yet")
+        for step in frame_set.steps:
+            if camera in step.frames:
+                return step.frames[camera], frame_set.frame
+        raise KeyError(camera)
 
     def status(self) -> dict[str, Any]:
         """The running or last session's status (``running`` false and zero counts before

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
 from eyeserver_client import Client, EyeserverError
 from eyeserver_client.models import CalibrationResponse
@@ -40,10 +40,13 @@ SIMULATED_BOARD_POSES: list[tuple[tuple[float, float, float], tuple[float, float
     ((4.0, 0.0, 3.0), (-25.0, 10.0, 45.0)),
 ]
 
-#: Plate heights (mm, WCS) for phase-to-height: steps under half a fringe's depth (≈ 5.3 mm on
-#: the simulated room, so the unwrapping along Z cannot slip) over more than one fringe.
-PLATE_HEIGHTS_MM = (-4.0, -2.0, 0.0, 2.0, 4.0)
+#: The Z range (mm, WCS) the phase-to-height calibration covers here: the eye's surface near
+#: 0 and the reference plane. The daemon says which plate heights in it this rig needs.
+Z_RANGE_MM = (-4.0, 10.0)
 REFERENCE_Z_MM = 10.0
+#: Solves tried before giving up: after a failed one the session takes the plates its plan
+#: asks for next (finer steps) and solves again.
+SOLVE_ATTEMPTS = 2
 
 Prompt = Callable[[str], None]
 """Asks the physicist to do something and returns when it is done."""
@@ -79,24 +82,48 @@ def stereo(client: Client, place_board: Callable[[int], bool], *, say: Prompt = 
     return _solve(client, session.id, say)
 
 
-def phase_height(client: Client, parent_id: str, *, heights_mm: Sequence[float],
+def phase_height(client: Client, parent_id: str, *, z_range_mm: tuple[float, float],
                  place_reference: Prompt, say: Prompt = print) -> CalibrationResponse:
-    """A phase-to-height session on ``parent_id``'s geometry: the plate at each height (moved
-    by the stage), the reference plane (placed by hand), the solve."""
-    session = client.open_phase_height_session(parent_id)
+    """A phase-to-height session on ``parent_id``'s geometry over ``z_range_mm``: the
+    reference plane (placed by hand), a probe plate near it when the daemon must measure the
+    rig's fringe sensitivity, then the plate at every height the session's plan asks for
+    (moved by the stage), the solve; after a failed solve, the heights the plan asks for next
+    and the solve again."""
+    session = client.open_phase_height_session(parent_id, z_range_mm=z_range_mm)
+    assert session.plan is not None
+    say(f"the session needs: {session.plan.next}")
     try:
-        for z_mm in heights_mm:
-            step = client.add_plate(session.id, z_mm, move_stage=True)
-            say(f"plate at {step.z_mm:+.1f} mm: capture {step.capture_id}")
         place_reference(f"put the reference plane at {REFERENCE_Z_MM:+.1f} mm")
-        step_ref = client.add_reference_plane(session.id, REFERENCE_Z_MM)
-        if not step_ref.ready:
-            raise EyeserverError("the phase-height session is not ready: "
-                                 + "; ".join(step_ref.missing))
+        plan = client.add_reference_plane(session.id, REFERENCE_Z_MM).plan
+        for attempt in range(1, SOLVE_ATTEMPTS + 1):
+            while plan is not None and plan.needed_heights_mm is None:
+                probe = REFERENCE_Z_MM - 1.0  # the daemon measures the sensitivity on it
+                say(f"probe plate at {probe:+.1f} mm: {plan.next}")
+                plan = client.add_plate(session.id, probe, move_stage=True).plan
+                if plan is not None and plan.needed_heights_mm is None:
+                    raise EyeserverError(f"the sensitivity is still unknown: {plan.next}")
+            assert plan is not None and plan.needed_heights_mm is not None
+            say(f"sensitivity {max((plan.sensitivity_rad_per_mm or {}).values()):.2f} rad/mm "
+                f"({plan.sensitivity_source}): planes at most {plan.max_step_mm} mm apart")
+            for z_mm in plan.needed_heights_mm:
+                step = client.add_plate(session.id, z_mm, move_stage=True)
+                say(f"plate at {step.z_mm:+.2f} mm: capture {step.capture_id}")
+                plan = step.plan
+            ready = client.calibration_session(session.id)
+            if not ready.is_ready:
+                raise EyeserverError("the phase-height session is not ready: "
+                                     + "; ".join(ready.still_missing))
+            try:
+                return _solve(client, session.id, say)
+            except EyeserverError as exc:
+                if attempt == SOLVE_ATTEMPTS:
+                    raise
+                plan = client.calibration_session(session.id).plan
+                say(f"{exc}; the session takes more plates: {plan.next if plan else '?'}")
     except BaseException:
         client.close_calibration_session(session.id)
         raise
-    return _solve(client, session.id, say)
+    raise AssertionError("unreachable")
 
 
 def _solve(client: Client, session_id: str, say: Prompt) -> CalibrationResponse:
@@ -112,7 +139,7 @@ def _solve(client: Client, session_id: str, say: Prompt) -> CalibrationResponse:
 
 
 def run(client: Client, *, parent_id: str | None = None, simulated: bool = False,
-        activate: bool = False, heights_mm: Sequence[float] = PLATE_HEIGHTS_MM,
+        activate: bool = False, z_range_mm: tuple[float, float] = Z_RANGE_MM,
         say: Prompt = print) -> CalibrationResponse:
     """The whole guided calibration; returns the new (phase-to-height) calibration."""
     if parent_id is None:
@@ -134,7 +161,7 @@ def run(client: Client, *, parent_id: str | None = None, simulated: bool = False
         else:
             ask(what)
 
-    made = phase_height(client, parent_id, heights_mm=heights_mm,
+    made = phase_height(client, parent_id, z_range_mm=z_range_mm,
                         place_reference=place_reference, say=say)
     active = client.status().active_calibration_id
     if active is not None and active != made.id:

@@ -40,7 +40,7 @@ class AuditLine(BaseModel):
 class AuditList(BaseModel):
     """The newest audit entries, newest first."""
 
-    entries: list[AuditLine]
+    items: list[AuditLine]
 
 
 @router.get("/audit", summary="Who did what (physicists only)")
@@ -50,4 +50,4 @@ async def list_audit(
 ) -> AuditList:
     """The newest ``limit`` entries of the audit file, newest first."""
     entries = await run_in_threadpool(service.audit.entries, limit)
-    return AuditList(entries=[AuditLine.model_validate(entry) for entry in entries])
+    return AuditList(items=[AuditLine.model_validate(entry) for entry in entries])

@@ -64,6 +64,10 @@ class SessionRequest(BaseModel):
                                 "room's 9 × 6 corners, 4.5 mm squares).")
     calibration_id: str | None = Field(None, description="Phase-height: the stored calibration "
                                        "whose geometry the new one extends (its parent).")
+    z_range_mm: tuple[float, float] | None = Field(
+        None, description="Phase-height: the Z range to calibrate, mm (default: the parent's "
+        "calibrated range, else −10…+25). The session's plan lists the plate heights this "
+        "range needs on this rig.", examples=[[-8.0, 10.0]])
 
     @model_validator(mode="after")
     def _fits_kind(self) -> Self:
@@ -73,6 +77,11 @@ class SessionRequest(BaseModel):
             raise ValueError("a stereo session takes no calibration_id")
         if self.kind == "phase-height" and self.board is not None:
             raise ValueError("a phase-height session takes no board")
+        if self.kind == "stereo" and self.z_range_mm is not None:
+            raise ValueError("a stereo session takes no z_range_mm")
+        if self.z_range_mm is not None and not (
+                -100 <= min(self.z_range_mm) < max(self.z_range_mm) <= 100):
+            raise ValueError("z_range_mm must be two different heights within ±100 mm")
         return self
 
 
@@ -109,12 +118,16 @@ class ReferenceRequest(BaseModel):
 async def open_session(body: SessionRequest, sessions: SessionsDep,
                        caller: PhysicistDep) -> dict[str, Any]:
     """Open a stereo or phase-height session; the daemon is ``calibrating`` until its solve
-    starts or it is closed. 409 when the daemon is busy; 404 for an unknown parent."""
+    starts or it is closed. 409 when the daemon is busy; 404 for an unknown parent. A
+    phase-height session answers its ``plan`` at once: the heights it needs when the parent's
+    own phase-to-height models give the rig's fringe sensitivity, else the reference plane and
+    a probe plate 1 mm from it to measure it."""
     board = None
     if body.board is not None:
         board = ChessboardSpec(body.board.cols, body.board.rows, body.board.square_mm)
     session = await run_in_threadpool(lambda: sessions.open(
-        body.kind, actor=caller.name, board=board, calibration_id=body.calibration_id))
+        body.kind, actor=caller.name, board=board, calibration_id=body.calibration_id,
+        z_range_mm=body.z_range_mm))
     return describe(session)
 
 
@@ -154,8 +167,10 @@ async def add_view(session_id: str, sessions: SessionsDep,
 async def add_plate(session_id: str, body: PlateRequest, sessions: SessionsDep,
                     ) -> dict[str, Any]:
     """Acquire the flat plate at ``z_mm`` (moved there by the stage with ``move_stage``), each
-    unit lit in turn, and store it as a ``plate`` capture. 409 without a stage for
-    ``move_stage``, 422 beyond its travel."""
+    unit lit in turn, and store it as a ``plate`` capture; answers the session's readiness and
+    ``plan`` (the heights still needed). A session whose solve failed takes more plates: it
+    acquires again (the daemon is ``calibrating``) and can be solved anew. 409 without a stage
+    for ``move_stage``, 422 beyond its travel."""
     step = await run_in_threadpool(lambda: sessions.add_plate(
         session_id, body.z_mm, move_stage=body.move_stage))
     return {"capture_id": step.capture_id, "z_mm": step.z_mm,

@@ -15,7 +15,7 @@ from fastapi import APIRouter, Depends, Path, Request, Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from starlette.concurrency import run_in_threadpool
 
-from eyeserver.api.auth import PhysicistDep
+from eyeserver.api.auth import OperatorDep, PhysicistDep
 from eyeserver.api.deps import ServiceDep, app_state
 from eyeserver.api.routers.calibrations import _read_limited
 from eyeserver.api.schemas import MAX_SQL_INT, ErrorResponse
@@ -229,10 +229,13 @@ async def put_reference(patient_id: PatientIdPath, fraction: FractionPath,
                         422: {"model": ErrorResponse, "description": "No eye could be fitted; "
                               "the reason says why."}})
 async def capture_reference(patient_id: PatientIdPath, fraction: FractionPath,
-                            verification: VerificationDep, caller: PhysicistDep,
+                            verification: VerificationDep, caller: OperatorDep,
                             ) -> ReferenceResponse:
     """Capture the patient's unit, reconstruct, fit the patient's eye model and store the pose
-    as the fraction's next reference version, with its evidence (physicists only)."""
+    as the fraction's next reference version, with its evidence. Operators may: the therapist
+    who sets the patient up captures it (a new version; the earlier ones are kept, and the
+    audit trail names who made each); the physicist owns the calibration, the plan's
+    reference (``PUT``) and the eye model."""
     return _reference(await run_in_threadpool(lambda: verification.capture_reference(
         patient_id, fraction, actor=caller.name)))
 

@@ -4,14 +4,15 @@
 the fraction's reference (measured − reference, WCS), answering the pose, the deviation, the
 verdict and the evidence; the measurement is stored and found again by id or by patient and
 fraction (:mod:`eyeserver.service.verification`), also as DICOM (:mod:`eyeserver.io.dicom`).
-Any token may measure and read.
+Any token may measure and read. While the daily QA locks verification (:mod:`eyeserver.api.
+routers.qa`), ``POST /pose/measure`` answers 409 with the reason.
 """
 
 from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Query, Response
+from fastapi import APIRouter, Depends, Query, Response
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
@@ -19,6 +20,7 @@ import eyeserver
 from eyeserver.api.auth import OperatorDep
 from eyeserver.api.deps import ServiceDep
 from eyeserver.api.routers.patients import VerificationDep
+from eyeserver.api.routers.qa import QA_LOCKED, qa_gate
 from eyeserver.api.schemas import MAX_SQL_INT, ErrorResponse
 from eyeserver.io import dicom
 from eyeserver.service.core import NoCloudError
@@ -86,11 +88,12 @@ class MeasurementList(BaseModel):
              responses={404: {"model": ErrorResponse, "description": "No such patient, or the "
                               "fraction has no reference pose."},
                         409: {"model": ErrorResponse, "description": "No active calibration, "
-                              "or the daemon is calibrating or tracking."},
+                              f"the daemon is calibrating or tracking, or {QA_LOCKED}."},
                         422: {"model": ErrorResponse, "description": "Bad body, or no eye could "
                               "be fitted (the reason says why)."},
                         503: {"model": ErrorResponse, "description": "A device failed, or a "
-                              "queue is full."}})
+                              "queue is full."}},
+             dependencies=[Depends(qa_gate("position verification"))])
 async def measure(body: MeasureRequest, verification: VerificationDep, caller: OperatorDep,
                   ) -> Measurement:
     """Capture the unit on the treated eye's side, reconstruct with the active calibration, fit

@@ -4,8 +4,11 @@
 streams the patient's unit at the camera rate and every frame the pipeline keeps up with is
 reconstructed, fitted and compared with the fraction's reference
 (:mod:`eyeserver.service.tracking`); the daemon is ``tracking`` meanwhile (captures get 409).
-``POST /tracking/stop`` ends it; ``GET /tracking`` counts frames acquired, processed, dropped
-(newest frame wins) and missed, and holds the last message.
+While the daily QA locks tracking (:mod:`eyeserver.api.routers.qa`), ``POST /tracking/start``
+answers 409 with the reason. ``POST /tracking/stop`` ends it; ``GET /tracking`` counts frames
+acquired, processed, dropped (newest frame wins) and missed, and holds the last message.
+``GET /tracking/preview/{camera}.jpg`` is the newest frame a camera of the tracked unit gave the
+session, for people to watch.
 
 ``/ws/pose`` sends every processed frame's message as JSON text, a ``hold`` message when the
 daemon holds the beam without a frame, and a heartbeat when it has sent nothing for a second;
@@ -34,18 +37,20 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, HTTPException, Request, WebSocket
+from fastapi import APIRouter, Depends, HTTPException, Request, Response, WebSocket
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 
 from eyeserver.api.auth import OperatorDep
+from eyeserver.api.routers.qa import QA_LOCKED, qa_gate
 from eyeserver.api.schemas import ErrorResponse
 from eyeserver.api.streaming import opened, stream
 from eyeserver.service.events import event_time
 from eyeserver.service.patients import PATIENT_ID_PATTERN
+from eyeserver.service.preview import camera_jpeg
 from eyeserver.service.tracking import TrackingControl
 
-__all__ = ["HEARTBEAT_S", "router", "ws_router"]
+__all__ = ["HEARTBEAT_S", "PREVIEW_MAX_SIDE_PX", "router", "ws_router"]
 
 HEARTBEAT_S = 1.0
 """``/ws/pose`` sends a heartbeat when it has sent nothing for this long (seconds)."""
@@ -106,12 +111,13 @@ class TrackingStatus(BaseModel):
 _RESPONSES: dict[int | str, dict[str, Any]] = {
     404: {"model": ErrorResponse, "description": "No such patient, or the fraction has no "
           "reference pose."},
-    409: {"model": ErrorResponse, "description": "No active calibration, or the daemon is "
-          "busy (already tracking, capturing, calibrating)."},
+    409: {"model": ErrorResponse, "description": "No active calibration, the daemon is "
+          f"busy (already tracking, capturing, calibrating), or {QA_LOCKED}."},
 }
 
 
-@router.post("/start", status_code=201, summary="Start live tracking", responses=_RESPONSES)
+@router.post("/start", status_code=201, summary="Start live tracking", responses=_RESPONSES,
+             dependencies=[Depends(qa_gate("tracking"))])
 async def start(body: TrackingStart, tracking: TrackingDep, caller: OperatorDep,
                 ) -> TrackingStatus:
     """Stream the patient's unit at the camera rate, reconstruct and fit each frame it keeps up
@@ -134,6 +140,38 @@ async def stop(tracking: TrackingDep, caller: OperatorDep) -> TrackingStatus:
 async def status(tracking: TrackingDep) -> TrackingStatus:
     """Frames acquired, processed, dropped and missed, the beam hold and the last message."""
     return TrackingStatus.model_validate(await run_in_threadpool(tracking.status))
+
+
+PREVIEW_MAX_SIDE_PX = 640
+"""A preview's longer side at most (pixels): enough for the therapist's screen."""
+
+
+@router.get("/preview/{camera}.jpg", summary="The tracked unit's newest camera image",
+            response_class=Response,
+            responses={200: {"content": {"image/jpeg": {}},
+                             "description": "The newest frame of that camera the tracking "
+                             "session acquired, as a grey JPEG (no extra exposure: the frame "
+                             "the pose is measured from). Headers ``X-Frame`` (the camera frame "
+                             "number since tracking started) and ``X-Frame-Time-Ns`` "
+                             "(mid-exposure, ns on the rig's clock)."},
+                       404: {"model": ErrorResponse, "description": "The camera is not one of "
+                             "the tracked unit's."},
+                       409: {"model": ErrorResponse, "description": "Not tracking, or no frame "
+                             "acquired yet."}})
+async def preview(camera: str, tracking: TrackingDep) -> Response:
+    """The tracked unit's live view for people, at whatever rate the client polls (a few per
+    second is plenty; the frame is the one tracking already has, so polling costs the stream
+    nothing but the JPEG encoding, off the event loop)."""
+    try:
+        frame, number = tracking.newest_frame(camera)
+    except KeyError:
+        raise HTTPException(status_code=404, detail=f"camera {camera!r} is not one of the "
+                            "tracked unit's") from None
+    jpeg = await run_in_threadpool(lambda: camera_jpeg(
+        frame.image, bit_depth=frame.meta.bit_depth, max_side_px=PREVIEW_MAX_SIDE_PX))
+    return Response(jpeg, media_type="image/jpeg", headers={
+        "Cache-Control": "no-store", "X-Frame": str(number),
+        "X-Frame-Time-Ns": str(frame.meta.t_ns)})
 
 
 @ws_router.websocket("/ws/pose", name="pose")

@@ -51,6 +51,10 @@ from eyeserver_client.models import (
     MotionSpec,
     PatientResponse,
     PrerenderResponse,
+    QaRun,
+    QaRunList,
+    QaStatus,
+    QaTrends,
     ReconstructionResponse,
     ReferenceList,
     ReferenceResponse,
@@ -250,7 +254,7 @@ class AsyncClient:
 
     async def audit(self, limit: int = 100) -> list[AuditLine]:
         """The newest ``limit`` lines of the audit trail, newest first (physicists only)."""
-        return (await self._get(ops.AUDIT, AuditList, params={"limit": limit})).entries
+        return (await self._get(ops.AUDIT, AuditList, params={"limit": limit})).items
 
     async def metrics(self) -> str:
         """The daemon's Prometheus metrics (text format)."""
@@ -384,12 +388,17 @@ class AsyncClient:
         return await self._get(ops.OPEN_SESSION, CalibrationSession,
                                json={"kind": "stereo", **({"board": board} if board else {})})
 
-    async def open_phase_height_session(self, calibration_id: str) -> CalibrationSession:
+    async def open_phase_height_session(
+            self, calibration_id: str, *, z_range_mm: tuple[float, float] | None = None,
+    ) -> CalibrationSession:
         """Open a phase-to-height session extending the geometry of a stored calibration (its
-        parent); the new calibration it solves is stored separately, never changing the
-        parent."""
-        return await self._get(ops.OPEN_SESSION, CalibrationSession,
-                               json={"kind": "phase-height", "calibration_id": calibration_id})
+        parent) over ``z_range_mm`` (mm; default the parent's range, else −10…+25); the new
+        calibration it solves is stored separately, never changing the parent. Its ``plan``
+        says which plate heights this rig needs (or how the session will find out)."""
+        body: dict[str, Any] = {"kind": "phase-height", "calibration_id": calibration_id}
+        if z_range_mm is not None:
+            body["z_range_mm"] = list(z_range_mm)
+        return await self._get(ops.OPEN_SESSION, CalibrationSession, json=body)
 
     async def calibration_sessions(self) -> list[CalibrationSession]:
         """The sessions of this run of the daemon, newest first (kept in memory)."""
@@ -420,7 +429,8 @@ class AsyncClient:
                         ) -> PlateStep:
         """Acquire the flat plate at height ``z_mm`` (mm, WCS) in a phase-height session;
         with ``move_stage`` the daemon's motorised stage puts it there first, otherwise it was
-        put there by hand. Answers what the session still needs."""
+        put there by hand. Answers what the session still needs (``plan``: the heights). A
+        session whose solve failed takes more plates and can be solved again."""
         return await self._get(ops.ADD_PLATE, PlateStep, path={"session_id": session_id},
                                json={"z_mm": z_mm, "move_stage": move_stage})
 
@@ -611,6 +621,55 @@ class AsyncClient:
         imported: dict[str, Any] = answer.json()
         return imported
 
+    # --- the daily QA ------------------------------------------------------------------------
+
+    async def run_qa(self, *, baseline: bool = False, frames: int | None = None,
+                     timeout_s: float | None = 300.0) -> QaRun:
+        """Run the daily QA: the QA phantom (eye phantom 1 at its QA position) captured by
+        every unit ``frames`` times and measured against its drawing; the run, passed or not,
+        with every figure against its threshold. ``baseline`` (physicists only) makes a
+        passing run the active calibration's QA baseline. Takes seconds to a minute.
+        :class:`~eyeserver_client.errors.Conflict` without an active calibration or while
+        another run is under way."""
+        return await self._get(ops.RUN_QA, QaRun, json=_body(baseline=baseline, frames=frames),
+                               timeout_s=timeout_s)
+
+    async def qa_runs(self, *, day: str | None = None, limit: int = 50,
+                      offset: int = 0) -> QaRunList:
+        """Stored QA runs, newest first (of one local ``day``, YYYY-MM-DD, if given)."""
+        return await self._get(ops.QA_RUNS, QaRunList,
+                               params={"day": day, "limit": limit, "offset": offset})
+
+    async def qa_run(self, run_id: str) -> QaRun:
+        """One stored QA run."""
+        return await self._get(ops.QA_RUN, QaRun, path={"run_id": run_id})
+
+    async def qa_status(self) -> QaStatus:
+        """Whether the daily QA locks position verification and tracking now, and why."""
+        return await self._get(ops.QA_STATUS, QaStatus)
+
+    async def override_qa(self, reason: str) -> QaStatus:
+        """Lift the QA lockout for the rest of the day (physicists only; audited).
+        :class:`~eyeserver_client.errors.Conflict` when nothing is locked."""
+        return await self._get(ops.QA_OVERRIDE, QaStatus, json={"reason": reason})
+
+    async def withdraw_qa_override(self) -> QaStatus:
+        """End the QA override in force (physicists only; audited)."""
+        return await self._get(ops.WITHDRAW_QA_OVERRIDE, QaStatus)
+
+    async def qa_trends(self, *, days: int = 90) -> QaTrends:
+        """Every QA figure's values over the last ``days`` days, with thresholds."""
+        return await self._get(ops.QA_TRENDS, QaTrends, params={"days": days})
+
+    async def qa_trend_png(self, figure: str, *, days: int = 90) -> bytes:
+        """One QA figure's trend as a PNG."""
+        return (await self._call(ops.QA_TREND_PNG, path={"figure": figure},
+                                 params={"days": days})).content
+
+    async def qa_report(self, day: str | None = None) -> str:
+        """A day's QA report (default today) as printable HTML."""
+        return (await self._call(ops.QA_REPORT, params={"day": day})).text
+
     # --- live tracking -----------------------------------------------------------------------
 
     async def start_tracking(self, patient_id: str, fraction: int, *,
@@ -637,6 +696,12 @@ class AsyncClient:
         """The running or last tracking session: frames acquired, processed, dropped, missed
         and held, the beam hold, a stall, the error that ended it, the last message."""
         return await self._get(ops.TRACKING, TrackingStatus)
+
+    async def tracking_preview(self, camera: str) -> bytes:
+        """The newest frame of a camera of the tracked unit, as a grey JPEG (the frame the
+        pose is measured from; no extra exposure). :class:`~eyeserver_client.errors.Conflict`
+        when not tracking."""
+        return (await self._call(ops.TRACKING_PREVIEW, path={"camera": camera})).content
 
     # --- streams -----------------------------------------------------------------------------
 

@@ -50,6 +50,10 @@ from eyeserver_client.models import (
     MotionSpec,
     PatientResponse,
     PrerenderResponse,
+    QaRun,
+    QaRunList,
+    QaStatus,
+    QaTrends,
     ReconstructionResponse,
     ReferenceList,
     ReferenceResponse,
@@ -249,7 +253,7 @@ class Client:
 
     def audit(self, limit: int = 100) -> list[AuditLine]:
         """The newest ``limit`` lines of the audit trail, newest first (physicists only)."""
-        return (self._get(ops.AUDIT, AuditList, params={"limit": limit})).entries
+        return (self._get(ops.AUDIT, AuditList, params={"limit": limit})).items
 
     def metrics(self) -> str:
         """The daemon's Prometheus metrics (text format)."""
@@ -383,12 +387,17 @@ class Client:
         return self._get(ops.OPEN_SESSION, CalibrationSession,
                          json={"kind": "stereo", **({"board": board} if board else {})})
 
-    def open_phase_height_session(self, calibration_id: str) -> CalibrationSession:
+    def open_phase_height_session(
+      self, calibration_id: str, *, z_range_mm: tuple[float, float] | None = None,
+    ) -> CalibrationSession:
         """Open a phase-to-height session extending the geometry of a stored calibration (its
-        parent); the new calibration it solves is stored separately, never changing the
-        parent."""
-        return self._get(ops.OPEN_SESSION, CalibrationSession,
-                         json={"kind": "phase-height", "calibration_id": calibration_id})
+        parent) over ``z_range_mm`` (mm; default the parent's range, else −10…+25); the new
+        calibration it solves is stored separately, never changing the parent. Its ``plan``
+        says which plate heights this rig needs (or how the session will find out)."""
+        body: dict[str, Any] = {"kind": "phase-height", "calibration_id": calibration_id}
+        if z_range_mm is not None:
+            body["z_range_mm"] = list(z_range_mm)
+        return self._get(ops.OPEN_SESSION, CalibrationSession, json=body)
 
     def calibration_sessions(self) -> list[CalibrationSession]:
         """The sessions of this run of the daemon, newest first (kept in memory)."""
@@ -419,7 +428,8 @@ class Client:
                   ) -> PlateStep:
         """Acquire the flat plate at height ``z_mm`` (mm, WCS) in a phase-height session;
         with ``move_stage`` the daemon's motorised stage puts it there first, otherwise it was
-        put there by hand. Answers what the session still needs."""
+        put there by hand. Answers what the session still needs (``plan``: the heights). A
+        session whose solve failed takes more plates and can be solved again."""
         return self._get(ops.ADD_PLATE, PlateStep, path={"session_id": session_id},
                          json={"z_mm": z_mm, "move_stage": move_stage})
 
@@ -610,6 +620,55 @@ class Client:
         imported: dict[str, Any] = answer.json()
         return imported
 
+    # --- the daily QA ------------------------------------------------------------------------
+
+    def run_qa(self, *, baseline: bool = False, frames: int | None = None,
+               timeout_s: float | None = 300.0) -> QaRun:
+        """Run the daily QA: the QA phantom (eye phantom 1 at its QA position) captured by
+        every unit ``frames`` times and measured against its drawing; the run, passed or not,
+        with every figure against its threshold. ``baseline`` (physicists only) makes a
+        passing run the active calibration's QA baseline. Takes seconds to a minute.
+        :class:`~eyeserver_client.errors.Conflict` without an active calibration or while
+        another run is under way."""
+        return self._get(ops.RUN_QA, QaRun, json=_body(baseline=baseline, frames=frames),
+                         timeout_s=timeout_s)
+
+    def qa_runs(self, *, day: str | None = None, limit: int = 50,
+                offset: int = 0) -> QaRunList:
+        """Stored QA runs, newest first (of one local ``day``, YYYY-MM-DD, if given)."""
+        return self._get(ops.QA_RUNS, QaRunList,
+                         params={"day": day, "limit": limit, "offset": offset})
+
+    def qa_run(self, run_id: str) -> QaRun:
+        """One stored QA run."""
+        return self._get(ops.QA_RUN, QaRun, path={"run_id": run_id})
+
+    def qa_status(self) -> QaStatus:
+        """Whether the daily QA locks position verification and tracking now, and why."""
+        return self._get(ops.QA_STATUS, QaStatus)
+
+    def override_qa(self, reason: str) -> QaStatus:
+        """Lift the QA lockout for the rest of the day (physicists only; audited).
+        :class:`~eyeserver_client.errors.Conflict` when nothing is locked."""
+        return self._get(ops.QA_OVERRIDE, QaStatus, json={"reason": reason})
+
+    def withdraw_qa_override(self) -> QaStatus:
+        """End the QA override in force (physicists only; audited)."""
+        return self._get(ops.WITHDRAW_QA_OVERRIDE, QaStatus)
+
+    def qa_trends(self, *, days: int = 90) -> QaTrends:
+        """Every QA figure's values over the last ``days`` days, with thresholds."""
+        return self._get(ops.QA_TRENDS, QaTrends, params={"days": days})
+
+    def qa_trend_png(self, figure: str, *, days: int = 90) -> bytes:
+        """One QA figure's trend as a PNG."""
+        return (self._call(ops.QA_TREND_PNG, path={"figure": figure},
+                           params={"days": days})).content
+
+    def qa_report(self, day: str | None = None) -> str:
+        """A day's QA report (default today) as printable HTML."""
+        return (self._call(ops.QA_REPORT, params={"day": day})).text
+
     # --- live tracking -----------------------------------------------------------------------
 
     def start_tracking(self, patient_id: str, fraction: int, *,
@@ -636,6 +695,12 @@ class Client:
         """The running or last tracking session: frames acquired, processed, dropped, missed
         and held, the beam hold, a stall, the error that ended it, the last message."""
         return self._get(ops.TRACKING, TrackingStatus)
+
+    def tracking_preview(self, camera: str) -> bytes:
+        """The newest frame of a camera of the tracked unit, as a grey JPEG (the frame the
+        pose is measured from; no extra exposure). :class:`~eyeserver_client.errors.Conflict`
+        when not tracking."""
+        return (self._call(ops.TRACKING_PREVIEW, path={"camera": camera})).content
 
     # --- streams -----------------------------------------------------------------------------
 

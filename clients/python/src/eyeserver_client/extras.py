@@ -28,6 +28,7 @@ __all__ = [
     "FittedPose",
     "HeightChange",
     "MeasuredReference",
+    "PlatePlan",
     "PlateStep",
     "ReferencePlaneStep",
     "ReferencePose",
@@ -182,6 +183,28 @@ class SessionReference(_Answer):
     z_mm: float
 
 
+class PlatePlan(_Answer):
+    """A phase-height session's plan: which plate heights this rig needs.
+
+    The solve walks each pixel's fringe phase from plane to plane along Z; a step that moves
+    the phase by π or more slips by a fringe, so neighbouring planes (the reference among them)
+    may be at most ``max_step_mm`` apart, from the fringe phase's sensitivity to height
+    (``sensitivity_rad_per_mm`` per camera). The sensitivity is known at the opening when the
+    parent calibration has phase-to-height models, else measured on the reference plane and a
+    probe plate 1 mm from it; until then the heights are None and ``next`` says what to do.
+    """
+
+    z_range_mm: list[float]
+    sensitivity_rad_per_mm: dict[str, float] | None = None
+    sensitivity_source: str | None = None
+    max_step_mm: float | None = None
+    needed_heights_mm: list[float] | None = None
+    """Every height still needed (mm, ascending; empty: none), None while not known."""
+    next: str
+    """What to acquire next, in words."""
+    sensitivity_error: str | None = None
+
+
 class CalibrationSession(_Answer):
     """A guided calibration session (kept in the daemon's memory until it restarts).
 
@@ -208,6 +231,10 @@ class CalibrationSession(_Answer):
     reference: SessionReference | None = None
     ready: bool | None = None
     missing: list[str] | None = None
+    plan: PlatePlan | None = None
+    """Phase-height: the heights this rig needs (see :class:`PlatePlan`)."""
+    failures: list[dict[str, Any]] | None = None
+    """Phase-height: the solves that failed before (job id, error, the heights then)."""
 
     @property
     def is_ready(self) -> bool:
@@ -240,6 +267,7 @@ class PlateStep(_Answer):
     moved_by_stage: bool
     ready: bool
     missing: list[str]
+    plan: PlatePlan | None = None
 
 
 class ReferencePlaneStep(_Answer):
@@ -249,6 +277,7 @@ class ReferencePlaneStep(_Answer):
     z_mm: float
     ready: bool
     missing: list[str]
+    plan: PlatePlan | None = None
 
 
 # --- calibration drift ---------------------------------------------------------------------

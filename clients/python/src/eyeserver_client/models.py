@@ -54,6 +54,16 @@ __all__ = [
     "PlateRequest",
     "PrerenderRequest",
     "PrerenderResponse",
+    "QaFigure",
+    "QaOverride",
+    "QaOverrideRequest",
+    "QaRun",
+    "QaRunList",
+    "QaRunRequest",
+    "QaStatus",
+    "QaTrend",
+    "QaTrendPoint",
+    "QaTrends",
     "ReconstructionBatch",
     "ReconstructionRequest",
     "ReconstructionResponse",
@@ -113,7 +123,7 @@ class AuditLine(_Answer):
 class AuditList(_Answer):
     """The newest audit entries, newest first."""
 
-    entries: list[AuditLine]
+    items: list[AuditLine]
 
 
 class Board(_Body):
@@ -610,6 +620,152 @@ class PrerenderResponse(_Answer):
     """How long the rendering took."""
 
 
+class QaFigure(_Answer):
+    """One figure of a run against its threshold."""
+
+    value: float | None
+    """mm; null when it could not be measured (then it fails)."""
+    threshold: float
+    """The pass limit when the run was made, mm."""
+    passed: bool
+
+
+class QaOverride(_Answer):
+    """An override of the lockout."""
+
+    id: str
+    actor: str
+    reason: str
+    created: str
+    day: str
+    calibration_id: str | None
+    until: str
+    """When it ends by itself: the end of its day (UTC)."""
+    lockout_reason: str | None
+    """What it overrode."""
+    withdrawn: dict[str, Any] | None
+    """actor and time, once withdrawn."""
+
+
+class QaOverrideRequest(_Body):
+    """Why the lockout is overridden (kept in the audit and the day's report)."""
+
+    reason: str
+
+
+class QaRun(_Answer):
+    """A stored QA run."""
+
+    id: str
+    """qa-<UTC time>-<hex>; sorts in order of creation."""
+    created: str
+    """UTC, ISO 8601."""
+    day: str
+    """The daemon host's local date the run counts for."""
+    actor: str
+    calibration_id: str
+    """The calibration it measured with."""
+    phantom: str
+    capture_ids: list[str]
+    """The captures of the phantom (ordinary measurement captures)."""
+    frames: int
+    passed: bool
+    """Every figure within its threshold, and the calibration has a QA baseline."""
+    reasons: list[str]
+    """Why it failed (empty when it passed)."""
+    figures: dict[str, QaFigure]
+    """localisation_mm, surface_mm, fiducial_mm, cross_unit_mm, static_noise_mm, drift_mm
+    (docs/qa.md)."""
+    baseline: bool
+    """This run became the calibration's QA baseline."""
+    baseline_run_id: str | None
+    """The baseline the drift was measured against (this run's own id when it is one)."""
+    drift_vectors_mm: dict[str, list[float]]
+    """Per unit what the drift is measured with: its dots' mean miss against the phantom placed by
+    all units (one unit: its ball centre), WCS, mm."""
+    details: dict[str, Any]
+    """How each figure was measured: points, dots matched and their residuals, placement, per-camera
+    noise."""
+    problems: list[str]
+    """What could not be measured."""
+
+
+class QaRunList(_Answer):
+    """One page of QA runs, newest first."""
+
+    items: list[QaRun]
+    total: int
+    limit: int
+    offset: int
+
+
+class QaRunRequest(_Body):
+    """A QA run: the QA phantom must stand at its QA position."""
+
+    baseline: bool = False
+    """Make this run the active calibration's QA baseline if every other figure passes (physicists
+    only); needed once after every new calibration."""
+    frames: int | None = None
+    """Captures of the still phantom (default: the setting qa.frames, 4)."""
+
+
+class QaStatus(_Answer):
+    """Whether position verification and tracking are locked, and why."""
+
+    required: bool
+    """The setting qa.required."""
+    locked: bool
+    """Verification and tracking answer 409."""
+    reason: str | None
+    """Why they are locked (null when not)."""
+    qa_reason: str | None
+    """What the QA lacks today even when an override (or qa.required = false) lifts the lockout."""
+    day: str
+    """Today, the daemon host's local date."""
+    calibration_id: str | None
+    baseline_run_id: str | None
+    """The active calibration's QA baseline."""
+    last_pass: str | None
+    """Today's last passing run with the active calibration."""
+    last_run: str | None
+    failures_since_pass: int
+    max_consecutive_failures: int
+    override: QaOverride | None
+    """The override in force."""
+
+
+class QaTrendPoint(_Answer):
+    """One run's value of a figure."""
+
+    run_id: str
+    created: str
+    day: str
+    calibration_id: str
+    value: float | None
+    threshold: float | None
+    passed: bool
+    baseline: bool
+
+
+class QaTrend(_Answer):
+    """One figure's history."""
+
+    description: str
+    unit: str
+    threshold: float
+    """The current threshold."""
+    points: list[QaTrendPoint]
+    """Oldest first."""
+
+
+class QaTrends(_Answer):
+    """Every figure's history over the last ``days`` days."""
+
+    days: int
+    since: str
+    figures: dict[str, QaTrend]
+
+
 class ReconstructionBatch(_Body):
     """Captures to reconstruct, in order, with the active calibration."""
 
@@ -742,6 +898,9 @@ class SessionRequest(_Body):
     """Stereo: the board (default: the simulated room's 9 × 6 corners, 4.5 mm squares)."""
     calibration_id: str | None = None
     """Phase-height: the stored calibration whose geometry the new one extends (its parent)."""
+    z_range_mm: tuple[float, float] | None = None
+    """Phase-height: the Z range to calibrate, mm (default: the parent's calibrated range, else
+    −10…+25). The session's plan lists the plate heights this range needs on this rig."""
 
 
 class SimDeviceRequest(_Body):

@@ -18,7 +18,7 @@ export function mount(container) {
 
   async function load() {
     try {
-      entries = (await get("/audit", {query: {limit: limit.value}})).entries;
+      entries = (await get("/audit", {query: {limit: limit.value}})).items;
     } catch (error) {
       replace(table, message("error", reasonOf(error)));
       return;

@@ -85,7 +85,9 @@ export function mount(container, ctx) {
     session = found;
     sessionPanel.dataset.session = found.id;
     sessionPanel.dataset.state = found.state;
-    if (found.state !== "acquiring") {
+    // A phase-height session whose solve failed takes more plates and is solved anew.
+    const extendable = found.state === "failed" && found.kind === "phase-height";
+    if (found.state !== "acquiring" && !extendable) {
       if (found.job_id) followJob(found.job_id);
       showStart();
       return;
@@ -96,12 +98,14 @@ export function mount(container, ctx) {
       h("dl", {class: "facts"}, field("Opened", `${when(found.created)} by ${found.actor}`),
         stereo ? field("Board", `${found.board.cols} × ${found.board.rows} corners, `
           + `${found.board.square_mm} mm squares`) : field("Parent", found.parent_id)),
+      extendable ? message("error", `The solve failed: ${found.error} Add the plates the plan `
+        + "asks for, then solve again.") : null,
       stereo ? stereoSteps(found) : plateSteps(found),
       h("h3", {}, "Still missing"),
       missingList(found),
       h("div", {class: "actions"},
-        h("button", {type: "button", id: "solve", class: "primary", disabled: !found.ready,
-          onclick: solve}, "Solve"),
+        h("button", {type: "button", id: "solve", class: "primary",
+          disabled: !found.ready || found.state !== "acquiring", onclick: solve}, "Solve"),
         h("button", {type: "button", id: "session-close", onclick: closeSession},
           "Close session")));
   }
@@ -195,12 +199,18 @@ export function mount(container, ctx) {
   }
 
   function plateSteps(found) {
-    const z = h("input", {type: "number", id: "plate-z", value: nextPlateZ(found), step: 0.5,
+    const z = h("input", {type: "number", id: "plate-z", value: nextPlateZ(found), step: "any",
       class: "narrow"});
     const stage = h("input", {type: "checkbox", id: "plate-stage", checked: ctx.simulated});
     const referenceZ = h("input", {type: "number", id: "reference-z", value: 10, step: 0.5,
       class: "narrow"});
+    const plan = found.plan || {};
+    const steepest = Math.max(...Object.values(plan.sensitivity_rad_per_mm || {}));
     return [
+      h("p", {id: "plate-plan", dataset: {step: plan.max_step_mm ?? ""}},
+        plan.max_step_mm ? `Fringe sensitivity ${num(steepest, 2)} rad/mm (${
+          plan.sensitivity_source}): planes at most ${plan.max_step_mm} mm apart over Z ${
+          plan.z_range_mm.join("…")} mm. ` : "", `Next: ${plan.next ?? "—"}`),
       h("div", {class: "actions"},
         h("label", {}, "Plate at Z ", z, " mm"),
         h("label", {}, stage, " move it with the stage"),
@@ -222,10 +232,12 @@ export function mount(container, ctx) {
     ];
   }
 
+  /** The first height the session's plan asks for; before it knows the rig's sensitivity,
+   * the probe 1 mm below the reference plane. */
   function nextPlateZ(found) {
-    const heights = [-10, -5, 0, 5, 10, 15, 20, 25];
-    const taken = new Set(found.plates.map((p) => p.z_mm));
-    return heights.find((z) => !taken.has(z)) ?? 0;
+    const needed = found.plan?.needed_heights_mm;
+    if (needed?.length) return needed[0];
+    return found.reference ? found.reference.z_mm - 1 : 0;
   }
 
   async function acquire(what, body) {

@@ -1,21 +1,23 @@
 // The therapist's view: the patient and fraction, the beam-hold lamp and the eye's deviation
 // live from /ws/pose, start and stop of tracking, the position verification's verdict and the
-// newest capture's camera images.
+// camera images: while tracking, the tracked unit's live frames (GET /tracking/preview, a few
+// per second: the frames tracking already has, no extra exposure); otherwise the newest
+// capture's.
 //
 // The lamp shows the daemon's beam-hold flag as the pose stream carries it (pose, hold and
 // heartbeat messages). It is a display, not the interlock: when the stream has said nothing
 // for LINK_DEAD_MS it shows the beam held, as the daemon asks of every listener.
 
-import {at, get, hangUp, objectUrl, post, reasonOf, socket} from "../api.js";
+import {at, get, hangUp, objectUrl, post, reasonOf, request, socket} from "../api.js";
 import {field, h, message, num, panel, replace, signed, when} from "../dom.js";
 import {DeviationPlot} from "../plot.js";
 
 const LINK_DEAD_MS = 2500; // heartbeats come every second when nothing else does
 const TRACKING_POLL_MS = 1000;
 const IMAGE_REFRESH_MS = 2000; // camera images at a reduced rate: at most one capture per 2 s
+const LIVE_MS = 400; // live images while tracking: 2.5 a second, a tenth of the camera rate
 
 export function mount(container, ctx) {
-  const physicist = ctx.may("physicist");
   let patient = null;
   let fraction = 1;
   let poseSocket = null;
@@ -26,6 +28,10 @@ export function mount(container, ctx) {
   let imageTimer = null;
   let imagePending = false;
   let lastImages = 0;
+  let liveTimer = null;
+  let liveUnit = null; // the unit whose live images are shown (null: not tracking)
+  let livePending = false;
+  const liveUrls = new Map(); // camera -> the blob: URL its <img> shows
   const timers = [];
 
   // --- patient and fraction ------------------------------------------------------------
@@ -39,10 +45,11 @@ export function mount(container, ctx) {
   const patientDetails = h("dl", {class: "facts", id: "patient-details"});
   const referenceDetails = h("div", {id: "reference-details"});
   const patientMessage = h("div", {id: "patient-message"});
-  const physicistActions = physicist ? h("div", {class: "actions physicist-action"},
+  // Either role: the therapist who sets the patient up captures the reference (docs/security.md).
+  const referenceActions = h("div", {class: "actions"},
     h("button", {type: "button", id: "reference-capture", disabled: true,
-      title: "Measure the eye now and make it the fraction's next reference (physicist)",
-      onclick: captureReference}, "Capture reference at set-up")) : null;
+      title: "Measure the eye now and make it the fraction's next reference",
+      onclick: captureReference}, "Capture reference at set-up"));
 
   // --- lamp, tracking, deviation ---------------------------------------------------------
   const lampText = h("span", {class: "lamp-text"}, "…");
@@ -79,7 +86,7 @@ export function mount(container, ctx) {
   container.append(h("div", {class: "grid therapist"},
     h("div", {class: "column"},
       panel("Patient and fraction", patientForm, patientMessage, patientDetails,
-        referenceDetails, physicistActions),
+        referenceDetails, referenceActions),
       panel("Position verification", h("div", {class: "actions"}, verifyButton), verdict)),
     h("div", {class: "column wide"},
       h("section", {class: "panel lamp-panel"}, lamp,
@@ -189,7 +196,7 @@ export function mount(container, ctx) {
   }
 
   async function captureReference() {
-    if (!patient || !physicist) return;
+    if (!patient) return;
     if (!window.confirm(`Measure the eye now and make it the reference of fraction ${fraction} `
         + `of ${patient.patient_id} (a new version; the earlier ones are kept)?`)) return;
     const button = document.getElementById("reference-capture");
@@ -223,6 +230,7 @@ export function mount(container, ctx) {
 
   async function stopTracking() {
     stopButton.disabled = true;
+    setLive(null); // no preview asked of a session that is ending
     try {
       await post("/tracking/stop");
       replace(trackingMessage);
@@ -252,6 +260,8 @@ export function mount(container, ctx) {
     if (closed) return;
     trackingRunning = status.running;
     lamp.dataset.tracking = String(status.running);
+    // Previews only once the session has a frame (it warms its workers first: a few s).
+    setLive(status.running && status.frames_acquired > 0 ? status.unit : null);
     replace(trackingFacts,
       field("Tracking", status.running ? `running (${status.patient_id ?? "?"}, fraction `
         + `${status.fraction ?? "?"})` : "stopped"),
@@ -330,6 +340,74 @@ export function mount(container, ctx) {
   }
 
   // --- camera images ----------------------------------------------------------------------
+  /** Show the live images of `unit` (a unit id, "all") while tracking, or the newest capture's
+   * (null). */
+  function setLive(unit) {
+    if (unit && !liveTimer) {
+      liveUnit = unit;
+      liveTimer = setInterval(showLive, LIVE_MS);
+      showLive();
+    } else if (!unit && liveTimer) {
+      clearInterval(liveTimer);
+      liveTimer = null;
+      liveUnit = null;
+      delete images.dataset.live;
+      delete images.dataset.frame;
+      delete images.dataset.capture; // the newest capture is shown again
+      forgetLiveUrls();
+      refreshImages();
+    }
+  }
+
+  function forgetLiveUrls() {
+    liveUrls.forEach((src) => URL.revokeObjectURL(src));
+    liveUrls.clear();
+  }
+
+  async function showLive() {
+    if (livePending || closed || !liveUnit) return;
+    const units = (ctx.status?.units || []).filter((u) => liveUnit === "all" || u.id === liveUnit);
+    livePending = true;
+    const fetched = [];
+    try {
+      let frame = null;
+      for (const unit of units) {
+        for (const camera of unit.cameras) {
+          const response = await request("GET", `/tracking/preview/${encodeURIComponent(
+            camera)}.jpg`, {raw: true});
+          frame = response.headers.get("X-Frame");
+          fetched.push([unit, camera, URL.createObjectURL(await response.blob())]);
+        }
+      }
+      if (closed || !liveTimer) return;
+      if (images.dataset.live !== "true") {
+        forgetLiveUrls();
+        replace(images, fetched.map(([unit, camera]) => h("figure", {class: "camera"},
+          h("img", {alt: `camera ${camera}, live`, dataset: {camera}}),
+          h("figcaption", {}, `${camera} (unit ${unit.id}), live`))));
+        images.dataset.live = "true";
+      }
+      for (const [, camera, src] of fetched) {
+        const img = images.querySelector(`img[data-camera="${camera}"]`);
+        if (!img) continue;
+        img.src = src; // the decoded picture stays on screen until the new one is decoded
+        const old = liveUrls.get(camera);
+        if (old) URL.revokeObjectURL(old);
+        liveUrls.set(camera, src);
+      }
+      fetched.length = 0; // handed over: not revoked below
+      images.dataset.frame = frame ?? "";
+      captureCaption.textContent = `Live: unit ${liveUnit}, camera frame ${frame}`;
+      replace(captureMessage);
+    } catch (error) {
+      // 409: tracking ended between two looks; the next status poll shows the captures again.
+      if (error.status !== 409) replace(captureMessage, message("error", reasonOf(error)));
+    } finally {
+      fetched.forEach(([, , src]) => URL.revokeObjectURL(src));
+      livePending = false;
+    }
+  }
+
   async function capture() {
     captureButton.disabled = true;
     replace(captureMessage);
@@ -373,7 +451,7 @@ export function mount(container, ctx) {
       captureCaption.textContent = "No capture yet.";
       return;
     }
-    if (images.dataset.capture === newest.id) return;
+    if (images.dataset.capture === newest.id || liveTimer) return;
     const units = ctx.status?.units || [];
     // A capture of every unit holds one frame per unit in the rig's order (FORMATS.md); a
     // capture of one unit holds that unit's frame as frame 0.
@@ -394,7 +472,7 @@ export function mount(container, ctx) {
         }
       }
     }
-    if (closed) return;
+    if (closed || liveTimer) return; // tracking began meanwhile: the live images stay
     images.dataset.capture = newest.id;
     replace(images, tiles);
     captureCaption.textContent = `${newest.id} — unit ${newest.unit}, ${when(newest.created)}`;
@@ -402,7 +480,7 @@ export function mount(container, ctx) {
 
   function onDaemonEvent(event) {
     const data = event.detail;
-    if (data.type === "capture.stored") refreshImages();
+    if (data.type === "capture.stored" && !liveTimer) refreshImages();
   }
 
   function updateButtons() {
@@ -435,6 +513,8 @@ export function mount(container, ctx) {
       clearTimeout(t);
     });
     clearTimeout(imageTimer);
+    clearInterval(liveTimer);
+    forgetLiveUrls();
     if (poseSocket) hangUp(poseSocket);
   };
 }
