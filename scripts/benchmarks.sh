@@ -8,7 +8,11 @@
 # a full disk, load and fuzz through daemons on loopback, a few minutes; its full-disk part needs
 # root for its tmpfs and says skipped otherwise) and render their JSON.
 # Figures and PNGs are kept in build/benchmarks/.
-# Usage: bash scripts/benchmarks.sh [--quick | --reliability] [--poses N]
+# Usage: bash scripts/benchmarks.sh [--quick | --accuracy | --reliability] [--poses N]
+#   --accuracy, --reliability: only that bench (the full accuracy protocol, ≈ 10 minutes, or the
+#   reliability bench, a few minutes), its part of the page made anew and the rest left as it is
+#   (the accuracy run's part: the page's head and its Accuracy section, the daily QA's figures
+#   with it; its calibration in build/benchmarks/accuracy/ is the one later full runs use).
 #   --poses N: N patient eyes (with --displacement) and N sharp eyes, N/3 with biometry, instead
 #   of 600, 600 and 200 (the page names each run's count; its bootstrap intervals show the cost).
 set -euo pipefail
@@ -21,22 +25,31 @@ mkdir -p "$out"
 if ! command -v wrk > /dev/null && [[ $(id -u) == 0 ]] && command -v apt-get > /dev/null; then
     apt-get install -y -q wrk > /dev/null || echo "wrk not installed: Python status readers" >&2
 fi
-if [[ "${1:-}" == "--reliability" ]]; then
-    # Only the reliability bench (a few minutes): its section of the page made anew.
-    .venv/bin/eyeserver bench reliability --json > "$out/reliability.json"
+splice_only() {
+    # splice_only NAME COMMAND...: only that bench, its JSON in $out/NAME.json, and its part of
+    # the page made anew (report.py --splice); a failed run or report leaves the page as it was.
+    local name=$1
+    shift
+    "$@" > "$out/$name.json"
     .venv/bin/python -m eyeserver.bench.report --splice docs/benchmarks.md \
-        --reliability "$out/reliability.json" > "$out/benchmarks.md"
+        "--$name" "$out/$name.json" > "$out/benchmarks.md"
     mv "$out/benchmarks.md" docs/benchmarks.md
-    echo "docs/benchmarks.md: its Reliability section regenerated"
+    echo "docs/benchmarks.md: its $name part regenerated"
     exit 0
-fi
+}
+case "${1:-}" in
+    --accuracy) splice_only accuracy .venv/bin/eyeserver bench accuracy --json \
+        --out "$out/accuracy" ;;
+    --reliability) splice_only reliability .venv/bin/eyeserver bench reliability --json ;;
+esac
 quick=()
 poses=600
 while [[ $# -gt 0 ]]; do
     case "$1" in
         --quick) quick=(--quick); shift ;;
         --poses) poses="$2"; shift 2 ;;
-        *) echo "usage: bash scripts/benchmarks.sh [--quick | --reliability] [--poses N]" >&2
+        *) echo "usage: bash scripts/benchmarks.sh [--quick | --accuracy | --reliability]" \
+                "[--poses N]" >&2
            exit 2 ;;
     esac
 done

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -32,10 +33,13 @@ from eyeserver.bench.report import (
     p95_text,
     refusals_text,
     render,
+    render_accuracy,
     render_pose,
     render_pose_overview,
     render_speed,
+    splice,
 )
+from eyeserver.bench.report import main as report_main
 from eyeserver.cli import main
 from eyeserver.errors import EyeserverError
 from eyeserver.eye.fit import EyePose
@@ -83,7 +87,9 @@ def test_accuracy_bench_reports_the_papers_figures(calibrated_rooms: Any,
     qa = report["qa"]
     assert qa["passed"] and qa["frames"] == 2, qa["figures"]
     assert qa["moved"]["localisation_fails"], qa["moved"]
+    assert qa["position_mm"] == [0.0, 0.0, 0.0] and qa["units"] == ["left", "right"]
     page = render(report, {"frameset_2cam_ms": 123.4, "pending": {}})
+    assert "| `localisation_mm` |" in page and "the ball's centre at (0, 0, 0) mm" in page
     assert "| reprojection error, median (px) | 0.88 (IQR 1.44) | ≤ 0.15 |" in page
     assert "`frameset_2cam_ms` | 123.4 |" in page
 
@@ -91,6 +97,107 @@ def test_accuracy_bench_reports_the_papers_figures(calibrated_rooms: Any,
 def test_accuracy_bench_refuses_an_unknown_phantom(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "accuracy", "--phantoms", "teapot"]) == 2
     assert "teapot" in capsys.readouterr().err
+
+
+def _accuracy_report(**qa: Any) -> dict[str, Any]:
+    """A made-up accuracy report, only what the page needs, with the daily QA's section
+    (``qa`` overriding its entries) as ``eyeserver bench accuracy --quick`` writes it."""
+    figures = {"localisation_mm": 0.0041, "surface_mm": 0.0102, "fiducial_mm": 0.0153,
+               "cross_unit_mm": 0.0081, "static_noise_mm": 0.0042, "drift_mm": 0.0102}
+    thresholds = {"localisation_mm": 0.1, "surface_mm": 0.05, "fiducial_mm": 0.05,
+                  "cross_unit_mm": 0.05, "static_noise_mm": 0.03, "drift_mm": 0.05}
+    return {"machine": {"platform": "Linux-test", "cpu_count": 2, "python": "3.11.7",
+                        "numpy": "2.4.6"},
+            "seed": 0, "quick": True, "duration_s": 61.5, "pending": {},
+            "noise_model": {"shot_noise_full_well_e": 6000, "read_noise_dn": 1.2,
+                            "bit_depth": 8},
+            "qa": {"phantom": "eye phantom 1 (12 mm ball) at its QA position",
+                   "position_mm": [0.0, 0.0, 0.0], "frames": 2, "units": ["left", "right"],
+                   "figures": figures, "thresholds": thresholds, "passed": True,
+                   "baseline_figures": {}, "problems": [],
+                   "moved": {"by_mm": [0.3, 0.0, 0.0], "position_mm": [0.3, 0.0, 0.0],
+                             "figures": {**figures, "localisation_mm": 0.301},
+                             "localisation_fails": True},
+                   **qa}}
+
+
+def test_the_accuracy_section_shows_the_daily_qa_against_its_thresholds() -> None:
+    """Each QA figure beside its default threshold with pass or fail, and how the figures were
+    measured, all from the report (made-up: the bench itself is tested above)."""
+    section = render_accuracy(_accuracy_report())
+    assert section.startswith("# Benchmarks\n") and "\n## Accuracy\n" in section
+    qa = section[section.index("### Daily QA"):]
+    assert qa.index("### Daily QA") < qa.index("The accuracy run took 61.5 s.")
+    assert ("eye phantom 1 (12 mm ball) at its QA position, the ball's centre at (0, 0, 0) mm, "
+            "captured 2 times by every unit (left, right)") in qa
+    assert "the run passes." in qa
+    assert "| figure | measured (mm) | default threshold (mm) | |" in qa
+    for row in ("| `localisation_mm` | 0.004 | ≤ 0.1 | pass |",
+                "| `surface_mm` | 0.010 | ≤ 0.05 | pass |",
+                "| `fiducial_mm` | 0.015 | ≤ 0.05 | pass |",
+                "| `cross_unit_mm` | 0.008 | ≤ 0.05 | pass |",
+                "| `static_noise_mm` | 0.004 | ≤ 0.03 | pass |",
+                "| `drift_mm` | 0.010 | ≤ 0.05 | pass |"):
+        assert row in qa, row
+    assert ("moved by (0.3, 0, 0) mm and captured 2 times again: "
+            "`localisation_mm` 0.301 mm, which fails, as it must.") in qa
+    # Another run's figures, frames, thresholds and position are its own, not the defaults;
+    # a figure not measured fails with its reason, and so does the run.
+    failing = _accuracy_report(frames=4, position_mm=[0.0, 0.0, -10.0], passed=False,
+                               problems=["cross_unit_mm: the units share no view"])
+    failing["qa"]["figures"].update(cross_unit_mm=None, drift_mm=0.07)
+    failing["qa"]["thresholds"]["drift_mm"] = 0.08
+    failing["qa"]["moved"].update(localisation_fails=False)
+    failing["qa"]["moved"]["figures"]["localisation_mm"] = 0.09
+    qa = render_accuracy(failing)
+    assert "centre at (0, 0, -10) mm, captured 4 times" in qa and "the run FAILS." in qa
+    assert "| `cross_unit_mm` | not measured | ≤ 0.05 | FAIL |" in qa
+    assert "| `drift_mm` | 0.070 | ≤ 0.08 | pass |" in qa
+    assert "- Not measured: cross_unit_mm: the units share no view" in qa
+    assert "captured 4 times again: `localisation_mm` 0.090 mm, which PASSES" in qa
+    # A report from before the QA has no such section.
+    assert "Daily QA" not in render_accuracy({k: v for k, v in _accuracy_report().items()
+                                              if k != "qa"})
+
+
+def test_the_accuracy_part_is_spliced_into_the_page_alone(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``--splice PAGE --accuracy ACCURACY.json``: the page's head and accuracy section made
+    anew from that run, every other section as it was (even where a full render would now
+    differ)."""
+    old, new = _accuracy_report(), _accuracy_report(frames=4)
+    new["seed"], new["duration_s"] = 7, 600.2
+    others = ("## Speed\n\nfast, as measured before\n\n## Eye pose, sharp eyes, radius fitted\n\n"
+              "poses\n\n## Reliability\n\nold run\n\n### Load\n\nbusy\n")
+    page = render_accuracy(old) + others
+    spliced = splice(page, render_accuracy(new))
+    assert spliced == render_accuracy(new) + others
+    assert "seed 7, quick run" in spliced and "captured 4 times" in spliced
+    assert "captured 2 times" not in spliced and "seed 0" not in spliced
+    # The same as rendering the whole page with the new run.
+    speed = {"frameset_2cam_ms": 123.4, "pending": {}}
+    assert splice(render(old, speed), render_accuracy(new)) == render(new, speed)
+    assert splice(render(new, speed), render_accuracy(new)) == render(new, speed)
+    # The reliability section through the same splice: its own ### headings go with it.
+    assert splice(page, "## Reliability\n\nnew run\n") == (
+        render_accuracy(old) + others.replace("old run\n\n### Load\n\nbusy\n", "new run\n"))
+    # Through the command line; a failed read leaves nothing on stdout.
+    (tmp_path / "page.md").write_text(page)
+    (tmp_path / "accuracy.json").write_text(json.dumps(new))
+    assert report_main(["--splice", str(tmp_path / "page.md"), "--accuracy",
+                        str(tmp_path / "accuracy.json")]) == 0
+    assert capsys.readouterr().out == spliced
+    assert report_main(["--accuracy", str(tmp_path / "accuracy.json"),
+                        str(tmp_path / "accuracy.json"), str(tmp_path / "speed.json")]) == 2
+    assert "usage" in capsys.readouterr().err  # --accuracy only with --splice
+    assert report_main(["--splice", str(tmp_path / "page.md"), "--accuracy"]) == 2
+    assert "usage" in capsys.readouterr().err
+    (tmp_path / "broken.json").write_text("{")
+    assert report_main(["--splice", str(tmp_path / "page.md"), "--accuracy",
+                        str(tmp_path / "broken.json")]) == 2
+    captured = capsys.readouterr()
+    assert "broken.json" in captured.err and captured.out == ""
+    assert (tmp_path / "page.md").read_text() == page  # never written
 
 
 @pytest.mark.slow

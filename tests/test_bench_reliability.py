@@ -297,15 +297,15 @@ def test_wrks_report_is_read_with_its_units_and_refusals() -> None:
 
 
 def test_the_reliability_section_is_spliced_into_the_page_alone() -> None:
-    from eyeserver.bench.report import splice_reliability
+    from eyeserver.bench.report import splice
 
     page = "# Benchmarks\n\n## Speed\n\nfast\n\n## Reliability\n\nold run\n\n## After\n\nkept\n"
-    assert splice_reliability(page, "## Reliability\n\nnew run\n") == (
+    assert splice(page, "## Reliability\n\nnew run\n") == (
         "# Benchmarks\n\n## Speed\n\nfast\n\n## Reliability\n\nnew run\n\n## After\n\nkept\n")
     last = "# Benchmarks\n\n## Speed\n\nfast\n\n## Reliability\n\nold run\n"
-    assert splice_reliability(last, "## Reliability\n\nnew\n") == (
+    assert splice(last, "## Reliability\n\nnew\n") == (
         "# Benchmarks\n\n## Speed\n\nfast\n\n## Reliability\n\nnew\n")
-    assert splice_reliability("# Benchmarks\n\n## Speed\n\nfast\n", "## Reliability\n\nnew\n") \
+    assert splice("# Benchmarks\n\n## Speed\n\nfast\n", "## Reliability\n\nnew\n") \
         == "# Benchmarks\n\n## Speed\n\nfast\n\n## Reliability\n\nnew\n"
 
 

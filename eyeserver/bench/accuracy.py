@@ -281,8 +281,9 @@ def qa_figures(config: RoomConfig, caldir: Path, work: Path, seed: int, frames: 
     drift between them; then the phantom moved by :data:`QA_MOVE_MM` along X, which its
     localisation must catch. Each figure beside its default threshold."""
     runs = []
-    placements = {"baseline": (0.0, 0.0, 0.0), "daily": (0.0, 0.0, 0.0),
-                  "moved": (QA_MOVE_MM, 0.0, 0.0)}
+    at = EYE_PHANTOM_1.centre_mm  # the QA position: the drawing's, where the scene puts the ball
+    moved_to = (at[0] + QA_MOVE_MM, at[1], at[2])
+    placements = {"baseline": at, "daily": at, "moved": moved_to}
     for n, (name, position) in enumerate(placements.items()):
         progress(f"daily QA: {name} run ({frames} captures of the phantom)")
         spec = SceneSpec(kind="eye_phantom_1", position_mm=position)
@@ -297,11 +298,13 @@ def qa_figures(config: RoomConfig, caldir: Path, work: Path, seed: int, frames: 
         **daily.figures, "drift_mm": calibration_drift_mm(daily.drift_vectors_mm,
                                                           baseline.drift_vectors_mm)}
     thresholds = QaThresholds().model_dump()
-    return {"phantom": EYE_PHANTOM_1.name, "frames": frames, "figures": figures,
+    return {"phantom": EYE_PHANTOM_1.name, "position_mm": list(at), "frames": frames,
+            "units": [u.id for u in config.units], "figures": figures,
             "thresholds": thresholds,
             "passed": all(v is not None and v <= thresholds[k] for k, v in figures.items()),
             "baseline_figures": baseline.figures, "problems": daily.problems,
-            "moved": {"by_mm": [QA_MOVE_MM, 0.0, 0.0], "figures": moved.figures,
+            "moved": {"by_mm": [QA_MOVE_MM, 0.0, 0.0], "position_mm": list(moved_to),
+                      "figures": moved.figures,
                       "localisation_fails": moved.figures["localisation_mm"] is not None
                       and moved.figures["localisation_mm"] > thresholds["localisation_mm"]}}
 

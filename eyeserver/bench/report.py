@@ -3,14 +3,17 @@ benches and this module; the page is never edited by hand).
 
 Usage: ``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...]
 [--reliability RELIABILITY.json] > docs/benchmarks.md``, or ``python -m eyeserver.bench.report
---splice docs/benchmarks.md --reliability RELIABILITY.json``: the page with its reliability
-section (only) made anew from that run, on stdout (``scripts/benchmarks.sh --reliability``).
+--splice docs/benchmarks.md [--accuracy ACCURACY.json] [--reliability RELIABILITY.json]``: the
+page with only the parts of the runs given made anew (the accuracy run's: the page's head and
+its accuracy section; the reliability run's: its section), on stdout
+(``scripts/benchmarks.sh --accuracy`` or ``--reliability``).
 """
 
 from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +35,19 @@ def render(accuracy: dict[str, Any], speed: dict[str, Any], *poses: dict[str, An
     ``poses`` (runs of ``eyeserver bench pose``: patient eyes with the radius fitted and with
     their biometry, the old sharp eye), then ``reliability`` (``eyeserver bench reliability``)
     when given."""
+    page = render_accuracy(accuracy) + render_speed(speed)
+    if poses:
+        page += "\n".join(render_pose_overview(poses)) + "\n"
+    page += "\n".join("\n".join(render_pose(pose)) for pose in poses)
+    if reliability is not None:
+        page += ("\n" if poses else "") + render_reliability(reliability)
+    return page
+
+
+def render_accuracy(accuracy: dict[str, Any]) -> str:
+    """The page's head (its title, what made it, the accuracy run's machine and room) and its
+    accuracy section, with the daily QA's figures when the run measured them: the part of the
+    page an accuracy run (``eyeserver bench accuracy``) makes."""
     machine = accuracy["machine"]
     noise = accuracy["noise_model"]
     lines = [
@@ -100,14 +116,49 @@ def render(accuracy: dict[str, Any], speed: dict[str, Any], *poses: dict[str, An
     if accuracy.get("figures"):
         lines += ["", "Figures (written with `--out DIR`): "
                   + ", ".join(f"`{f}`" for f in accuracy["figures"]) + "."]
+    if accuracy.get("qa"):
+        lines += ["", *render_qa(accuracy["qa"])]
     lines += ["", f"The accuracy run took {accuracy.get('duration_s')} s.", ""]
-    page = "\n".join(lines) + "\n" + render_speed(speed)
-    if poses:
-        page += "\n".join(render_pose_overview(poses)) + "\n"
-    page += "\n".join("\n".join(render_pose(pose)) for pose in poses)
-    if reliability is not None:
-        page += ("\n" if poses else "") + render_reliability(reliability)
-    return page
+    return "\n".join(lines) + "\n"
+
+
+def _mm_text(vector: list[float]) -> str:
+    """A position or a move, ``(0.3, 0, 0) mm``."""
+    return "(" + ", ".join(f"{v:g}" for v in vector) + ") mm"
+
+
+def render_qa(qa: dict[str, Any]) -> list[str]:
+    """The daily QA on the simulated room (``qa`` of ``eyeserver bench accuracy``; docs/qa.md):
+    how it was measured, each figure beside its default threshold, and the moved phantom."""
+    units = qa.get("units")
+    where = f", the ball's centre at {_mm_text(qa['position_mm'])}" if "position_mm" in qa \
+        else ""
+    lines = ["### Daily QA", "",
+             f"The daily QA (docs/qa.md) as the daemon runs it: {qa['phantom']}{where}, "
+             f"captured {qa['frames']} times by every unit"
+             + (f" ({', '.join(units)})" if units else "")
+             + " in each of two runs with fresh noise, a baseline and a later run, each "
+             "measured against the phantom's drawing (never the simulator's truth). The later "
+             "run's figures, and `drift_mm` between the two runs, against the default "
+             "thresholds (`[qa.thresholds]`): the run "
+             + ("passes." if qa["passed"] else "FAILS."), "",
+             "| figure | measured (mm) | default threshold (mm) | |", "|---|---|---|---|"]
+    for key, value in qa["figures"].items():
+        threshold = qa["thresholds"][key]
+        passes = value is not None and value <= threshold  # one not measured fails, as in runs
+        lines.append(f"| `{key}` | {'not measured' if value is None else _value(value)} | "
+                     f"≤ {threshold:g} | {'pass' if passes else 'FAIL'} |")
+    lines.append("")
+    for problem in qa.get("problems", []):
+        lines.append(f"- Not measured: {problem}")
+    moved = qa["moved"]
+    located = moved["figures"]["localisation_mm"]
+    lines.append(f"The phantom then moved by {_mm_text(moved['by_mm'])} and captured "
+                 f"{qa['frames']} times again: `localisation_mm` "
+                 + ("not measured" if located is None else f"{_value(located)} mm")
+                 + (", which fails, as it must." if moved["localisation_fails"]
+                    else ", which PASSES: the move was missed."))
+    return lines
 
 
 def render_speed(speed: dict[str, Any]) -> str:
@@ -567,20 +618,30 @@ def render_reliability(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-RELIABILITY_HEADING = "## Reliability"
+def splice(page: str, part: str) -> str:
+    """``page`` with ``part`` (one of its parts made anew) in place of the old one: from the
+    line ``part`` begins with (the accuracy part's title, the reliability section's heading) to
+    the next ``## `` heading that is not one of ``part``'s own, or the page's end; ``part``
+    appended when the page has no such line. The rest of the page is kept to the byte."""
+    new = part.rstrip("\n").split("\n")
+    lines = page.split("\n")
+    if new[0] not in lines:
+        return "\n".join([page.rstrip("\n"), "", *new, ""])
+    start = lines.index(new[0])
+    own = {line for line in new if line.startswith("## ")}
+    end = next((i for i in range(start + 1, len(lines))
+                if lines[i].startswith("## ") and lines[i] not in own), len(lines))
+    return "\n".join([*lines[:start], *new, "", *lines[end:]])
 
 
-def splice_reliability(page: str, section: str) -> str:
-    """``page`` with its reliability section (from its heading to the next ``## `` heading or
-    the end) replaced by ``section``, or ``section`` appended when it has none."""
-    lines = page.rstrip("\n").split("\n")
-    if RELIABILITY_HEADING not in lines:
-        return "\n".join([*lines, "", section.rstrip("\n")]) + "\n"
-    start = lines.index(RELIABILITY_HEADING)
-    end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("## ")),
-               len(lines))
-    after = ["", *lines[end:]] if end < len(lines) else []
-    return "\n".join([*lines[:start], section.rstrip("\n"), *after]) + "\n"
+SPLICED: dict[str, Callable[[dict[str, Any]], str]] = {
+    "--accuracy": render_accuracy, "--reliability": render_reliability}
+"""The parts of the page ``--splice`` makes anew, by the option naming their run's JSON."""
+
+USAGE = ("usage: python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...] "
+         "[--reliability RELIABILITY.json]\n"
+         "       python -m eyeserver.bench.report --splice PAGE.md [--accuracy ACCURACY.json] "
+         "[--reliability RELIABILITY.json]")
 
 
 def _option(args: list[str], name: str) -> str | None:
@@ -593,38 +654,44 @@ def _option(args: list[str], name: str) -> str | None:
     return value
 
 
+class _UnreadableError(Exception):
+    """A file named on the command line that cannot be read (its path and why)."""
+
+
+def _read(path: str, as_json: bool = True) -> Any:
+    """The JSON document (or, not ``as_json``, the text) in ``path``."""
+    try:
+        text = Path(path).read_text()
+        return json.loads(text) if as_json else text
+    except (OSError, ValueError) as exc:
+        raise _UnreadableError(f"{path}: {exc}") from exc
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...]
-    [--reliability RELIABILITY.json]`` or ``--splice PAGE --reliability RELIABILITY.json``:
-    the page on stdout."""
+    [--reliability RELIABILITY.json]`` or ``--splice PAGE [--accuracy ACCURACY.json]
+    [--reliability RELIABILITY.json]`` (at least one): the page on stdout."""
     args = list(sys.argv[1:] if argv is None else argv)
-    reliability_path = _option(args, "--reliability")
-    splice = _option(args, "--splice")
-    if reliability_path == "" or splice == "" or (splice is not None and (
-            args or reliability_path is None)) or (splice is None and len(args) < 2):
-        print("usage: python -m eyeserver.bench.report ACCURACY.json SPEED.json "
-              "[POSE.json ...] [--reliability RELIABILITY.json]\n"
-              "       python -m eyeserver.bench.report --splice PAGE.md "
-              "--reliability RELIABILITY.json", file=sys.stderr)
+    page_path = _option(args, "--splice")
+    given = {name: _option(args, name) for name in SPLICED}
+    if "" in (page_path, *given.values()) or (page_path is not None and (
+            args or not any(given.values()))) or (page_path is None and (
+            given["--accuracy"] is not None or len(args) < 2)):
+        print(USAGE, file=sys.stderr)
         return 2
-    documents = []
-    for path in [*args, *([reliability_path] if reliability_path else [])]:
-        try:
-            documents.append(json.loads(Path(path).read_text()))
-        except (OSError, ValueError) as exc:
-            print(f"eyeserver.bench.report: error: {path}: {exc}", file=sys.stderr)
-            return 2
-    reliability = documents.pop() if reliability_path else None
-    if splice is not None:
-        assert reliability is not None
-        try:
-            page = Path(splice).read_text()
-        except OSError as exc:
-            print(f"eyeserver.bench.report: error: {splice}: {exc}", file=sys.stderr)
-            return 2
-        print(splice_reliability(page, render_reliability(reliability)), end="")
+    try:
+        documents = [_read(path) for path in args]
+        parts = {name: _read(path) for name, path in given.items() if path}
+        page = None if page_path is None else str(_read(page_path, as_json=False))
+    except _UnreadableError as exc:
+        print(f"eyeserver.bench.report: error: {exc}", file=sys.stderr)
+        return 2
+    if page is not None:
+        for name, document in parts.items():
+            page = splice(page, SPLICED[name](document))
+        print(page, end="")
         return 0
-    print(render(*documents, reliability=reliability))
+    print(render(*documents, reliability=parts.get("--reliability")))
     return 0
 
 
