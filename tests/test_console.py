@@ -3,8 +3,10 @@
 A real ``eyeserver serve`` on loopback drives the simulated room with an imported and activated
 calibration, a patient and a reference captured at set-up; Debian's ``chromium`` (driven by
 Playwright from PyPI, never Playwright's own browsers) logs in with a token and uses the console
-as a therapist and a physicist would. Every page is loaded under the console's
-Content-Security-Policy, and every console error of the page fails the test. Screenshots are
+as a therapist and a physicist would; a second daemon, with the daily QA's lockout on, serves
+the QA view and the therapist's lockout banner (one test, a morning's order). Every page is
+loaded under the console's Content-Security-Policy, and every console error of the page fails
+the test. Screenshots are
 written to each test's tmp dir and their paths printed (``pytest -s`` shows them); with
 ``EYESERVER_SCREENSHOTS=<dir>`` each is also written there as ``console-<name>.png``, reduced to
 a 256-colour palette (``bash scripts/console_screenshots.sh`` renews docs/images/ so).
@@ -233,12 +235,14 @@ def _save_for_docs(shot: Path, target: Path) -> None:
 
 
 @pytest.fixture
-def console(browser: Any, daemon: DaemonProcess, tmp_path: Path) -> Iterator[Callable[[], Console]]:
-    """Opens browser tabs on the console (closed after the test)."""
+def console(browser: Any, daemon: DaemonProcess, tmp_path: Path,
+            ) -> Iterator[Callable[..., Console]]:
+    """Opens browser tabs on the console (closed after the test), of ``daemon`` unless the
+    test names another (``console(qa_daemon)``)."""
     opened: list[Console] = []
 
-    def open_tab() -> Console:
-        tab = Console(browser, daemon, tmp_path)
+    def open_tab(on: DaemonProcess | None = None) -> Console:
+        tab = Console(browser, on or daemon, tmp_path)
         opened.append(tab)
         return tab
 
@@ -287,6 +291,7 @@ def test_every_view_loads_without_console_errors(console: Callable[[], Console],
                              "local": {}, "cookies": []}
     loaded = {
         "therapist": "#beam-lamp[data-link='up']",
+        "qa": "#qa-trends figure.trend",
         "calibration": "#session-stereo",
         "calibrations": "#calibration-list tr[data-calibration]",
         "devices": "#device-list [data-device='S1']",
@@ -299,6 +304,9 @@ def test_every_view_loads_without_console_errors(console: Callable[[], Console],
         if view == "therapist":
             _load_patient(tab)
             tab.expect("#reference-capture").to_be_visible()
+        if view == "qa":  # this daemon runs without the lockout (qa.required = false)
+            tab.expect("#qa-status").to_have_attribute("data-locked", "false")
+            tab.expect("#qa-reason").to_contain_text("Not required by the settings")
         tab.page.wait_for_timeout(300)  # late requests of the view would log their errors
         tab.screenshot(f"physicist-{view}")
         assert tab.errors == [], (view, tab.errors)
@@ -314,7 +322,7 @@ def test_an_operator_sees_no_physicist_view_or_action(console: Callable[[], Cons
     tab.expect("#role").to_have_text("operator")
     _load_patient(tab)
 
-    assert tab.page.locator("#nav a").all_inner_texts() == ["Therapist"]
+    assert tab.page.locator("#nav a").all_inner_texts() == ["Therapist", "Daily QA"]
     # The therapist at set-up captures the reference (docs/security.md, the role model).
     tab.expect("#reference-capture").to_be_enabled()
     tab.expect("#tracking-start").to_be_enabled()
@@ -522,3 +530,139 @@ def test_device_settings_change_and_a_refusal_shows_the_daemons_reason(
     tab.screenshot("audit")
     _http(daemon, "PATCH", "/devices/S1", json={"exposure_us": 10000})
     assert tab.errors == []
+
+
+# --- the daily QA: a daemon with the lockout on ------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def qa_daemon(tmp_path_factory: pytest.TempPathFactory,
+              calibrated_rooms: Callable[[str], tuple[Path, Path]]) -> Iterator[DaemonProcess]:
+    """``eyeserver serve`` with the daily QA's lockout on (the clinical default; the module's
+    other daemon has it off), an active calibration without a QA baseline (so locked), the
+    patient and a reference captured at set-up (never locked). Two captures per QA run."""
+    _sync_api()
+    _, caldir = calibrated_rooms("default")
+    work = tmp_path_factory.mktemp("console-qa")
+    with DaemonProcess(work / "data", log=work / "serve.log",
+                       env={"EYESERVER_QA__REQUIRED": "true",
+                            "EYESERVER_QA__FRAMES": "2"}) as running:
+        client = running.client
+        imported = client.post(f"{API}/calibrations", content=zip_directory(caldir),
+                               headers={"content-type": "application/zip"})
+        assert imported.status_code == 201, imported.text
+        activated = client.post(f"{API}/calibrations/{imported.json()['id']}/activate")
+        assert activated.status_code == 200, activated.text
+        for method, path, body in [
+                ("PUT", f"/patients/{PATIENT}", {"eye": "right", "unit": "left"}),
+                ("PUT", "/sim/eye", {"position_mm": [0.0, 0.0, -10.0], "gaze_deg": [0.0, 0.0],
+                                     "motion": None}),
+                ("POST", f"/patients/{PATIENT}/fractions/1/reference/capture", None)]:
+            answer = client.request(method, f"{API}{path}", json=body)
+            assert answer.status_code in (200, 201), answer.text
+        yield running
+
+
+@pytest.mark.slow
+def test_the_daily_qa_locks_the_therapist_until_a_run_through_the_console_passes(
+        console: Callable[..., Console], qa_daemon: DaemonProcess) -> None:
+    # One daemon, a morning's order: locked (no QA baseline), what the therapist and the
+    # operator see, a physicist's override and its withdrawal, the baseline run through the
+    # console (passes, unlocks), the therapist unlocked, the history, trends and report.
+    status = _http(qa_daemon, "GET", "/qa/status")
+    assert status["locked"] and "has no QA baseline" in status["reason"]
+
+    # The therapist: the banner with the daemon's reason; Verify and Start say why they are off.
+    operator = console(qa_daemon)
+    operator.login(qa_daemon.operator_token)
+    _load_patient(operator)
+    operator.expect("#qa-lock").to_be_visible()
+    operator.expect("#qa-lock").to_have_attribute("data-kind", "locked")
+    operator.expect("#qa-lock-reason").to_have_text(status["reason"])
+    operator.expect("#qa-lock a[href='#/qa']").to_have_text("Daily QA")
+    for button in ("#verify", "#tracking-start"):
+        operator.expect(button).to_be_disabled()
+        operator.expect(button).to_have_attribute("title", re.compile("^Locked by the daily "
+                                                                      "QA: .*no QA baseline"))
+    operator.expect("#reference-capture").to_be_enabled()  # the reference is never locked
+    operator.expect("#qa-state").to_have_text("QA locked")
+    operator.expect("#beam-lamp").to_have_attribute("data-link", "up")
+    operator.screenshot("therapist-qa-locked")
+
+    # The operator may run the QA, but sees no physicist action (baseline, override).
+    assert operator.page.locator("#nav a").all_inner_texts() == ["Therapist", "Daily QA"]
+    operator.view("qa")
+    operator.expect("#qa-status").to_have_attribute("data-locked", "true")
+    operator.expect("#qa-reason").to_contain_text(status["reason"])
+    operator.expect("#qa-run").to_be_enabled()
+    for physicists_only in ("#qa-baseline", "#qa-override-form", "#qa-override-reason",
+                            "#qa-override-withdraw"):
+        operator.expect(physicists_only).to_have_count(0)
+    operator.expect("#qa-trends img").to_have_count(6)
+
+    # A physicist overrides the lockout with a reason, and withdraws it.
+    physicist = console(qa_daemon)
+    physicist.login(qa_daemon.physicist_token)
+    physicist.view("qa")
+    physicist.expect("#qa-status").to_have_attribute("data-locked", "true")
+    physicist.expect("#qa-override-form").to_be_visible()
+    physicist.page.fill("#qa-override-reason", "phantom checked by hand (console test)")
+    physicist.page.click("#qa-override")
+    physicist.expect("#qa-status").to_have_attribute("data-locked", "false")
+    physicist.expect("#qa-override-now").to_contain_text("phantom checked by hand")
+    physicist.expect("#qa-override-form").to_be_hidden()
+    # The operator's tab hears of it (the qa.override event) and offers no withdrawal.
+    operator.expect("#qa-override-now").to_contain_text("phantom checked by hand")
+    operator.expect("#qa-override-withdraw").to_have_count(0)
+    physicist.page.click("#qa-override-withdraw")
+    physicist.expect("#qa-status").to_have_attribute("data-locked", "true")
+    physicist.expect("#qa-override-now").to_have_count(0)
+    overrides = [e for e in _http(qa_daemon, "GET", "/audit")["items"]
+                 if e["action"].startswith("qa_override")]
+    assert sorted(e["action"] for e in overrides) == ["qa_override", "qa_override_withdrawn"]
+
+    # The baseline run through the console, with the QA phantom placed by its helper.
+    physicist.page.click("#sim-phantom")
+    physicist.expect("#qa-run-message").to_contain_text("QA phantom placed")
+    assert _http(qa_daemon, "GET", "/sim/scene")["kind"] == "eye_phantom_1"
+    physicist.page.check("#qa-baseline")
+    physicist.page.click("#qa-run")
+    physicist.expect("#qa-progress").to_contain_text("Running (as baseline)")
+    physicist.expect("#qa-run").to_be_disabled()
+    physicist.expect("#qa-result").to_have_attribute("data-passed", "true", timeout=120_000)
+    physicist.expect("#qa-progress").to_be_hidden()
+    physicist.expect("#qa-result .verdict-word").to_have_text("PASSED")
+    figures = physicist.page.locator("#qa-figures tr[data-figure]")
+    assert figures.count() == 6
+    assert {figures.nth(k).get_attribute("data-passed") for k in range(6)} == {"true"}
+    physicist.expect("#qa-status").to_have_attribute("data-locked", "false")
+    physicist.expect("#qa-locked-word").to_have_text("NOT LOCKED")
+    run = _http(qa_daemon, "GET", "/qa/runs")["items"][0]
+    assert run["passed"] and run["baseline"] and run["actor"] == "physicist"
+    physicist.expect("#qa-result").to_have_attribute("data-run", run["id"])
+    physicist.expect(f"#qa-history tr[data-run='{run['id']}']").to_contain_text("baseline")
+    physicist.expect("#qa-trends img").to_have_count(6)
+    physicist.page.wait_for_function(  # every trend plot decoded, with the run's point
+        "() => [...document.querySelectorAll('#qa-trends img')]"
+        ".every(img => img.complete && img.naturalWidth > 0)")
+    physicist.expect("#qa-trends").to_contain_text("1 run(s)")
+    physicist.screenshot("qa")
+
+    # The printable report of the day, saved as a file (the daemon wants the token).
+    with physicist.page.expect_download() as saved:
+        physicist.page.click("#qa-report")
+    day = _http(qa_daemon, "GET", "/qa/status")["day"]
+    assert saved.value.suggested_filename == f"eyeserver-qa-{day}.html"
+    report = Path(saved.value.path()).read_text(encoding="utf-8")
+    assert f"eyeserver daily QA — {day}" in report and run["id"] in report
+
+    # The therapist is unlocked.
+    operator.view("therapist")
+    _load_patient(operator)
+    operator.expect("#qa-lock").to_be_hidden()
+    operator.expect("#verify").to_be_enabled()
+    operator.expect("#tracking-start").to_be_enabled()
+    operator.expect("#qa-state").to_have_text("QA passed")
+    assert operator.errors == [] and physicist.errors == []
+    denied = [e for e in _http(qa_daemon, "GET", "/audit")["items"] if e["outcome"] == "denied"]
+    assert denied == []  # the console never asked the daemon for what the role may not do

@@ -502,8 +502,9 @@ class DailyQa:
         """
         if figure not in FIGURES:
             raise KeyError(figure)
-        series = self.trends(days)["figures"][figure]
-        return _trend_png(figure, series, days)
+        trends = self.trends(days)
+        return _trend_png(figure, trends["figures"][figure], days, trends["since"],
+                          _utc_text(self.clock()))
 
     def report_html(self, day: date) -> str:
         """The day's QA report as a self-contained, printable HTML page: every run of the day
@@ -517,8 +518,9 @@ class DailyQa:
                             {name: self.trend_png(name, 30) for name in FIGURES})
 
 
-def _trend_png(figure: str, series: dict[str, Any], days: int) -> bytes:
-    """Draw one figure's trend with matplotlib's object API (Agg; no pyplot state)."""
+def _trend_png(figure: str, series: dict[str, Any], days: int, since: str, now: str) -> bytes:
+    """Draw one figure's trend over ``since``…``now`` (UTC texts) with matplotlib's object API
+    (Agg; no pyplot state)."""
     from matplotlib.figure import Figure  # imported here: a second's import, for pictures only
 
     points = series["points"]
@@ -546,6 +548,9 @@ def _trend_png(figure: str, series: dict[str, Any], days: int) -> bytes:
         if before["calibration_id"] != after["calibration_id"]:
             ax.axvline(moment, color="0.4", ls=":", lw=1)  # type: ignore[arg-type]
     ax.set_ylim(bottom=0)
+    # The period asked for: a single run would otherwise stretch the date axis over years.
+    start, end = (np.datetime64(t.removesuffix("Z"), "ms") for t in (since, now))
+    ax.set_xlim(start, end + (end - start) / 40)  # type: ignore[arg-type]
     ax.set_ylabel("mm")
     ax.set_title(f"{figure}: {series['description']} (last {days} days)", fontsize=8)
     ax.tick_params(labelsize=7)

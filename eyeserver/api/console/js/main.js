@@ -1,4 +1,5 @@
-// The console's shell: login, the caller's role, the views it may see, the daemon's state.
+// The console's shell: login, the caller's role, the views it may see, the daemon's state and
+// the daily QA's lockout (GET /qa/status: a badge in the top bar, ctx.qa for the views).
 //
 // The role comes from GET /api/v1/whoami; a view (and every action in a view) needing a role
 // the caller lacks is not shown at all. The daemon refuses such requests anyway (403): hiding
@@ -12,11 +13,13 @@ import * as audit from "./views/audit.js";
 import * as calibration from "./views/calibration.js";
 import * as devices from "./views/devices.js";
 import * as history from "./views/history.js";
+import * as qa from "./views/qa.js";
 import * as reconstruction from "./views/reconstruction.js";
 import * as therapist from "./views/therapist.js";
 
 const VIEWS = [
   {id: "therapist", title: "Therapist", role: "operator", view: therapist},
+  {id: "qa", title: "Daily QA", role: "operator", view: qa},
   {id: "calibration", title: "Guided calibration", role: "physicist", view: calibration},
   {id: "calibrations", title: "Calibration history", role: "physicist", view: history},
   {id: "devices", title: "Devices", role: "physicist", view: devices},
@@ -32,6 +35,7 @@ class Context {
   constructor(me) {
     this.me = me;
     this.status = null;
+    this.qa = null; // GET /qa/status: whether the daily QA locks verification and tracking
     this.events = new EventTarget();
   }
 
@@ -51,6 +55,14 @@ class Context {
     this.events.dispatchEvent(new CustomEvent("status", {detail: this.status}));
     showStatus(this.status);
     return this.status;
+  }
+
+  /** Ask the daemon whether the daily QA locks verification and tracking (a "qa" event). */
+  async refreshQa() {
+    this.qa = await get("/qa/status");
+    this.events.dispatchEvent(new CustomEvent("qa", {detail: this.qa}));
+    showQa(this.qa);
+    return this.qa;
   }
 
   /** Show `text` in the banner under the top bar (null hides it). */
@@ -118,8 +130,10 @@ async function start() {
   replace($("nav"), VIEWS.filter((v) => context.may(v.role)).map(
     (v) => h("a", {href: `#/${v.id}`, id: `nav-${v.id}`, dataset: {view: v.id}}, v.title)));
   await context.refreshStatus().catch((error) => context.banner(`Status: ${error.message}`));
+  await context.refreshQa().catch(() => showQa(null));
   statusTimer = setInterval(() => {
     context?.refreshStatus().catch(() => {});
+    context?.refreshQa().catch(() => {});
   }, STATUS_POLL_MS);
   openEvents(0);
   route();
@@ -150,6 +164,21 @@ function showStatus(status) {
   context?.banner(reasons.length ? `Fault — ${reasons.join("; ")}` : null);
 }
 
+/** The daily QA's lockout in the top bar: locked (red), overridden, passed or not required. */
+function showQa(status) {
+  const badge = $("qa-state");
+  badge.hidden = !status;
+  if (!status) return;
+  const [text, kind] = status.locked ? ["QA locked", "locked"]
+    : status.override ? ["QA overridden", "override"]
+      : status.qa_reason ? ["QA not required", "off"] : ["QA passed", "passed"];
+  badge.textContent = text;
+  badge.className = `badge qa-${kind}`;
+  badge.dataset.locked = String(status.locked);
+  badge.title = status.locked ? `Verification and tracking are locked: ${status.reason}`
+    : status.qa_reason ? `The daily QA lacks: ${status.qa_reason}` : "Today's QA passed";
+}
+
 /** The daemon's event stream: state changes and stored captures reach the views at once. */
 function openEvents(attempt) {
   const link = $("daemon-link");
@@ -165,6 +194,10 @@ function openEvents(attempt) {
     if (event.type === "state" || event.type === "hello" || event.type.startsWith("device.")
         || event.type === "calibration.activated") {
       context?.refreshStatus().catch(() => {});
+    }
+    if (event.type === "hello" || event.type.startsWith("qa.")
+        || event.type === "calibration.activated") {
+      context?.refreshQa().catch(() => {});
     }
     context?.events.dispatchEvent(new CustomEvent("event", {detail: event}));
   };

@@ -4,6 +4,10 @@
 // per second: the frames tracking already has, no extra exposure); otherwise the newest
 // capture's.
 //
+// While the daily QA locks position verification and tracking (ctx.qa, GET /qa/status) a banner
+// says so with the daemon's reason and whom to call, and Verify and Start tracking are disabled
+// (their title says why); the daemon would answer them 409 with the same reason.
+//
 // The lamp shows the daemon's beam-hold flag as the pose stream carries it (pose, hold and
 // heartbeat messages). It is a display, not the interlock: when the stream has said nothing
 // for LINK_DEAD_MS it shows the beam held, as the daemon asks of every listener.
@@ -83,7 +87,10 @@ export function mount(container, ctx) {
   const images = h("div", {id: "camera-images", class: "images"});
   const captureMessage = h("div", {id: "capture-message"});
 
-  container.append(h("div", {class: "grid therapist"},
+  // --- the daily QA's lockout ---------------------------------------------------------------
+  const qaLock = h("div", {id: "qa-lock", class: "qa-lock", role: "alert", hidden: true});
+
+  container.append(qaLock, h("div", {class: "grid therapist"},
     h("div", {class: "column"},
       panel("Patient and fraction", patientForm, patientMessage, patientDetails,
         referenceDetails, referenceActions),
@@ -483,12 +490,40 @@ export function mount(container, ctx) {
     if (data.type === "capture.stored" && !liveTimer) refreshImages();
   }
 
+  /** The banner of the daily QA's lockout: locked (why, whom to call), or overridden. */
+  function showQa() {
+    const status = ctx.qa;
+    const overridden = status && !status.locked && status.override;
+    qaLock.hidden = !status?.locked && !overridden;
+    qaLock.dataset.kind = status?.locked ? "locked" : overridden ? "override" : "none";
+    if (status?.locked) {
+      replace(qaLock, h("strong", {}, "Position verification and tracking are locked by the "
+        + "daily QA."),
+      h("div", {}, "Why: ", h("span", {id: "qa-lock-reason"}, status.reason)),
+      h("div", {class: "qa-lock-help"}, "Call the physicist, or run the daily QA with the QA "
+        + "phantom in place: ", h("a", {href: "#/qa"}, "Daily QA"), "."));
+    } else if (overridden) {
+      replace(qaLock, h("strong", {}, "The daily QA's lockout is overridden"),
+        ` by ${status.override.actor} until ${when(status.override.until)}: `
+          + `“${status.override.reason}”. The QA lacks: ${status.qa_reason}`);
+    } else {
+      replace(qaLock);
+    }
+    updateButtons();
+  }
+
   function updateButtons() {
     const loaded = patient !== null;
     const state = ctx.status?.state;
-    startButton.disabled = !loaded || trackingRunning;
+    const locked = ctx.qa?.locked === true;
+    const why = locked ? `Locked by the daily QA: ${ctx.qa.reason}` : null;
+    startButton.disabled = !loaded || trackingRunning || locked;
     stopButton.disabled = !trackingRunning;
-    verifyButton.disabled = !loaded || trackingRunning;
+    verifyButton.disabled = !loaded || trackingRunning || locked;
+    for (const button of [startButton, verifyButton]) {
+      if (why) button.title = why;
+      else button.removeAttribute("title");
+    }
     captureButton.disabled = trackingRunning || state === "calibrating";
     const referenceButton = document.getElementById("reference-capture");
     if (referenceButton) referenceButton.disabled = !loaded || trackingRunning;
@@ -497,6 +532,8 @@ export function mount(container, ctx) {
   const onStatus = () => updateButtons();
   ctx.events.addEventListener("event", onDaemonEvent);
   ctx.events.addEventListener("status", onStatus);
+  ctx.events.addEventListener("qa", showQa);
+  showQa();
   openPose();
   timers.push(setInterval(watchLink, 500));
   timers.push(setInterval(pollTracking, TRACKING_POLL_MS));
@@ -508,6 +545,7 @@ export function mount(container, ctx) {
     closed = true;
     ctx.events.removeEventListener("event", onDaemonEvent);
     ctx.events.removeEventListener("status", onStatus);
+    ctx.events.removeEventListener("qa", showQa);
     timers.forEach((t) => {
       clearInterval(t);
       clearTimeout(t);
