@@ -49,15 +49,19 @@ from its other camera at all, below the phase's own noise: its cameras at one az
 trusts that camera, so ``auto`` asks for a depth prior instead."""
 
 
-def unit_method(document: dict[str, Any], unit_id: str, method: str) -> tuple[str, str]:
+def unit_method(document: dict[str, Any], unit_id: str, method: str, *, fast: bool = False
+                ) -> tuple[str, str]:
     """The fringe-order method a unit is reconstructed with, and why.
 
-    ``auto`` takes the multi-view order where the calibration found the unit's two cameras
-    discriminate fringe orders (their margin at least ``MARGIN_WARNING_RAD``; it is fast and
-    every point is confirmed by both cameras), the spatial order where they do a little (one
-    order per region, voted by all its pixels), and ``"blind"`` where the margin is below
-    :data:`BLIND_MARGIN_RAD`: only a depth prior can fix that unit's orders. Any other method is
-    kept.
+    ``auto`` takes the spatial order (one order per region, voted by the multi-view picks of
+    its pixels) wherever the calibration found the unit's two cameras discriminate fringe orders
+    at all: it keeps what only one of them sees, which the multi-view order cannot (a plate at
+    +23 mm 0.68 → 0.88 of its lit pixels, the eye 0.67 → 0.82; docs/notes/fringe-order.md).
+    With ``fast`` (the eye pose's path: verification and live tracking, whose figures were
+    measured with it) it takes the multi-view order where the margin is at least
+    ``MARGIN_WARNING_RAD`` (about half the order's time; every point confirmed by both
+    cameras). Below :data:`BLIND_MARGIN_RAD` it gives ``"blind"``: only a depth prior can fix
+    that unit's orders. Any other method is kept.
     """
     if method != "auto":
         return method, "asked for"
@@ -67,8 +71,11 @@ def unit_method(document: dict[str, Any], unit_id: str, method: str) -> tuple[st
     if not isinstance(margin, (int, float)):
         return "spatial", "the calibration gives no fringe-order margin for this unit"
     if margin >= MARGIN_WARNING_RAD:
-        return "multi-view", (f"fringe-order margin {margin:.2f} rad, at least "
-                              f"{MARGIN_WARNING_RAD} rad")
+        if fast:
+            return "multi-view", (f"fringe-order margin {margin:.2f} rad, at least "
+                                  f"{MARGIN_WARNING_RAD} rad")
+        return "spatial", (f"fringe-order margin {margin:.2f} rad: regions unwrapped, each "
+                           "order voted by the other camera, what only one camera sees kept")
     if margin >= BLIND_MARGIN_RAD:
         return "spatial", (f"fringe-order margin {margin:.2f} rad, below {MARGIN_WARNING_RAD} "
                            "rad: too blind for the multi-view order")

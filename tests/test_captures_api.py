@@ -244,7 +244,7 @@ def test_the_summary_is_kept_and_read_back(client: Client, service: Service,
                                   "min_quality": 0.0}
     assert summary["method"] == "auto" and summary["duration_s"] > 0
     for camera in summary["cameras"].values():  # the default room's units discriminate orders
-        assert camera["method"] == "multi-view", camera
+        assert camera["method"] == "spatial", camera
         assert camera["method_reason"].startswith("fringe-order margin 0.")
         assert 0.3 < camera["coverage"] <= 1.0
         assert camera["coverage"] == pytest.approx(camera["points"] / camera["fringe_pixels"],

@@ -50,14 +50,7 @@ CASES = [pytest.param("default", name) for name in SCENES] + [
     pytest.param("single", "plate_+3"), pytest.param("single", "eye")]
 
 PLANES = {"plate_0", "plate_-9", "plate_+3", "plate_+23", "tilted"}
-SHORT_OF_THE_GOAL = {
-    ("default", "plate_+23"): 0.67,    # S1 0.69: the top band S2 does not see at +23 mm
-    ("default", "tilted"): 0.70,       # S1 0.72: the corners S2 does not see
-    ("wide", "plate_+3"): 0.78,        # S4 0.799
-    ("horizontal", "plate_+3"): 0.76,  # S2 0.783
-    ("default", "eye_phantom_2"): 0.53,  # 0.55-0.57
-    ("wide", "eye_phantom_2"): 0.53,     # 0.56-0.58
-    ("horizontal", "eye"): 0.58,         # S2 0.598
+SHORT_OF_THE_GOAL: dict[tuple[str, str], float] = {
 }
 """Issue 37's coverage goals are shares of the pixels the unit's projector lights (the truth's
 count, :func:`~eyeserver.hardware.sim.scoring.score_cloud`'s ``lit_share``): 0.8 on planes,
@@ -114,21 +107,25 @@ def test_two_views_reconstruct_too(calibrated_rooms: Any, tmp_path: Path) -> Non
     assert score["median_mm"] < 0.05
 
 
-@pytest.mark.parametrize(("section", "asked", "chosen", "why"), [
-    ({"margin_rad": 0.69}, "auto", "multi-view", "margin 0.69 rad, at least 0.5"),
-    ({"margin_rad": 0.5}, "auto", "multi-view", "at least 0.5"),
-    ({"margin_rad": 0.2}, "auto", "spatial", "0.20 rad, below 0.5 rad: too blind"),
-    ({"margin_rad": 0.0}, "auto", "blind", "cannot tell the fringe orders apart"),
-    ({"margin_rad": None, "note": "one camera"}, "auto", "spatial", "no fringe-order margin"),
-    (None, "auto", "spatial", "no fringe-order margin"),
-    ({"margin_rad": 0.0}, "multi-view", "multi-view", "asked for"),
-    ({"margin_rad": 0.69}, "spatial", "spatial", "asked for"),
-], ids=["clear", "at the line", "too blind", "blind", "one camera", "no section",
-        "asked multi-view", "asked spatial"])
+@pytest.mark.parametrize(("section", "asked", "fast", "chosen", "why"), [
+    ({"margin_rad": 0.69}, "auto", False, "spatial", "margin 0.69 rad: regions unwrapped"),
+    ({"margin_rad": 0.69}, "auto", True, "multi-view", "margin 0.69 rad, at least 0.5"),
+    ({"margin_rad": 0.5}, "auto", True, "multi-view", "at least 0.5"),
+    ({"margin_rad": 0.2}, "auto", False, "spatial", "0.20 rad, below 0.5 rad: too blind"),
+    ({"margin_rad": 0.2}, "auto", True, "spatial", "0.20 rad, below 0.5 rad: too blind"),
+    ({"margin_rad": 0.0}, "auto", False, "blind", "cannot tell the fringe orders apart"),
+    ({"margin_rad": 0.0}, "auto", True, "blind", "cannot tell the fringe orders apart"),
+    ({"margin_rad": None, "note": "one camera"}, "auto", False, "spatial",
+     "no fringe-order margin"),
+    (None, "auto", True, "spatial", "no fringe-order margin"),
+    ({"margin_rad": 0.0}, "multi-view", False, "multi-view", "asked for"),
+    ({"margin_rad": 0.69}, "spatial", True, "spatial", "asked for"),
+], ids=["clear", "clear, fast", "at the line, fast", "too blind", "too blind, fast", "blind",
+        "blind, fast", "one camera", "no section", "asked multi-view", "asked spatial"])
 def test_auto_picks_each_units_fringe_order_from_its_calibration(
-        section: dict[str, Any] | None, asked: str, chosen: str, why: str) -> None:
+        section: dict[str, Any] | None, asked: str, fast: bool, chosen: str, why: str) -> None:
     document = {"phase_to_height": {"units": {} if section is None else {"left": section}}}
-    method, reason = unit_method(document, "left", asked)
+    method, reason = unit_method(document, "left", asked, fast=fast)
     assert method == chosen
     assert why in reason
 
@@ -201,21 +198,26 @@ def test_bad_requests_are_explained(calibrated_rooms: Any, tmp_path: Path,
 # On the pyramid it keeps far more (+13 points of coverage); on eye phantom 1 about as much, and
 # an unwrapping slip next to the iris that both cameras share (so each confirms the other) can
 # leave up to ≈ 1 % of points a fringe off.
-SPATIAL = {"pyramid": (0.001, 0.05), "eye_phantom_1": (0.012, -0.02)}
+SPATIAL = {"pyramid": 0.1, "eye_phantom_1": 0.03}
+"""How much more of what each camera lit the default (``auto``: the spatial order, with what
+only one camera sees kept where it continues confirmed points) keeps than the multi-view order
+(measured 2026-12-05: pyramid 0.68–0.70 → 0.86–0.88, eye phantom 1 0.66 → 0.74)."""
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("scene", list(SPATIAL))
-def test_spatial_path_matches_and_covers_more(calibrated_rooms: Any, scene: str,
-                                              tmp_path: Path) -> None:
-    fast = _measure(calibrated_rooms, "default", scene, tmp_path)
-    robust = _measure(calibrated_rooms, "default", scene, tmp_path,
-                      options=("--method", "spatial"))
-    beyond, gain = SPATIAL[scene]
-    assert robust["median_mm"] < 0.05, robust
-    assert robust["beyond_1mm"] < beyond, robust
-    for camera_id, coverage in robust["coverage"].items():
-        assert coverage["share"] > fast["coverage"][camera_id]["share"] + gain, (fast, robust)
+def test_the_default_order_covers_more_than_the_multi_view_one(calibrated_rooms: Any,
+                                                               scene: str,
+                                                               tmp_path: Path) -> None:
+    fast = _measure(calibrated_rooms, "default", scene, tmp_path,
+                    options=("--method", "multi-view"))
+    default = _measure(calibrated_rooms, "default", scene, tmp_path)
+    for score in (fast, default):
+        assert score["median_mm"] < 0.05, score
+        assert score["beyond_1mm"] < 0.001, score
+    for camera_id, coverage in default["coverage"].items():
+        assert (coverage["lit_share"]
+                > fast["coverage"][camera_id]["lit_share"] + SPATIAL[scene]), (fast, default)
 
 
 @pytest.mark.slow

@@ -383,14 +383,14 @@ def _order_check(cam_a: CalibratedCamera, cam_b: CalibratedCamera, phase_b: Phas
     return cost, np.asarray(cost < MAX_MISMATCH_RAD)
 
 
-def _cross_check(cloud: CameraCloud, camera: CalibratedCamera, other: CameraCloud,
-                 other_camera: CalibratedCamera) -> CameraCloud:
+def _cross_check(cloud: CameraCloud, camera: CalibratedCamera, phase: Phase,
+                 other: CameraCloud, other_camera: CalibratedCamera) -> CameraCloud:
     # unit_clouds' check of each camera's points against the other's reconstruction (private
     # helpers, as unit_clouds calls them).
     from eyeserver.pipeline.reconstruct import _checked, _contradicted
 
     known, wrong = _contradicted(cloud, camera, other, other_camera)
-    return cloud.subset(_checked(cloud, known, wrong))
+    return cloud.subset(_checked(cloud, known, wrong, camera, phase))
 
 
 def skimage_unwrap(phase: Phase) -> Any:
@@ -453,8 +453,8 @@ def _multi_view_pass(frameset: RecordedFrameSet, samples: _Samples) -> dict[str,
             out["grids"][a] = grid
         checked = {
             cam.camera_id: samples.time(cam.camera_id, "cross_check", _cross_check,
-                                        clouds[cam.camera_id], cam, clouds[other.camera_id],
-                                        other)
+                                        clouds[cam.camera_id], cam, phases[cam.camera_id],
+                                        clouds[other.camera_id], other)
             for cam, other in ((unit.cam_a, unit.cam_b), (unit.cam_b, unit.cam_a))}
         for cam, other in ((unit.cam_a, unit.cam_b), (unit.cam_b, unit.cam_a)):
             cloud = samples.time(cam.camera_id, "despeckle", _despeckled,

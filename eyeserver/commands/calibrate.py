@@ -107,8 +107,8 @@ def add_reconstruct_parser(subparsers: Subparsers) -> None:
                         "fast, needs a unit whose calibration found a clear fringe-order "
                         "margin), spatial unwrapping with one order per region voted by the "
                         "other camera (spatial: slower, keeps more of what only one camera "
-                        "sees), or, the default, auto: multi-view where the unit's margin "
-                        "allows it, spatial elsewhere")
+                        "sees), or, the default, auto: spatial for every unit whose "
+                        "calibration found a fringe-order margin")
     parser.add_argument("--depth-prior", type=float, metavar="Z_MM",
                         help="height (mm) the surface lies near, within half a fringe's depth: "
                         "fixes the order of a camera alone in its unit and of spatial regions "

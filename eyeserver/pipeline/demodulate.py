@@ -56,7 +56,7 @@ import scipy.fft
 from eyeserver.core.frames import grey
 from eyeserver.core.types import F32, F64
 
-__all__ = ["Carrier", "Demodulated", "carrier_ratios", "demodulate", "measure_carrier",
+__all__ = ["Carrier", "Demodulated", "band_gain", "carrier_ratios", "demodulate", "measure_carrier",
            "phase_difference"]
 
 _TWO_PI = 2.0 * math.pi
@@ -607,6 +607,16 @@ def _pass_band(fy: npt.NDArray[np.float64], fx: npt.NDArray[np.float64], outer: 
     else:
         gain = (radius <= outer).astype(np.float64)
     return gain.astype(np.float32)
+
+
+def band_gain(carrier: Carrier, fy: npt.ArrayLike, fx: npt.ArrayLike) -> npt.NDArray[np.float32]:
+    """The default pass band's gain (0–1) for fringes of local frequency ``carrier + (fy, fx)``
+    (cycles/px): 1 on its flat top, where :func:`demodulate`'s phase is unbiased."""
+    f = carrier.cycles_per_px
+    outer = BANDWIDTH * f
+    direction = (carrier.frequency[0] / f, carrier.frequency[1] / f)
+    return _pass_band(np.asarray(fy, np.float64), np.asarray(fx, np.float64), outer,
+                      (1.0 - TAPER) * outer, direction, ELONGATION)
 
 
 def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = BANDWIDTH,

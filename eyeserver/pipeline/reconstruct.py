@@ -18,13 +18,15 @@ The fringe order comes by one of two paths, and the result says which (``CameraC
     order per connected region; the multi-view picks inside a region vote for it. A region B
     cannot judge falls back on a depth prior (the offset that puts its median height nearest
     ``depth_prior_mm``), and says so. Slower (the unwrapping alone takes ≈ 0.1 s per frame), but
-    it keeps surfaces the other camera sees only in parts.
+    it keeps what the other camera does not see where it continues points B confirms
+    (:func:`_checked`).
 
 A camera with no partner in its unit can only use the depth prior, pixel by pixel (``"depth
 prior"``): right only within half a fringe's depth (≈ ±2.5 mm on the default rig) of the prior.
 
-Finally each camera's points are kept only where the other camera's own reconstruction does not
-contradict them (:func:`unit_clouds`), and only in patches of continuous depth large enough not
+Finally each camera's points are kept only where the other camera's own reconstruction confirms
+them, or (spatial, where B does not see them) does not contradict them (:func:`unit_clouds`), and
+only in patches of continuous depth large enough not
 to be a wrong order's island: :data:`SPECKLE_PX` pixels, or down to :data:`MIN_PATCH_PX` where
 the other camera confirms the patch's order as a whole and no other order continues the points
 around it better (:func:`_patch_confirmed`). The eye's visible sclera, a few hundred pixels
@@ -53,7 +55,13 @@ from scipy import ndimage
 from skimage.restoration import unwrap_phase
 
 from eyeserver.core.types import F32, F64, Bool
-from eyeserver.pipeline.demodulate import Carrier, border_mask, demodulate, phase_difference
+from eyeserver.pipeline.demodulate import (
+    Carrier,
+    band_gain,
+    border_mask,
+    demodulate,
+    phase_difference,
+)
 from eyeserver.pipeline.geometry import (
     intersect_plane_z,
     pixel_grid_normalised,
@@ -1011,12 +1019,13 @@ def camera_cloud(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCamer
     # spatially unwrapped one must not contradict it where B can judge.
     points, z = _points(cam_a, phase_a, pixels, order)
     cost = _mismatch(cam_a, cam_b, phase_b.pinhole_view(cam_b), pixels, np.nan_to_num(z))
-    # A pixel whose region the depth prior fixed is kept where B cannot judge it (there is no
-    # better evidence); every other pixel must match B. Spatial unwrapping that slipped by a
-    # fringe inside a voted region (across a noisy patch) is caught here.
-    by_prior = source == ORDER_SOURCES.index("spatial + depth prior")
-    keep = (cost < MAX_MISMATCH_RAD) | (by_prior & (cost == np.pi))
-    cost = np.where(by_prior & (cost == np.pi), 0.0, cost)
+    # A spatially unwrapped pixel is kept where B cannot judge it (its region's order came from
+    # the votes or the depth prior; unit_clouds keeps a voted one only where it continues
+    # points B confirms); every other pixel must match B. Spatial unwrapping that slipped by a
+    # fringe inside a voted region (across a noisy patch) is caught here where B sees it.
+    unwrapped = source != ORDER_SOURCES.index("multi-view")
+    keep = (cost < MAX_MISMATCH_RAD) | (unwrapped & (cost == np.pi))
+    cost = np.where(unwrapped & (cost == np.pi), 0.0, cost)
     return _cloud(cam_a, phase_a, pixels[keep], points[keep], z[keep], cost[keep], source[keep],
                   z_range)
 
@@ -1076,8 +1085,8 @@ def unit_clouds(cam_a: CalibratedCamera, image_a: npt.ArrayLike | None,
                            depth_prior_mm=depth_prior_mm)
     known_a, wrong_a = _contradicted(cloud_a, cam_a, cloud_b, cam_b)
     known_b, wrong_b = _contradicted(cloud_b, cam_b, cloud_a, cam_a)
-    checked_a = cloud_a.subset(_checked(cloud_a, known_a, wrong_a))
-    checked_b = cloud_b.subset(_checked(cloud_b, known_b, wrong_b))
+    checked_a = cloud_a.subset(_checked(cloud_a, known_a, wrong_a, cam_a, phase_a))
+    checked_b = cloud_b.subset(_checked(cloud_b, known_b, wrong_b, cam_b, phase_b))
     return (_despeckled(checked_a, cam_a.shape, cam_a, cam_b, phase_b, z_range),
             _despeckled(checked_b, cam_b.shape, cam_b, cam_a, phase_a, z_range))
 
@@ -1099,8 +1108,72 @@ def _despeckled(cloud: CameraCloud, shape: tuple[int, int], cam: CalibratedCamer
                                                  z_range))
 
 
-def _checked(cloud: CameraCloud, known: Bool, wrong: Bool) -> Bool:
+def _checked(cloud: CameraCloud, known: Bool, wrong: Bool, cam: CalibratedCamera,
+             phase: Phase) -> Bool:
     """Points the other camera confirms; a point whose region only the depth prior fixed needs
-    only not to be contradicted (the other camera could not judge it)."""
-    by_prior = cloud.order_source == ORDER_SOURCES.index("spatial + depth prior")
-    return np.asarray((known | by_prior) & ~wrong)
+    only not to be contradicted (the other camera could not judge it); a spatially unwrapped
+    point of a voted region that the other camera cannot judge (it does not see it) is kept
+    where it continues confirmed points without a depth step (:data:`SPECKLE_STEP_MM`) and its
+    fringe's local frequency lies where the pass band passes it unbiased
+    (:data:`EXTENSION_MIN_GAIN`).
+
+    Why: the multi-view order needs both cameras, so what only one camera sees (a band along
+    the image's edge, a surface turned from the partner) was lost although the spatial
+    unwrapping reaches it from the confirmed part (issue 37; docs/notes/fringe-order.md). A
+    slip of a fringe on the way is a depth step of a fringe's height (millimetres), which cuts
+    the continuation there; steep flanks whose fringes the band passes attenuated came out
+    1.1–1.3 mm off on eye phantom 2 without the gain's condition."""
+    source = cloud.order_source
+    by_prior = source == ORDER_SOURCES.index("spatial + depth prior")
+    base = (known | by_prior) & ~wrong
+    extension = (source == ORDER_SOURCES.index("spatial + multi-view")) & ~known & ~wrong
+    if not extension.any():
+        return np.asarray(base)
+    extension &= _unbiased(cam, phase, cloud.pixels)
+    return np.asarray(base | (extension & _continues(
+        cloud, base | extension, base, cam.shape, SPECKLE_STEP_MM * cam.spacing_px)))
+
+
+EXTENSION_MIN_GAIN = 0.99
+"""The least pass-band gain (:func:`~eyeserver.pipeline.demodulate.band_gain`) at a pixel's
+local fringe frequency for a point the other camera cannot check: on the flat top the phase is
+unbiased; off it, the bend correction is the only defence, and the other camera's check no
+longer backs it."""
+
+
+def _unbiased(cam: CalibratedCamera, phase: Phase, pixels: npt.NDArray[np.intp]) -> Bool:
+    """Whether each pixel's local fringe frequency (the carrier plus the surface phase's wrapped
+    central differences, per image pixel) has a band gain of :data:`EXTENSION_MIN_GAIN`."""
+    h, w = phase.dphi.shape
+    rows, cols = np.divmod(pixels, w)
+    up, down = np.minimum(rows + 1, h - 1), np.maximum(rows - 1, 0)
+    right, left = np.minimum(cols + 1, w - 1), np.maximum(cols - 1, 0)
+    dphi = phase.dphi.astype(np.float64)
+    step = 2.0 * cam.spacing_px * TWO_PI  # two samples, radians to cycles
+    fy = np.angle(np.exp(1j * (dphi[up, cols] - dphi[down, cols]))) / step
+    fx = np.angle(np.exp(1j * (dphi[rows, right] - dphi[rows, left]))) / step
+    return np.asarray(band_gain(cam.carrier, fy, fx) >= EXTENSION_MIN_GAIN)
+
+
+def _continues(cloud: CameraCloud, among: Bool, anchors: Bool, shape: tuple[int, int],
+               step_mm: float) -> Bool:
+    """Which points of ``among`` are 4-connected to an ``anchors`` point through pixels of
+    ``among`` whose neighbours lie less than ``step_mm`` (mm) apart in depth; a pixel next to
+    a larger step is a cut and continues nothing."""
+    height, width = shape
+    depth = np.full(height * width, np.nan)
+    depth[cloud.pixels[among]] = cloud.points[among, 2]
+    depth = depth.reshape(shape)
+    cut = np.zeros(shape, bool)
+    with np.errstate(invalid="ignore"):
+        rows = np.abs(np.diff(depth, axis=0)) >= step_mm
+        cols = np.abs(np.diff(depth, axis=1)) >= step_mm
+    cut[:-1] |= rows
+    cut[1:] |= rows
+    cut[:, :-1] |= cols
+    cut[:, 1:] |= cols
+    labels, _ = ndimage.label(np.isfinite(depth) & ~cut)
+    flat = labels.ravel()
+    anchored = np.unique(flat[cloud.pixels[anchors & among]])
+    anchored = anchored[anchored > 0]
+    return np.asarray(np.isin(flat[cloud.pixels], anchored) & among)
