@@ -11,6 +11,10 @@ daemon keep the client from drifting away from it: its models are what the daemo
 document gives, its operations are the document's, its blocking half is the asyncio half's
 copy, and it imports nothing of the daemon (it installs alone).
 
+The daemon runs without the daily QA's lockout (tests/apiclient.py), except for the OIS's
+workflow, which turns it on to show that the example runs the QA (a physicist's baseline, the
+QA phantom placed in the simulated room and the eye put back) before it can verify.
+
 Live tracking runs the scripted frame source and fit of ``tests/test_tracking.py`` (the real
 pipeline's speed is the benches'), so the beam hold's changes come at known frames. No test
 asserts on wall-clock time; timeouts only keep a broken build from hanging.
@@ -48,6 +52,7 @@ from eyeserver_client.messages import (
     Message,
     PoseMeasured,
     PoseMessage,
+    QaRunDone,
     ReconstructionDone,
     Resumed,
     StateChanged,
@@ -60,6 +65,7 @@ from eyeserver.calibration.artefact import ARRAYS_FILE, CALIBRATION_FILE
 from eyeserver.core.clock import ManualClock
 from eyeserver.eye.fit import EyePose
 from eyeserver.service.frame_pose import PoseFinder
+from eyeserver.service.qa import DailyQa
 from eyeserver.service.tracking import TrackingControl
 from tests.apiclient import OPERATOR_TOKEN, PHYSICIST_TOKEN, test_settings
 from tests.liveserver import live_server
@@ -557,21 +563,54 @@ def test_a_restarted_daemon_is_told_apart_from_a_gap(tmp_path: Path) -> None:
 # --- the workflows -------------------------------------------------------------------------
 
 
+@pytest.fixture
+def qa_required(app: FastAPI, physicist: ec.Client) -> Iterator[None]:
+    """The daily QA's lockout on, as in a treatment room (the module's daemon runs without
+    it): verification and tracking answer 409 until a QA run passed. Runs take 2 frames, not
+    the default 4, to keep the test short."""
+    physicist.qa_status()  # the daemon makes its DailyQa on first use
+    saved = app.state.qa
+    assert isinstance(saved, DailyQa)
+    settings = saved.settings.model_copy(update={"required": True, "frames": 2})
+    app.state.qa = DailyQa(saved.service, settings, app.state.settings.data_dir)
+    try:
+        yield
+    finally:
+        app.state.qa = saved
+
+
 @pytest.mark.slow
 def test_the_ois_verifies_a_patients_position_through_the_client(
-        physicist: ec.Client, operator: ec.Client, calibration_id: str) -> None:
+        physicist: ec.Client, operator: ec.Client, calibration_id: str, qa_required: None
+        ) -> None:
     example = _load("examples/ois_verification.py")
     patient_id = "P-OIS?1#%"  # printable ASCII: ?, # and % must not cut the path
     physicist.set_sim_eye(position_mm=[0.0, 0.0, -10.0], gaze_deg=[0.0, 0.0], still=True)
+    said: list[str] = []
     seen: list[Message] = []
     with operator.events(silence_s=STREAM_SILENCE_S) as events:
         example.prepare(physicist, patient_id, 1, eye="right", unit="left")
+        # A calibration just activated: locked until a physicist's QA baseline.
+        with pytest.raises(ec.Conflict, match="no QA baseline"):
+            example.verify(operator, patient_id, 1)
+        status = example.daily_qa(physicist, simulated=True, say=said.append)
+        told_qa = _until(events, QaRunDone, seen)
         result = example.verify(operator, patient_id, 1)
         told = _until(events, PoseMeasured, seen)
     # Each event came as its own model (none fell back to the generic one): the daemon's
     # events and the client's messages agree.
-    assert {type(m) for m in seen} >= {Hello, StateChanged, CaptureStored, ReconstructionDone}
+    assert {type(m) for m in seen} >= {Hello, StateChanged, CaptureStored, ReconstructionDone,
+                                       QaRunDone}
     assert [m.type for m in seen if type(m) in (Event, Message)] == []
+
+    # The QA: the baseline run passed, nothing is locked, and the eye is back where it was.
+    assert status.locked is False and status.baseline_run_id == status.last_pass
+    assert isinstance(told_qa, QaRunDone) and told_qa.run_id == status.baseline_run_id
+    assert told_qa.passed is True and told_qa.baseline is True
+    assert any("(baseline): passed" in line for line in said), said
+    assert physicist.sim_scene().kind == "eye"
+    assert physicist.sim_eye().eye["centre_mm"] == pytest.approx([0.0, 0.0, -10.0])
+    assert example.daily_qa(operator, simulated=True, say=said.append) == operator.qa_status()
 
     assert result.passed is True, result.reasons
     assert result.patient_id == patient_id and result.fraction == 1

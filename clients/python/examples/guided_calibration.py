@@ -11,6 +11,11 @@ waits for Enter; the plate moves on the motorised stage. With ``--simulated`` it
 itself in the simulated room. The daemon says after each view which cameras found the board
 and which image cells still lack corners: add views until it says the session is ready.
 Nothing is activated unless you ask (``--activate``): compare first.
+
+A calibration just activated has no QA baseline, and the daemon refuses position verification
+and tracking until it has one (docs/qa.md). With ``--activate`` the script then runs the QA
+baseline: it asks you to put the QA phantom at its QA position (``--simulated``: it puts it in
+the simulated room, then the patient's eye), and fails when the baseline run does.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ import sys
 from collections.abc import Callable
 
 from eyeserver_client import Client, EyeserverError
-from eyeserver_client.models import CalibrationResponse
+from eyeserver_client.models import CalibrationResponse, QaRun
 
 #: Chessboard poses (position mm, rotation degrees) that calibrate the simulated room: the
 #: first is the origin board; the others tilt and turn it so each camera sees it
@@ -44,6 +49,8 @@ SIMULATED_BOARD_POSES: list[tuple[tuple[float, float, float], tuple[float, float
 #: 0 and the reference plane. The daemon says which plate heights in it this rig needs.
 Z_RANGE_MM = (-4.0, 10.0)
 REFERENCE_Z_MM = 10.0
+#: The QA phantom at its QA position in the simulated room (docs/qa.md).
+QA_PHANTOM_SCENE = {"kind": "eye_phantom_1", "position_mm": [0.0, 0.0, 0.0]}
 #: Solves tried before giving up: after a failed one the session takes the plates its plan
 #: asks for next (finer steps) and solves again.
 SOLVE_ATTEMPTS = 2
@@ -138,6 +145,27 @@ def _solve(client: Client, session_id: str, say: Prompt) -> CalibrationResponse:
     return calibration
 
 
+def qa_baseline(client: Client, place_phantom: Prompt, *, put_back: Prompt,
+                say: Prompt = print) -> QaRun | None:
+    """The active calibration's QA baseline when it has none (None when it has one or the
+    daemon does not require the QA): the phantom placed, the baseline run, ``put_back``.
+    Raises :class:`EyeserverError` with the reasons when the run fails."""
+    status = client.qa_status()
+    if status.baseline_run_id is not None or not status.required:
+        return None
+    place_phantom("put the QA phantom at its QA position (ball centre on the isocentre)")
+    try:
+        run = client.run_qa(baseline=True)
+    finally:
+        put_back("take the QA phantom away")
+    say(f"QA baseline {run.id}: {'passed' if run.passed else 'FAILED'} ("
+        + ", ".join(f"{name} {figure.value:.4f}" for name, figure in run.figures.items()
+                    if figure.value is not None) + ")")
+    if not run.passed or not run.baseline:
+        raise EyeserverError(f"the QA baseline failed: {'; '.join(run.reasons)}")
+    return run
+
+
 def run(client: Client, *, parent_id: str | None = None, simulated: bool = False,
         activate: bool = False, z_range_mm: tuple[float, float] = Z_RANGE_MM,
         say: Prompt = print) -> CalibrationResponse:
@@ -172,6 +200,16 @@ def run(client: Client, *, parent_id: str | None = None, simulated: bool = False
     if activate:
         made = client.activate_calibration(made.id)
         say(f"{made.id} is active")
+        if simulated:
+            def place_phantom(what: str) -> None:
+                client.set_sim_scene(QA_PHANTOM_SCENE)
+
+            def put_eye_back(what: str) -> None:
+                client.set_sim_scene({"kind": "eye"})  # the default patient eye
+
+            qa_baseline(client, place_phantom, put_back=put_eye_back, say=say)
+        else:
+            qa_baseline(client, ask, put_back=ask, say=say)
     return made
 
 

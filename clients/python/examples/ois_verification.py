@@ -2,13 +2,21 @@
 
 Run against a daemon with an active calibration::
 
-    python ois_verification.py P-0001 --fraction 1 --eye right           # reference at set-up
+    python ois_verification.py P-0001 --fraction 1 --eye right --qa --simulated
     python ois_verification.py P-0001 --fraction 2 --eye right \\
         --planned-centre 0 0 -10 --planned-gaze 0 0 1 --ellipsoid 12.1 11.9 12.4
 
-Setting up the patient and the reference needs a physicist's token; measuring an operator's
-(``$EYESERVER_TOKEN``, or ``--token-file``). Exit status: 0 when the position verification
-passed, 1 when it failed (the reasons are printed), 2 when it could not be done.
+The daemon refuses to verify (409) until the day's QA has passed with the active calibration,
+and a new calibration needs a physicist's QA baseline first (docs/qa.md). ``--qa`` runs that
+QA first when the lockout asks for it (the baseline run when the calibration has none): it
+asks you to put the QA phantom at its QA position and, after the run, the patient back; with
+``--simulated`` it places the phantom in the simulated room itself and then the scene that
+was there before. Without ``--qa`` the QA is someone else's morning routine.
+
+Setting up the patient and the reference, and a QA baseline, need a physicist's token;
+measuring and the daily QA an operator's (``$EYESERVER_TOKEN``, or ``--token-file``). Exit
+status: 0 when the position verification passed, 1 when it failed (the reasons are printed), 2
+when it could not be done (a failed QA among the reasons).
 
 A reference is either captured at set-up (the eye is measured and its pose stored) or taken
 from the treatment plan. Against a planned reference the eye model must know the globe's shape
@@ -20,10 +28,60 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from eyeserver_client import Client, EyeserverError, Invalid
-from eyeserver_client.models import Measurement
+from eyeserver_client.models import Measurement, QaStatus
+
+#: The QA phantom at its QA position in the simulated room (docs/qa.md): eye phantom 1's ball
+#: centred on the isocentre.
+QA_PHANTOM_SCENE = {"kind": "eye_phantom_1", "position_mm": [0.0, 0.0, 0.0]}
+
+Prompt = Callable[[str], None]
+"""Asks someone in the room to do something and returns when it is done."""
+
+
+def ask(what: str) -> None:
+    """The real room's prompt: say what to do, wait for Enter."""
+    input(f"{what}, then press Enter ")
+
+
+def daily_qa(client: Client, *, simulated: bool = False, place: Prompt = ask,
+             say: Prompt = print) -> QaStatus:
+    """The day's QA, when the lockout asks for it: nothing if verification is not locked;
+    otherwise the QA phantom at its QA position (``place`` asks for it; ``simulated``: put
+    there in the simulated room), a QA run (the calibration's baseline if it has none: a
+    physicist's token), the patient's scene again. Raises :class:`EyeserverError` with the
+    reasons when the run fails or verification stays locked; returns the QA status."""
+    status = client.qa_status()
+    if not status.locked:
+        return status
+    if status.calibration_id is None:
+        raise EyeserverError(f"the daily QA cannot run: {status.reason}")
+    baseline = status.baseline_run_id is None  # a new calibration: its baseline first
+    say(f"QA lockout: {status.reason}")
+    scene = client.sim_scene() if simulated else None  # to put back: the eye as it was
+    if scene is not None:
+        client.set_sim_scene(QA_PHANTOM_SCENE)
+    else:
+        place("put the QA phantom at its QA position (ball centre on the isocentre)")
+    try:
+        run = client.run_qa(baseline=baseline)
+    finally:
+        if scene is not None:
+            client.set_sim_scene(scene)
+        else:
+            place("take the QA phantom away and seat the patient")
+    figures = ", ".join(f"{name} {figure.value:.4f}" for name, figure in run.figures.items()
+                        if figure.value is not None)
+    say(f"QA {run.id}{' (baseline)' if run.baseline else ''}: "
+        f"{'passed' if run.passed else 'FAILED'} ({figures})")
+    if not run.passed:
+        raise EyeserverError(f"the daily QA failed: {'; '.join(run.reasons)}")
+    status = client.qa_status()
+    if status.locked:
+        raise EyeserverError(f"still locked after the QA: {status.reason}")
+    return status
 
 
 def prepare(client: Client, patient_id: str, fraction: int, *, eye: str, unit: str = "all",
@@ -78,9 +136,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--token-file", help="file holding the token")
     parser.add_argument("--skip-setup", action="store_true",
                         help="patient and reference exist: only measure")
+    parser.add_argument("--qa", action="store_true",
+                        help="run the day's QA first if the lockout asks for it")
+    parser.add_argument("--simulated", action="store_true",
+                        help="with --qa: place the QA phantom in the simulated room")
     args = parser.parse_args(argv)
     try:
         with Client(args.url, token_file=args.token_file) as client:
+            if args.qa:
+                daily_qa(client, simulated=args.simulated)
             if not args.skip_setup:
                 prepare(client, args.patient_id, args.fraction, eye=args.eye, unit=args.unit,
                         planned_centre_mm=args.planned_centre, planned_gaze=args.planned_gaze,

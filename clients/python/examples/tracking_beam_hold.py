@@ -1,6 +1,8 @@
 """Live tracking with the beam-hold flag: what a beam controller listens to.
 
-Run against a daemon with an active calibration, a patient and the fraction's reference::
+Run against a daemon with an active calibration whose daily QA has passed today (else it
+answers 409 with the reason: docs/qa.md; ``ois_verification.py --qa`` runs the QA), a patient
+and the fraction's reference::
 
     python tracking_beam_hold.py P-0001 --fraction 1 --seconds 30
 

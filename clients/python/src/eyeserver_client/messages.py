@@ -50,6 +50,8 @@ __all__ = [
     "PoseMeasured",
     "PoseMessage",
     "PoseStreamMessage",
+    "QaOverridden",
+    "QaRunDone",
     "ReconstructionDone",
     "Resumed",
     "StateChanged",
@@ -242,6 +244,25 @@ class PoseMeasured(Event):
     gaze_deg: float
 
 
+class QaRunDone(Event):
+    """A daily QA run was stored, passed or not (``baseline``: it became the calibration's QA
+    baseline); ``client.qa_run(run_id)`` has its figures."""
+
+    type: Literal["qa.run"]
+    run_id: str
+    passed: bool
+    calibration_id: str
+    baseline: bool
+
+
+class QaOverridden(Event):
+    """A physicist lifted the daily QA's lockout for the rest of the day."""
+
+    type: Literal["qa.override"]
+    override_id: str
+    actor: str
+
+
 class TrackingStarted(Event):
     """Live tracking started for a fraction on a unit."""
 
@@ -383,7 +404,8 @@ EventStreamMessage = (
     Hello | Dropped | StateChanged | DeviceFault | DeviceRecovered | CaptureStored
     | ReconstructionDone | CalibrationEvent | CalibrationCreated | CalibrationSessionOpened
     | CalibrationSessionView | CalibrationSessionPlate | JobStateChanged | JobProgress
-    | PoseMeasured | TrackingStarted | TrackingStopped | Disconnected | Resumed | Event | Message
+    | PoseMeasured | QaRunDone | QaOverridden | TrackingStarted | TrackingStopped | Disconnected
+    | Resumed | Event | Message
 )
 """What iterating ``/ws/events`` yields."""
 
@@ -400,7 +422,8 @@ _EVENT_TYPES: dict[str, type[Message]] = {
     "calibration_session.opened": CalibrationSessionOpened,
     "calibration_session.view": CalibrationSessionView,
     "calibration_session.plate": CalibrationSessionPlate, "job.state": JobStateChanged,
-    "job.progress": JobProgress, "pose.measured": PoseMeasured,
+    "job.progress": JobProgress, "pose.measured": PoseMeasured, "qa.run": QaRunDone,
+    "qa.override": QaOverridden,
     "tracking.started": TrackingStarted, "tracking.stopped": TrackingStopped,
 }
 _POSE_TYPES: dict[str, type[Message]] = {
