@@ -243,8 +243,8 @@ class ReconstructionRequest(BaseModel):
         default="auto", description="Fringe order per pixel from the unit's other camera "
         "(multi-view: fast, needs a unit whose calibration found a clear fringe-order margin), "
         "spatial unwrapping with one order per region voted by the other camera (spatial: "
-        "slower, keeps more of what only one camera sees), or auto: multi-view where the "
-        "unit's margin allows it, spatial elsewhere.")
+        "slower, keeps more of what only one camera sees), or auto: spatial for every unit "
+        "whose calibration found a fringe-order margin.")
     depth_prior_mm: float | None = Field(
         default=None, allow_inf_nan=False, description="Height (mm) the surface lies near, "
         "within half a fringe's depth; fixes the order of a camera alone in its unit and of "
