@@ -21,12 +21,9 @@ from websockets.sync.client import connect
 from eyeserver.api import create_app
 from eyeserver.api.asyncapi import CHANNELS, asyncapi_document
 from eyeserver.api.messages import Dropped, PoseMessage
-from eyeserver.core.clock import ManualClock
-from eyeserver.service.frame_pose import PoseFinder
-from eyeserver.service.tracking import TrackingControl
 from tests.apiclient import API, OPERATOR_TOKEN, PHYSICIST_TOKEN, auth, test_settings
 from tests.liveserver import live_server
-from tests.test_tracking import ScriptedPipeline, ScriptedSource, _planned_patient
+from tests.test_tracking import scripted_tracking
 
 TIMEOUT_S = 120.0  # a loaded machine renders a capture slowly
 
@@ -125,16 +122,7 @@ def test_the_models_refuse_a_message_that_drifted() -> None:
 def test_every_message_a_live_daemon_sends_fits_its_schema(app: FastAPI, base_url: str) -> None:
     # Scripted tracking (as tests/test_tracking.py): the pose stream's messages without the
     # pipeline's cost.
-    control = app.state.tracking
-    assert isinstance(control, TrackingControl)
-    clock = ManualClock(1_000_000_000)
-    pipeline = ScriptedPipeline(clock, reconstruct_s=0.012, fit_s=0.008)
-    control.clock = clock
-    control.deadline_s = 3600.0
-    control.finder_factory = lambda service, model: PoseFinder(pipeline.reconstruct,
-                                                               pipeline.fit, model)
-    control.source_factory = lambda service, units, c: ScriptedSource(c, pace_s=0.002)
-    _planned_patient(base_url, "P-T1", "right", {"semi_axes_mm": [12.1, 11.9, 12.4]})
+    scripted_tracking(app, base_url)
     received: dict[str, list[dict[str, Any]]] = {"events": [], "pose": []}
     stop = threading.Event()
 

@@ -112,6 +112,24 @@ def test_whoami_names_the_caller_and_its_roles(client: Client) -> None:
 # --- a real daemon and a real browser ----------------------------------------------------------
 
 
+def _set_up(running: DaemonProcess, caldir: Path) -> None:
+    """An active calibration (``caldir``), the patient (right eye, seen by unit left) and a
+    reference captured at set-up with the eye at rest."""
+    client = running.client
+    imported = client.post(f"{API}/calibrations", content=zip_directory(caldir),
+                           headers={"content-type": "application/zip"})
+    assert imported.status_code == 201, imported.text
+    activated = client.post(f"{API}/calibrations/{imported.json()['id']}/activate")
+    assert activated.status_code == 200, activated.text
+    for method, path, body in [
+            ("PUT", f"/patients/{PATIENT}", {"eye": "right", "unit": "left"}),
+            ("PUT", "/sim/eye", {"position_mm": [0.0, 0.0, -10.0], "gaze_deg": [0.0, 0.0],
+                                 "motion": None}),
+            ("POST", f"/patients/{PATIENT}/fractions/1/reference/capture", None)]:
+        answer = client.request(method, f"{API}{path}", json=body)
+        assert answer.status_code in (200, 201), answer.text
+
+
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory: pytest.TempPathFactory,
            calibrated_rooms: Callable[[str], tuple[Path, Path]]) -> Iterator[DaemonProcess]:
@@ -121,19 +139,7 @@ def daemon(tmp_path_factory: pytest.TempPathFactory,
     _, caldir = calibrated_rooms("default")
     work = tmp_path_factory.mktemp("console")
     with DaemonProcess(work / "data", log=work / "serve.log") as running:
-        client = running.client
-        imported = client.post(f"{API}/calibrations", content=zip_directory(caldir),
-                               headers={"content-type": "application/zip"})
-        assert imported.status_code == 201, imported.text
-        activated = client.post(f"{API}/calibrations/{imported.json()['id']}/activate")
-        assert activated.status_code == 200, activated.text
-        for method, path, body in [
-                ("PUT", f"/patients/{PATIENT}", {"eye": "right", "unit": "left"}),
-                ("PUT", "/sim/eye", {"position_mm": [0.0, 0.0, -10.0], "gaze_deg": [0.0, 0.0],
-                                     "motion": None}),
-                ("POST", f"/patients/{PATIENT}/fractions/1/reference/capture", None)]:
-            answer = client.request(method, f"{API}{path}", json=body)
-            assert answer.status_code in (200, 201), answer.text
+        _set_up(running, caldir)
         yield running
 
 
@@ -547,19 +553,7 @@ def qa_daemon(tmp_path_factory: pytest.TempPathFactory,
     with DaemonProcess(work / "data", log=work / "serve.log",
                        env={"EYESERVER_QA__REQUIRED": "true",
                             "EYESERVER_QA__FRAMES": "2"}) as running:
-        client = running.client
-        imported = client.post(f"{API}/calibrations", content=zip_directory(caldir),
-                               headers={"content-type": "application/zip"})
-        assert imported.status_code == 201, imported.text
-        activated = client.post(f"{API}/calibrations/{imported.json()['id']}/activate")
-        assert activated.status_code == 200, activated.text
-        for method, path, body in [
-                ("PUT", f"/patients/{PATIENT}", {"eye": "right", "unit": "left"}),
-                ("PUT", "/sim/eye", {"position_mm": [0.0, 0.0, -10.0], "gaze_deg": [0.0, 0.0],
-                                     "motion": None}),
-                ("POST", f"/patients/{PATIENT}/fractions/1/reference/capture", None)]:
-            answer = client.request(method, f"{API}{path}", json=body)
-            assert answer.status_code in (200, 201), answer.text
+        _set_up(running, caldir)
         yield running
 
 

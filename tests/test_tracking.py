@@ -691,6 +691,12 @@ def base_url(app: FastAPI) -> Iterator[str]:
 
 @pytest.fixture(scope="module")
 def tracking(app: FastAPI, base_url: str) -> TrackingControl:
+    return scripted_tracking(app, base_url)
+
+
+def scripted_tracking(app: FastAPI, base_url: str) -> TrackingControl:
+    """The app's tracking on a manual clock with a scripted pipeline and frame source, and a
+    patient P-T1 with a planned reference (the MRI's ellipsoid)."""
     control = app.state.tracking
     assert isinstance(control, TrackingControl)
     clock = ManualClock(1_000_000_000)
