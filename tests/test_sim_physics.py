@@ -914,3 +914,26 @@ def test_a_wet_patient_eye_mirrors_each_projector_as_a_saturated_glint(room: Sim
         assert lights[0].max() < 100.0
         assert 1 <= int((glint > 255.0).sum()) <= 100, int((glint > 255.0).sum())
         assert glint.max() > 1000.0
+
+
+def test_a_scene_changed_between_the_cameras_of_one_pulse_reaches_neither() -> None:
+    # Live tracking goes on while the simulated eye is moved (PUT /sim/eye): an exposure timed
+    # before the change (its pulse fired, one camera read after) still sees the old scene.
+    clock = ManualClock(1_000_000_000)
+    sim = SimRoom(_small_room(5), clock=clock)
+    sim.set_scene(SceneSpec(kind="plate", position_mm=(0.0, 0.0, 0.0)))
+    pulse_s = 1.5
+    clock.advance(1.0)  # the pulse fired at 1.5 s; now 2 s
+
+    def exposure(t_s: float) -> npt.NDArray[Any]:
+        return np.asarray(sim.render("S1", t_s=t_s, projectors={"P1": 1.0}, exposure_us=10_000,
+                                     gain_db=0.0, rng=np.random.default_rng(0)))
+
+    before = exposure(pulse_s)
+    sim.set_scene(SceneSpec(kind="plate", position_mm=(0.0, 0.0, 5.0)))
+    np.testing.assert_array_equal(exposure(pulse_s), before)  # the old scene
+    clock.advance(0.04)
+    after = exposure(2.02)  # a pulse after the change
+    # The same noise draws (one seed): what differs is the plate, moved 5 mm (≈ 4 DN a pixel
+    # on average as its fringes shift).
+    assert np.abs(after.astype(np.float64) - before).mean() > 1.0

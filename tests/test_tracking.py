@@ -736,6 +736,11 @@ def _post(base_url: str, path: str, body: dict[str, Any] | None = None,
                       timeout=TIMEOUT_S)
 
 
+def _put(base_url: str, path: str, body: dict[str, Any]) -> httpx.Response:
+    return httpx.put(f"{base_url}{API}{path}", json=body, headers=auth(PHYSICIST_TOKEN),
+                     timeout=TIMEOUT_S)
+
+
 def _get(base_url: str, path: str) -> dict[str, Any]:
     response = httpx.get(f"{base_url}{API}{path}", headers=auth(OPERATOR_TOKEN),
                          timeout=TIMEOUT_S)
@@ -769,6 +774,8 @@ def test_tracking_starts_streams_and_stops_through_the_api(
     base_url: str, tracking: TrackingControl, app: FastAPI
 ) -> None:
     assert _post(base_url, "/tracking/stop").status_code == 409  # nothing to stop
+    eye = _put(base_url, "/sim/eye", {"position_mm": [0.0, 0.0, -10.0]})
+    assert eye.status_code == 200, eye.text
     with _connect(base_url) as ws:
         started = _post(base_url, "/tracking/start", {"patient_id": "P-T1", "fraction": 1})
         assert started.status_code == 201, started.text
@@ -779,6 +786,12 @@ def test_tracking_starts_streams_and_stops_through_the_api(
         assert capture.status_code == 409 and "tracking" in capture.json()["detail"]
         again = _post(base_url, "/tracking/start", {"patient_id": "P-T1", "fraction": 1})
         assert again.status_code == 409
+        # The simulated eye may move under tracking (a demonstration need not script it all),
+        # but no other scene may take its place.
+        moved = _put(base_url, "/sim/eye", {"position_mm": [1.0, 0.0, -10.0]})
+        assert moved.status_code == 200, moved.text
+        plate = _put(base_url, "/sim/scene", {"kind": "plate"})
+        assert plate.status_code == 409 and "tracking" in plate.json()["detail"]
 
         messages = [_recv(ws) for _ in range(10)]
         stopped = _post(base_url, "/tracking/stop")

@@ -375,12 +375,13 @@ class Service:
                 self.events.publish("state", state=self._state, previous=busy)
 
     @contextmanager
-    def idle_moment(self, what: str) -> Iterator[None]:
+    def idle_moment(self, what: str, *, while_tracking: bool = False) -> Iterator[None]:
         """Run a short block while no operation holds the hardware, keeping one from starting.
 
         For changes that must not land in the middle of an operation but take no time worth a
         state of their own (placing a simulated scene). The block holds the state lock: it must
-        be quick and must not call back into the service.
+        be quick and must not call back into the service. ``while_tracking``: live tracking
+        does not count as such an operation (the simulated eye moved under it).
 
         Raises
         ------
@@ -392,7 +393,8 @@ class Service:
             # plate between its acquisitions; that is the moment for a scene to change.
             between_views = (self._state == "calibrating" and self._session is not None
                              and not self._session_acquiring)
-            if self._state not in ("idle", "fault") and not between_views:
+            allowed = ("idle", "fault", "tracking") if while_tracking else ("idle", "fault")
+            if self._state not in allowed and not between_views:
                 raise StateConflictError(f"cannot {what}: the daemon is {self._state}")
             yield
 

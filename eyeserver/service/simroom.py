@@ -79,15 +79,20 @@ class SimRoomControl:
         """The scene in front of the cameras now."""
         return self._room.scene
 
-    def place(self, spec: SceneSpec, *, actor: str | None = None) -> SceneSpec:
+    def place(self, spec: SceneSpec, *, actor: str | None = None,
+              while_tracking: bool = False) -> SceneSpec:
         """Put ``spec`` in front of the cameras; a moving eye's script starts now.
+
+        ``while_tracking``: also while live tracking runs (the eye moved under it; the frames
+        of a trigger pulse fired before the change still see the old scene, so none mixes
+        two: :meth:`~eyeserver.hardware.sim.room.SimRoom.set_scene`).
 
         Raises
         ------
         StateConflictError
             An operation holds the hardware (the message names the daemon's state).
         """
-        with self._service.idle_moment("place a scene"):
+        with self._service.idle_moment("place a scene", while_tracking=while_tracking):
             self._room.set_scene(spec)
         _log.info("simulated scene placed", extra={"kind": spec.kind, "actor": actor})
         return spec
@@ -141,7 +146,8 @@ class SimRoomControl:
         ValueError
             The resulting eye is invalid (e.g. a limbus wider than the cornea).
         StateConflictError
-            An operation holds the hardware.
+            An operation other than live tracking holds the hardware (tracking goes on with
+            the eye as placed: frames rendered ahead of the old eye are forgotten).
         """
         current = self._room.scene
         base = current if current.kind == "eye" else SceneSpec(kind="eye")
@@ -154,7 +160,7 @@ class SimRoomControl:
         except ValidationError as exc:
             raise ValueError("; ".join(f"{'.'.join(str(p) for p in e['loc']) or 'eye'}: "
                                        f"{e['msg']}" for e in exc.errors())) from None
-        return self.place(spec, actor=actor)
+        return self.place(spec, actor=actor, while_tracking=current.kind == "eye")
 
     def prerender_eye(self, unit_id: str, seconds: float, *, actor: str | None = None,
                       ) -> dict[str, Any]:

@@ -164,7 +164,8 @@ async def put_eye(request: SimEyeRequest, room: SimRoomDep, caller: OperatorDep,
     """Place the patient eye (the scene becomes the eye if it was not): its position, gaze and
     globe parameters, or a motion script (MotionSpec) that starts now. Fields left out keep
     their current values; ``"motion": null`` stops the motion. 422 for an impossible eye, 409
-    while the hardware is busy."""
+    while the hardware is busy; live tracking goes on with the eye moved under it (the scene
+    must be the eye already)."""
     given = request.model_fields_set
     eye = {name: getattr(request, name) for name in
            ("gaze_deg", "globe_radius_mm", "cornea_radius_mm", "limbus_diameter_mm")

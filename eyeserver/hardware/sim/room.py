@@ -92,6 +92,9 @@ class SimRoom:
         self._scene = SceneSpec()
         self._room_lights = False
         self._scene_epoch_ns = 0
+        # The scene before the last change and its epoch: exposures timed before the change
+        # still see it (render), so that the cameras of one trigger pulse never see two scenes.
+        self._before: tuple[SceneSpec, int] | None = None
         self._lock = threading.Lock()
         self._recordings: dict[str, _Recording] = {}
 
@@ -122,8 +125,11 @@ class SimRoom:
         return self._scene
 
     def set_scene(self, spec: SceneSpec) -> None:
-        """Replace the scene. A moving eye's script starts now (the clock's current time)."""
+        """Replace the scene. A moving eye's script starts now (the clock's current time);
+        an exposure timed before now (a trigger pulse fired before the change, one of whose
+        cameras is read after it) is still rendered with the scene it was taken of."""
         with self._lock:
+            self._before = (self._scene, self._scene_epoch_ns)
             self._scene = spec
             self._scene_epoch_ns = self.clock.now_ns()
             self._recordings.clear()
@@ -202,6 +208,8 @@ class SimRoom:
             raise KeyError(f"no projector {sorted(unknown)} in this room")
         with self._lock:
             spec, epoch_ns = self._scene, self._scene_epoch_ns
+            if self._before is not None and t_s * 1e9 < epoch_ns:
+                spec, epoch_ns = self._before
             recording = self._recordings.get(camera_id)
             if (recording is not None and recording.spec is spec
                     and recording.room_lights == self._room_lights):
