@@ -49,6 +49,7 @@ def test_the_console_is_served_from_the_package_without_a_token(client: Client) 
     page = client.get("/console/", headers={"Authorization": ""})
     script = client.get("/console/js/main.js", headers={"Authorization": ""})
     bare = client.get("/console", headers={"Authorization": ""})
+    home = client.get("/", headers={"Authorization": ""})
     missing = client.get("/console/js/nothing.js")
 
     assert page.status_code == 200 and page.headers["content-type"].startswith("text/html")
@@ -60,6 +61,7 @@ def test_the_console_is_served_from_the_package_without_a_token(client: Client) 
     assert script.status_code == 200 and "javascript" in script.headers["content-type"]
     assert script.headers["content-security-policy"] == CONTENT_SECURITY_POLICY
     assert bare.status_code == 307 and bare.headers["location"].endswith("/console/")
+    assert home.status_code == 307 and home.headers["location"].endswith("/console/")
     assert missing.status_code == 404
 
 

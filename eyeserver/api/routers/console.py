@@ -18,6 +18,7 @@ from pathlib import Path
 
 from fastapi import FastAPI
 from starlette.datastructures import MutableHeaders
+from starlette.responses import RedirectResponse
 from starlette.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
@@ -64,7 +65,7 @@ class _Secured:
 
 def mount(app: FastAPI, directory: Path = CONSOLE_DIR) -> None:
     """Serve the console's files from ``directory`` at ``/console/`` (``index.html`` for the
-    directory itself; ``/console`` is redirected there).
+    directory itself; ``/console`` and the daemon's root ``/`` are redirected there).
 
     Raises
     ------
@@ -73,3 +74,9 @@ def mount(app: FastAPI, directory: Path = CONSOLE_DIR) -> None:
     """
     files = StaticFiles(directory=directory, html=True, follow_symlink=False)
     app.mount(CONSOLE_PATH, _Secured(files), name="console")
+
+    async def home() -> RedirectResponse:
+        # The daemon's address alone, as people type it into a browser, opens the console.
+        return RedirectResponse(f"{CONSOLE_PATH}/", status_code=307)
+
+    app.add_api_route("/", home, include_in_schema=False)
