@@ -36,12 +36,13 @@ from eyeserver.hardware import discovery
 from eyeserver.hardware.base import Device
 from eyeserver.hardware.discovery import ModbusSettings, RoomSnippet, discover, probe_port
 from eyeserver.hardware.drivers import genicam
-from eyeserver.hardware.emulators.fakegv import FakeGigECamera, find_fake_camera_program
+from eyeserver.hardware.emulators.fakegv import FakeGigECamera
 from eyeserver.hardware.emulators.gardasoft import GardasoftEmulator
 from eyeserver.hardware.emulators.modbus import OptoController, OptoRtuEmulator
 from eyeserver.hardware.emulators.serialpty import Behaviour, SerialPtyEmulator
 from eyeserver.hardware.emulators.zaber import ZaberEmulator
 from eyeserver.hardware.registry import DriverContext, create_device
+from tests.hardware.needs import needs_aravis
 
 TIMEOUT_S = 0.1
 """Each probe's wait: the emulators answer at once."""
@@ -388,19 +389,6 @@ def test_a_system_port_is_named_by_its_by_id_link(
 # --- cameras --------------------------------------------------------------------------------
 
 
-def _why_no_fake_camera() -> str | None:
-    if find_fake_camera_program() is None:
-        return ("arv-fake-gv-camera-0.8 is not installed (Debian package aravis-tools: "
-                "scripts/system-packages.sh)")
-    try:
-        genicam._load_aravis()
-    except ImportError as exc:
-        return str(exc)
-    return None
-
-
-_NO_FAKE = _why_no_fake_camera()
-needs_fake_camera = pytest.mark.skipif(_NO_FAKE is not None, reason=_NO_FAKE or "")
 
 
 @pytest.fixture
@@ -417,7 +405,7 @@ def check_camera_entry(entry: dict[str, Any], fake: FakeGigECamera) -> None:
     assert isinstance(camera, genicam.GenicamCamera) and camera.address == fake.address
 
 
-@needs_fake_camera
+@needs_aravis
 def test_the_broadcast_finds_the_fake_camera_on_loopback(
         fake: FakeGigECamera, run: Callable[..., tuple[int, str, str]]) -> None:
     document = run_json(run, "--no-serial")
@@ -439,7 +427,7 @@ def test_the_broadcast_finds_the_fake_camera_on_loopback(
     assert 'options = { address = "127.0.0.1" }' in out
 
 
-@needs_fake_camera
+@needs_aravis
 def test_a_camera_the_broadcast_misses_is_asked_at_its_address(
         fake: FakeGigECamera, run: Callable[..., tuple[int, str, str]],
         monkeypatch: pytest.MonkeyPatch) -> None:
