@@ -28,6 +28,7 @@ from websockets.sync.client import ClientConnection, connect
 
 from eyeserver.api import create_app
 from eyeserver.hardware.sim.drivers import SimCamera
+from eyeserver.service import events as events_module
 from eyeserver.service.core import Service
 from eyeserver.service.events import EventBus, SubscriptionClosedError, event_time
 from tests.apiclient import API, OPERATOR_TOKEN, PHYSICIST_TOKEN, auth, test_settings
@@ -253,6 +254,32 @@ def _capture(base_url: str, unit: str) -> httpx.Response:
                       headers=auth(OPERATOR_TOKEN), timeout=TIMEOUT_S)
 
 
+def test_a_reconnecting_subscriber_gets_the_kept_events_after_its_seq_again(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(events_module, "HISTORY_EVENTS", 5)
+    bus = EventBus()
+    for i in range(8):
+        bus.publish("tick", i=i)  # seq 1..8; the bus keeps 4..8
+
+    async def replayed(after: int | None, maxsize: int = 100) -> tuple[int, list[Any]]:
+        with bus.subscribe(maxsize, after) as subscription:
+            got = []
+            while (event := subscription.get_nowait()) is not None:
+                got.append(event.get("i", event))
+            return subscription.start_seq, got
+
+    assert asyncio.run(replayed(6)) == (6, [6, 7])  # seq 7 and 8 again
+    assert asyncio.run(replayed(8)) == (8, [])  # nothing went by
+    # Older than what is kept: from the oldest kept on, the start says what is lost (1..3).
+    assert asyncio.run(replayed(0)) == (3, [3, 4, 5, 6, 7])
+    assert asyncio.run(replayed(50)) == (8, [])  # a seq of an earlier run of the daemon
+    assert asyncio.run(replayed(None)) == (8, [])
+    # More than the queue holds: its oldest are dropped and said so, as live events are.
+    assert asyncio.run(replayed(0, maxsize=2)) == (3, [{"type": "dropped", "count": 3}, 6, 7])
+    with pytest.raises(ValueError, match="after"):
+        asyncio.run(replayed(-1))
+
+
 def _summary(events: list[dict[str, Any]]) -> list[tuple[str, ...]]:
     return [(e["type"], e["state"], e["previous"]) if e["type"] == "state"
             else (e["type"], e.get("device_id") or e.get("capture_id") or "") for e in events]
@@ -282,6 +309,27 @@ def test_hello_describes_the_daemon_then_a_capture_streams_in_order(
     assert [e["seq"] for e in events] == list(range(hello["last_seq"] + 1,
                                                     hello["last_seq"] + 4))
     assert all(TIME.match(e["time"]) for e in events)
+
+
+def test_a_client_back_with_after_gets_what_went_by_after_its_hello(
+    base_url: str, service: Service
+) -> None:
+    with _connect(base_url) as ws:
+        last = _recv(ws)["last_seq"]
+        service.events.publish("test.tick", n=0)
+        had = _recv(ws)["seq"]
+    for n in (1, 2):  # while it is away
+        service.events.publish("test.tick", n=n)
+    query = f"?token={OPERATOR_TOKEN}&after={had}"
+    with connect(_ws_url(base_url, query), compression=None, open_timeout=TIMEOUT_S,
+                 close_timeout=5, ping_interval=None) as ws:
+        hello = _recv(ws)
+        again = [_recv(ws), _recv(ws)]
+
+    assert had == last + 1
+    assert hello["type"] == "hello" and hello["last_seq"] == had
+    assert [(e["type"], e["seq"], e["n"]) for e in again] == [("test.tick", had + 1, 1),
+                                                             ("test.tick", had + 2, 2)]
 
 
 @pytest.mark.slow

@@ -49,7 +49,9 @@ CHANNELS: tuple[Channel, ...] = (
             "The daemon's events: a `hello` snapshot first, then every event in order, `seq` "
             "increasing by one. A slow reader loses its oldest events (at most "
             "`event_queue_size` are kept for it) and gets a `dropped` notice before the next "
-            "one.", EVENT_MESSAGES),
+            "one. A client that reconnects with `?after=<its last seq>` gets the events since "
+            "then again, after the `hello`, as long as the daemon keeps them (its newest "
+            "1024; the `hello`'s `last_seq` says where they start).", EVENT_MESSAGES),
     Channel("pose", "/ws/pose",
             "Live tracking: one `pose` message per processed frame (the beam-hold flag in "
             "each), a `hold` message when the daemon holds the beam without a frame, a "

@@ -13,6 +13,9 @@ subscriber's event loop is woken with :meth:`asyncio.AbstractEventLoop.call_soon
 at most once per wake-up, so a starved loop never accumulates more than one callback per
 subscription either.
 
+A client that reconnects may ask for what it missed (:meth:`EventBus.subscribe`'s ``after``):
+the bus keeps its newest :data:`HISTORY_EVENTS` events and queues those after ``after`` first.
+
 How drops are reported: :meth:`Subscription.get` returns, before the next event after a loss, a
 notice ``{"type": "dropped", "count": n}``: ``n`` events were lost right there (the ``seq`` of
 the next event minus that of the last one received, minus one). The notice has no ``seq`` of
@@ -30,7 +33,12 @@ from collections import deque
 from datetime import UTC, datetime
 from typing import Any
 
-__all__ = ["Event", "EventBus", "Subscription", "SubscriptionClosedError", "event_time"]
+__all__ = ["HISTORY_EVENTS", "Event", "EventBus", "Subscription", "SubscriptionClosedError",
+           "event_time"]
+
+HISTORY_EVENTS = 1024
+"""The newest events the bus keeps for a client that reconnects (:meth:`EventBus.subscribe`'s
+``after``): minutes of a busy daemon's events, a few hundred kB."""
 
 Event = dict[str, Any]
 """One event: ``{"type": str, "seq": int, "time": str, **data}``, JSON-able."""
@@ -200,6 +208,7 @@ class EventBus:
         self._seq = 0
         self._subscriptions: list[Subscription] = []
         self._dropped_total = 0
+        self._history: deque[Event] = deque(maxlen=HISTORY_EVENTS)
 
     @property
     def last_seq(self) -> int:
@@ -245,6 +254,7 @@ class EventBus:
         with self._lock:
             self._seq += 1
             event: Event = {"type": type, "seq": self._seq, "time": event_time(), **data}
+            self._history.append(event)
             for subscription in self._subscriptions:
                 self._dropped_total += subscription._offer(event)
             # A subscription whose loop has gone is forgotten here (its close() cannot run
@@ -252,21 +262,35 @@ class EventBus:
             self._subscriptions = [s for s in self._subscriptions if not s.closed]
             return self._seq
 
-    def subscribe(self, maxsize: int = 256) -> Subscription:
+    def subscribe(self, maxsize: int = 256, after: int | None = None) -> Subscription:
         """A new subscription, read on the running event loop, holding at most ``maxsize``.
+
+        ``after``: the ``seq`` of the last event a reconnecting client had; the events since
+        then that the bus still keeps (:data:`HISTORY_EVENTS`) are queued first, so a client
+        that was away misses none it can be given again (its :attr:`Subscription.start_seq`
+        says where they begin: ``after``, or later when the oldest are gone). An ``after``
+        beyond the latest event (a client of an earlier run of the daemon) replays nothing.
 
         Raises
         ------
         ValueError
-            ``maxsize`` is below 1.
+            ``maxsize`` is below 1, or ``after`` is negative.
         RuntimeError
             No event loop is running in this thread.
         """
         if maxsize < 1:
             raise ValueError(f"maxsize must be at least 1, got {maxsize}")
+        if after is not None and after < 0:
+            raise ValueError(f"after must be a seq (0 or more), got {after}")
         subscription = Subscription(self, asyncio.get_running_loop(), maxsize)
         with self._lock:
             subscription.start_seq = self._seq
+            if after is not None and after < self._seq:
+                again = [event for event in self._history if event["seq"] > after]
+                if again:
+                    subscription.start_seq = int(again[0]["seq"]) - 1
+                for event in again:
+                    self._dropped_total += subscription._offer(event)
             self._subscriptions.append(subscription)
         return subscription
 

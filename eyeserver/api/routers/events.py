@@ -34,6 +34,12 @@ n}``; the ``seq`` of that next event has moved on by ``n + 1``. A client whose s
 nothing for ``ws_stall_s`` (default 10 s: it stopped reading) gets a last such notice, counting
 every event it will never get, and the close code 4008 with the reason; it finds them after what
 it was already sent. A client that needs the whole picture again reads ``GET /api/v1/status``.
+
+A client that reconnects gives ``?after=<seq>``, the last ``seq`` it had: the daemon then sends,
+after the ``hello``, the events since then that it still keeps (its newest
+:data:`~eyeserver.service.events.HISTORY_EVENTS`), and the ``hello``'s ``last_seq`` says where
+they start (``after`` itself, or later when older ones are gone: the difference was lost). An
+``after`` beyond the daemon's latest event (from an earlier run) replays nothing.
 """
 
 from __future__ import annotations
@@ -54,14 +60,16 @@ __all__ = ["router"]
 router = APIRouter(tags=["events"])
 
 @router.websocket("/ws/events", name="events")
-async def stream_events(websocket: WebSocket) -> None:
-    """Send a ``hello`` snapshot, then every event of the daemon until the client leaves."""
+async def stream_events(websocket: WebSocket, after: int | None = None) -> None:
+    """Send a ``hello`` snapshot, then (``?after=seq``) the kept events after that ``seq``,
+    then every event of the daemon until the client leaves."""
     found = await opened(websocket, "service", Service)
     if found is None:
         return
     service, settings = found
     # Subscribe before the snapshot: an event between the two is sent (again), never missed.
-    with service.events.subscribe(settings.event_queue_size) as subscription:
+    with service.events.subscribe(settings.event_queue_size,
+                                  None if after is None else max(after, 0)) as subscription:
         await websocket.accept()
         hello = await run_in_threadpool(_hello, service, settings, subscription.start_seq)
         await stream(websocket, subscription, first=[hello], stall_s=settings.ws_stall_s)

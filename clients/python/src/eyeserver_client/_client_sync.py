@@ -709,15 +709,17 @@ class Client:
         """The daemon's event stream (``/ws/events``): a ``Hello``, then every event.
 
         Yields :mod:`~eyeserver_client.messages` models; reconnects when the connection is
-        lost, yielding ``Disconnected`` at once and ``Resumed`` (how many events went by)
-        once back (see :class:`~eyeserver_client._streams_sync.MessageStream`).
+        lost, yielding ``Disconnected`` at once and, once back, ``Resumed`` (how many events
+        were lost: the daemon sends again the ones that went by while it keeps them, its
+        newest 1024) and those events (see
+        :class:`~eyeserver_client._streams_sync.MessageStream`).
         ``silence_s``: take the link as dead after that long without a message (the event
         stream sends nothing while nothing happens: None, the default, waits; the WebSocket's
         own pings still find a dead peer within about 40 s).
         """
         return MessageStream(self.connection, "/ws/events", parse_event_message,
                              reconnect=reconnect, silence_s=silence_s,
-                             max_attempts=max_attempts)
+                             max_attempts=max_attempts, replays=True)
 
     def poses(self, *, reconnect: bool = True, silence_s: float = POSE_SILENCE_S,
               max_attempts: int | None = None) -> MessageStream:

@@ -1,13 +1,15 @@
 """Keeping a stream's place by ``seq`` across reconnections (both clients' streams).
 
-The daemon numbers the messages of each stream (``seq``, increasing by one) but keeps no
-history for a client that was away: a new connection gets what happens from then on. So a
-stream resumes by *accounting*, not by replay. On ``/ws/events`` the first message of a
-connection, the ``hello``, says where it starts (``last_seq``); on ``/ws/pose`` the first
-numbered message does. Against the last ``seq`` the client had, that tells how many went by
-while it was away (:class:`~eyeserver_client.messages.Resumed` ``missed``), or that the daemon
-started anew (its ``seq`` then starts again from 1: ``restarted``). A message whose ``seq`` the
-client already had is never passed on twice.
+The daemon numbers the messages of each stream (``seq``, increasing by one). The event stream
+replays what a reconnecting client missed (``?after=seq``) as long as the daemon keeps it (its
+newest 1024 events); the pose stream does not (a pose that went by is no use to a beam hold).
+So a stream resumes by replay where it can and by *accounting* beyond that. On ``/ws/events``
+the first message of a connection, the ``hello``, says where it starts (``last_seq``: where the
+replay begins); on ``/ws/pose`` the first numbered message does. Against the last ``seq`` the
+client had, that tells how many went by and are lost
+(:class:`~eyeserver_client.messages.Resumed` ``missed``), or that the daemon started anew (its
+``seq`` then starts again from 1: ``restarted``). A message whose ``seq`` the client already
+had is never passed on twice.
 """
 
 from __future__ import annotations

@@ -38,7 +38,9 @@ class AsyncMessageStream:
     read (waits growing from ``backoff_s`` to ``max_backoff_s`` seconds, at most
     ``max_attempts`` in a row, None: without end) and yields a
     :class:`~eyeserver_client.messages.Resumed` saying how many messages (by ``seq``) went by
-    meanwhile, before the messages that follow. No message is yielded twice. With
+    meanwhile and are lost, before the messages that follow. A stream the daemon replays
+    (``replays``: the event stream) asks for what went by (``?after=seq``) and gets it again
+    unless the daemon no longer keeps it. No message is yielded twice. With
     ``reconnect=False`` it ends after the :class:`~eyeserver_client.messages.Disconnected`
     instead.
 
@@ -52,8 +54,9 @@ class AsyncMessageStream:
                  parse: Callable[[dict[str, Any]], Message], *, reconnect: bool = True,
                  silence_s: float | None = None, open_timeout_s: float = 10.0,
                  backoff_s: float = 0.1, max_backoff_s: float = 5.0,
-                 max_attempts: int | None = None) -> None:
+                 max_attempts: int | None = None, replays: bool = False) -> None:
         self.url = connection.websocket_root + path
+        self._replays = replays
         self._headers = connection.headers()
         self._ssl = connection.ssl_context
         self._parse = parse
@@ -128,7 +131,7 @@ class AsyncMessageStream:
         while True:
             attempt += 1
             try:
-                return await io.open_websocket(self.url, self._headers, self._ssl,
+                return await io.open_websocket(self._resuming_url(), self._headers, self._ssl,
                                                self._open_timeout_s)
             except InvalidURI as exc:
                 raise EyeserverError(f"{self.url}: not a WebSocket URL ({exc})") from exc
@@ -149,6 +152,14 @@ class AsyncMessageStream:
                       failure, wait_s)
             await io.sleep(wait_s)
             wait_s = min(wait_s * 2, self._max_backoff_s)
+
+    def _resuming_url(self) -> str:
+        """The stream's URL; for a stream the daemon replays (``replays``), once a message was
+        numbered, with ``after=<the last seq>`` so that what went by meanwhile comes again."""
+        last = self._sequence.last_seq
+        if not self._replays or last is None:
+            return self.url
+        return f"{self.url}{'&' if '?' in self.url else '?'}after={last}"
 
     async def close(self) -> None:
         """End the stream: the connection is closed and the iteration stops."""

@@ -386,11 +386,12 @@ class Disconnected(Message):
 class Resumed(Message):
     """The client is connected again after a :class:`Disconnected`.
 
-    ``missed`` is how many messages (by ``seq``) went by while it was away: 0 when nothing was
-    lost, None when it cannot be known (``restarted``: the daemon started anew, its ``seq``
-    too; or no numbered message had come before the loss). The daemon keeps no history for a
-    client that was away, so missed messages are gone; for the whole picture read
-    ``GET /api/v1/status`` (the :class:`Hello` that follows on ``/ws/events`` has it).
+    ``missed`` is how many messages (by ``seq``) went by while it was away and are lost: 0
+    when nothing was, None when it cannot be known (``restarted``: the daemon started anew,
+    its ``seq`` too; or no numbered message had come before the loss). The event stream gets
+    again the events that went by, as long as the daemon keeps them (its newest 1024), right
+    after the :class:`Hello`; the pose stream's messages that went by are gone. For the whole
+    picture read ``GET /api/v1/status`` (the :class:`Hello` on ``/ws/events`` has it).
     """
 
     type: Literal["client.resumed"] = "client.resumed"
