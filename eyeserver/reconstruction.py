@@ -214,7 +214,8 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
                        frames: Sequence[int] | None = None, cameras: Sequence[str] | None = None,
                        method: str = "auto", depth_prior_mm: float | None = None,
                        region: Region | None = None, min_quality: float = 0.0,
-                       progress: Progress = quiet) -> tuple[PointCloud, dict[str, Any]]:
+                       progress: Progress = quiet, for_pose: bool = False,
+                       ) -> tuple[PointCloud, dict[str, Any]]:
     """The fused point cloud of a measurement bundle, and a summary per camera.
 
     ``frames`` and ``cameras`` restrict the views used (default: every fringe image). A camera's
@@ -223,6 +224,8 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
     camera alone in its frame needs ``depth_prior_mm``. ``region`` and ``min_quality`` crop the
     fused cloud. Each camera's summary says the method its unit used and why, the pixels that
     saw a fringe (``fringe_pixels``) and the share of them that gave a point (``coverage``).
+    ``for_pose``: ``auto`` as the eye pose's path takes it (:func:`unit_method`'s ``fast``:
+    the multi-view order where the margin allows it), for a cloud the eye model is fitted to.
     """
     if method not in RECONSTRUCTION_METHODS:
         raise ReconstructionError(f"unknown fringe-order method {method!r} (one of "
@@ -251,7 +254,8 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
     # Per view: its points, the partner that fixed its orders (None: the depth prior did), the
     # method and why, and its pixels that see a fringe.
     done: dict[tuple[int, str], tuple[CameraCloud, str | None, str, str, int]] = {}
-    methods = {unit.id: unit_method(document, unit.id, method) for unit in rig.units}
+    methods = {unit.id: unit_method(document, unit.id, method, fast=for_pose)
+               for unit in rig.units}
     for index, camera_id in views:
         if (index, camera_id) in done:
             continue

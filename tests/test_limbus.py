@@ -49,7 +49,7 @@ def _angle_deg(a: Any, b: Any) -> float:
 
 
 def _fit(caldir: Path, bundle: Path) -> EyePose:
-    cloud, _ = reconstruct_bundle(caldir, bundle)
+    cloud, _ = reconstruct_bundle(caldir, bundle, for_pose=True)
     return fit_eye(cloud, EyeModel.population(), limbus_views(caldir, bundle))
 
 
@@ -114,7 +114,7 @@ def test_the_physicists_ellipsoid_places_the_globe(calibrated_rooms: Any, tmp_pa
     ≈ 1.5 × 0.5 mm / 2 off along the gaze (measured: 0.036 against 0.20 mm, gaze 0.07°)."""
     _, caldir = calibrated_rooms("default")
     truth = _record("default", ELLIPSOIDAL, tmp_path / "eye")
-    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye")
+    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye", for_pose=True)
     views = limbus_views(caldir, tmp_path / "eye")
     axes = (12.3, 12.1, 11.7)
 
@@ -312,7 +312,7 @@ def test_a_held_radius_places_the_globe_on_a_limbus_seen_with_hardly_any_sclera(
     spec = SceneSpec(kind="eye", position_mm=(1.29, 4.27, -10.6),
                      eye=EyeSpec(gaze_deg=(9.1, 0.0), globe_radius_mm=13.0))
     truth = _record_one_unit(spec, tmp_path / "eye")
-    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye")
+    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye", for_pose=True)
 
     pose = fit_eye(cloud, EyeModel(globe_radius_mm=13.0), limbus_views(caldir, tmp_path / "eye"))
 
@@ -336,7 +336,7 @@ def test_one_unit_tries_the_dark_disc_too_when_a_fit_from_the_cloud_looks_good(
             spec = random_spec(rng, RADII_MM[n % len(RADII_MM)])
             session.record(spec, tmp_path / "eye", units=["left"], overwrite=True)
     truth = json.loads((tmp_path / "eye" / "truth.json").read_text())["eye"]
-    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye")
+    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye", for_pose=True)
 
     pose = fit_eye(cloud, EyeModel(globe_radius_mm=spec.eye.globe_radius_mm),
                    limbus_views(caldir, tmp_path / "eye"))

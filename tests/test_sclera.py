@@ -180,7 +180,7 @@ class _Turned:
 
 def _reconstructed(turned: tuple[Path, Path]) -> _Turned:
     caldir, bundle = turned
-    cloud, _ = reconstruct_bundle(caldir, bundle)
+    cloud, _ = reconstruct_bundle(caldir, bundle, for_pose=True)
     truth = json.loads((bundle / "truth.json").read_text())["eye"]
     centre, radius = np.asarray(truth["centre_mm"]), float(truth["globe_radius_mm"])
     points = cloud.points.astype(np.float64)
@@ -243,7 +243,7 @@ def test_the_limbus_found_again_with_the_fringe_divided_out_is_sharper(
     # illumination fitted on the sclera beside it and divided out does not (measured on this
     # eye with the benchmarks' calibration: the gaze 0.28° off before, 0.09° after).
     caldir, bundle = turned
-    cloud, _ = reconstruct_bundle(caldir, bundle)
+    cloud, _ = reconstruct_bundle(caldir, bundle, for_pose=True)
     views = limbus_views(caldir, bundle)
     found: list[tuple[Limbus, Limbus]] = []
     real = sclera._sharpened
@@ -297,7 +297,7 @@ def test_a_remeasured_globe_of_no_eyes_size_is_not_trusted(
     _, caldir = calibrated_rooms("default")
     with SimSession.open(load_room(ROOMS["default"]), seed=3) as session:
         session.record(SceneSpec(kind="eye"), tmp_path / "eye")
-    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye")
+    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye", for_pose=True)
     views = limbus_views(caldir, tmp_path / "eye")
     model = EyeModel.population()
     # Everything else that sets the confidence held at 0.9, the radius alone differing.

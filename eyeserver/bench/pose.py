@@ -205,7 +205,7 @@ def _measure(session: SimSession, spec: SceneSpec, caldir: Path, bundle: Path,
     session.record(spec, bundle, units=units, overwrite=True)
     truth = json.loads((bundle / "truth.json").read_text())["eye"]
     try:
-        cloud, _ = reconstruct_bundle(caldir, bundle)
+        cloud, _ = reconstruct_bundle(caldir, bundle, for_pose=True)
         views = limbus_views(caldir, bundle)
         started = time.perf_counter()
         pose = fit_eye(cloud, model, views)
