@@ -922,8 +922,8 @@ def test_a_scene_changed_between_the_cameras_of_one_pulse_reaches_neither() -> N
     clock = ManualClock(1_000_000_000)
     sim = SimRoom(_small_room(5), clock=clock)
     sim.set_scene(SceneSpec(kind="plate", position_mm=(0.0, 0.0, 0.0)))
-    pulse_s = 1.5
-    clock.advance(1.0)  # the pulse fired at 1.5 s; now 2 s
+    pulse_s = 1.9
+    clock.advance(1.0)  # the pulse fired at 1.9 s; now 2 s
 
     def exposure(t_s: float) -> npt.NDArray[Any]:
         return np.asarray(sim.render("S1", t_s=t_s, projectors={"P1": 1.0}, exposure_us=10_000,
@@ -934,6 +934,9 @@ def test_a_scene_changed_between_the_cameras_of_one_pulse_reaches_neither() -> N
     np.testing.assert_array_equal(exposure(pulse_s), before)  # the old scene
     clock.advance(0.04)
     after = exposure(2.02)  # a pulse after the change
+    # Long before it: a caller's "the scene as it is" (t = 0), the new scene at its start.
+    np.testing.assert_array_equal(exposure(0.0), exposure(1.0))
+    assert not np.array_equal(exposure(0.0), before)
     # The same noise draws (one seed): what differs is the plate, moved 5 mm (≈ 4 DN a pixel
     # on average as its fringes shift).
     assert np.abs(after.astype(np.float64) - before).mean() > 1.0

@@ -81,6 +81,12 @@ def _head_in_transit(spec: SceneSpec, scene_t: float) -> bool:
             != motion.state(scene_t + TRANSIT_PROBE_S).head_offset_mm)
 
 
+BEFORE_CHANGE_S = 0.2
+"""How long before a scene change an exposure may be timed and still see the scene before it
+(seconds): a few frames at 25 Hz, for the cameras of a pulse fired just before the change. A
+time further back is a caller's "the scene as it is" (renders at t = 0), not a frame in flight."""
+
+
 class SimRoom:
     """A room described by a :class:`RoomConfig`, with one scene at a time."""
 
@@ -126,8 +132,9 @@ class SimRoom:
 
     def set_scene(self, spec: SceneSpec) -> None:
         """Replace the scene. A moving eye's script starts now (the clock's current time);
-        an exposure timed before now (a trigger pulse fired before the change, one of whose
-        cameras is read after it) is still rendered with the scene it was taken of."""
+        an exposure timed up to :data:`BEFORE_CHANGE_S` before now (a trigger pulse fired
+        before the change, one of whose cameras is read after it) is still rendered with the
+        scene it was taken of. Earlier times see the new scene at its start, as before."""
         with self._lock:
             self._before = (self._scene, self._scene_epoch_ns)
             self._scene = spec
@@ -208,7 +215,8 @@ class SimRoom:
             raise KeyError(f"no projector {sorted(unknown)} in this room")
         with self._lock:
             spec, epoch_ns = self._scene, self._scene_epoch_ns
-            if self._before is not None and t_s * 1e9 < epoch_ns:
+            if (self._before is not None
+                    and epoch_ns - BEFORE_CHANGE_S * 1e9 <= t_s * 1e9 < epoch_ns):
                 spec, epoch_ns = self._before
             recording = self._recordings.get(camera_id)
             if (recording is not None and recording.spec is spec
