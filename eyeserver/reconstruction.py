@@ -49,19 +49,18 @@ from its other camera at all, below the phase's own noise: its cameras at one az
 trusts that camera, so ``auto`` asks for a depth prior instead."""
 
 
-def unit_method(document: dict[str, Any], unit_id: str, method: str, *, fast: bool = False
-                ) -> tuple[str, str]:
+def unit_method(document: dict[str, Any], unit_id: str, method: str, *,
+                for_pose: bool = False) -> tuple[str, str]:
     """The fringe-order method a unit is reconstructed with, and why.
 
     ``auto`` takes the spatial order (one order per region, voted by the multi-view picks of
     its pixels) wherever the calibration found the unit's two cameras discriminate fringe orders
-    at all: it keeps what only one of them sees, which the multi-view order cannot (a plate at
-    +23 mm 0.68 → 0.88 of its lit pixels, the eye 0.67 → 0.82; docs/notes/fringe-order.md).
-    With ``fast`` (the eye pose's path: verification and live tracking, whose figures were
-    measured with it) it takes the multi-view order where the margin is at least
-    ``MARGIN_WARNING_RAD`` (about half the order's time; every point confirmed by both
-    cameras). Below :data:`BLIND_MARGIN_RAD` it gives ``"blind"``: only a depth prior can fix
-    that unit's orders. Any other method is kept.
+    at all: it keeps what only one of them sees, which the multi-view order cannot
+    (docs/notes/fringe-order.md). With ``for_pose`` (the eye pose's path: verification, live
+    tracking, ``eyeserver pose``, whose figures were measured with it) it takes the multi-view
+    order where the margin is at least ``MARGIN_WARNING_RAD`` (about half the order's time;
+    every point confirmed by both cameras). Below :data:`BLIND_MARGIN_RAD` it gives
+    ``"blind"``: only a depth prior can fix that unit's orders. Any other method is kept.
     """
     if method != "auto":
         return method, "asked for"
@@ -71,7 +70,7 @@ def unit_method(document: dict[str, Any], unit_id: str, method: str, *, fast: bo
     if not isinstance(margin, (int, float)):
         return "spatial", "the calibration gives no fringe-order margin for this unit"
     if margin >= MARGIN_WARNING_RAD:
-        if fast:
+        if for_pose:
             return "multi-view", (f"fringe-order margin {margin:.2f} rad, at least "
                                   f"{MARGIN_WARNING_RAD} rad")
         return "spatial", (f"fringe-order margin {margin:.2f} rad: regions unwrapped, each "
@@ -224,7 +223,7 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
     camera alone in its frame needs ``depth_prior_mm``. ``region`` and ``min_quality`` crop the
     fused cloud. Each camera's summary says the method its unit used and why, the pixels that
     saw a fringe (``fringe_pixels``) and the share of them that gave a point (``coverage``).
-    ``for_pose``: ``auto`` as the eye pose's path takes it (:func:`unit_method`'s ``fast``:
+    ``for_pose``: ``auto`` as the eye pose's path takes it (:func:`unit_method`'s ``for_pose``:
     the multi-view order where the margin allows it), for a cloud the eye model is fitted to.
     """
     if method not in RECONSTRUCTION_METHODS:
@@ -254,7 +253,7 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
     # Per view: its points, the partner that fixed its orders (None: the depth prior did), the
     # method and why, and its pixels that see a fringe.
     done: dict[tuple[int, str], tuple[CameraCloud, str | None, str, str, int]] = {}
-    methods = {unit.id: unit_method(document, unit.id, method, fast=for_pose)
+    methods = {unit.id: unit_method(document, unit.id, method, for_pose=for_pose)
                for unit in rig.units}
     for index, camera_id in views:
         if (index, camera_id) in done:

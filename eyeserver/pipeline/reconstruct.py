@@ -1119,10 +1119,10 @@ def _checked(cloud: CameraCloud, known: Bool, wrong: Bool, cam: CalibratedCamera
 
     Why: the multi-view order needs both cameras, so what only one camera sees (a band along
     the image's edge, a surface turned from the partner) was lost although the spatial
-    unwrapping reaches it from the confirmed part (issue 37; docs/notes/fringe-order.md). A
-    slip of a fringe on the way is a depth step of a fringe's height (millimetres), which cuts
-    the continuation there; steep flanks whose fringes the band passes attenuated came out
-    1.1–1.3 mm off on eye phantom 2 without the gain's condition."""
+    unwrapping reaches it from the confirmed part. A slip of a fringe on the way is a depth
+    step of a fringe's height (millimetres), which cuts the continuation there; the gain's
+    condition keeps out steep flanks whose fringes the band passes biased (measured:
+    docs/notes/fringe-order.md, "What only one camera sees")."""
     source = cloud.order_source
     by_prior = source == ORDER_SOURCES.index("spatial + depth prior")
     base = (known | by_prior) & ~wrong

@@ -266,7 +266,7 @@ class RigReconstructor:
         self._rig = rig
         self._methods: dict[str, str] = {}
         for unit in rig.units:
-            chosen, why = unit_method(document, unit.id, "auto", fast=True)
+            chosen, why = unit_method(document, unit.id, "auto", for_pose=True)
             if chosen == "blind":
                 raise ReconstructionError(f"unit {unit.id} is blind to the fringe order ({why}): "
                                           "move one of its cameras to another azimuth and "

@@ -39,6 +39,7 @@ from eyeserver.hardware.emulators.fakegv import FakeGigECamera
 from eyeserver.hardware.registry import DriverContext
 from eyeserver.hardware.sim.drivers import SimCamera, SimTrigger, sim_driver_context
 from tests.hardware.fakepeak import FakeCamera, FakePeak
+from tests.hardware.lifecycle import check_open_close_idempotent
 from tests.hardware.needs import needs_aravis, needs_pylon
 from tests.hardware.simroom import FakeRoom
 from tests.hardware.timeouts import MISSING_TIMEOUT_S, READ_TIMEOUT_S
@@ -148,13 +149,7 @@ def expose(case: CameraCase) -> Callable[[], None]:
 
 
 def test_open_close_idempotent(camera: Camera) -> None:
-    assert not camera.is_open
-    camera.open()
-    camera.open()
-    assert camera.is_open
-    camera.close()
-    camera.close()
-    assert not camera.is_open
+    check_open_close_idempotent(camera)
 
 
 def test_reopens_after_close(camera: Camera, expose: Callable[[], None]) -> None:

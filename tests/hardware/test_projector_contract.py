@@ -31,6 +31,7 @@ from eyeserver.hardware.emulators.gardasoft import GardasoftEmulator
 from eyeserver.hardware.emulators.modbus import OptoController, OptoRtuEmulator, OptoTcpEmulator
 from eyeserver.hardware.registry import DriverContext
 from eyeserver.hardware.sim.drivers import SimProjector, sim_driver_context
+from tests.hardware.lifecycle import check_open_close_idempotent
 from tests.hardware.simroom import FakeRoom
 
 REPLY_TIMEOUT_S = 0.5
@@ -84,13 +85,7 @@ def projector(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Projec
 
 
 def test_open_close_idempotent(projector: Projector) -> None:
-    assert not projector.is_open
-    projector.open()
-    projector.open()
-    assert projector.is_open
-    projector.close()
-    projector.close()
-    assert not projector.is_open
+    check_open_close_idempotent(projector)
 
 
 def _call(projector: Projector, call: str) -> None:

@@ -29,6 +29,7 @@ from eyeserver.hardware.emulators.zaber import ZaberEmulator
 from eyeserver.hardware.registry import DriverContext
 from eyeserver.hardware.sim.scenes import SceneSpec
 from eyeserver.hardware.sim.stage import SimStage
+from tests.hardware.lifecycle import check_open_close_idempotent
 
 MICROSTEP_MM = 0.0005
 ZERO_MM = -15.0
@@ -101,13 +102,7 @@ def stage(case: StageCase) -> Stage:
 
 
 def test_open_close_idempotent(stage: Stage) -> None:
-    assert not stage.is_open
-    stage.open()
-    stage.open()
-    assert stage.is_open
-    stage.close()
-    stage.close()
-    assert not stage.is_open
+    check_open_close_idempotent(stage)
 
 
 def test_move_before_open_raises(stage: Stage) -> None:

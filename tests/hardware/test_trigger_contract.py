@@ -34,6 +34,7 @@ from eyeserver.hardware.registry import DriverContext
 from eyeserver.hardware.rig import RIG_CAMERAS
 from eyeserver.hardware.sim.drivers import SimTrigger, sim_driver_context
 from tests.hardware.fakepeak import FakeCamera, FakePeak
+from tests.hardware.lifecycle import check_open_close_idempotent
 from tests.hardware.simroom import FakeRoom
 
 CAMERAS = ("S1", "S2", "S3", "S4")
@@ -100,13 +101,7 @@ def steps() -> list[TriggerStep]:
 
 
 def test_open_close_idempotent(trigger: Trigger) -> None:
-    assert not trigger.is_open
-    trigger.open()
-    trigger.open()
-    assert trigger.is_open
-    trigger.close()
-    trigger.close()
-    assert not trigger.is_open
+    check_open_close_idempotent(trigger)
 
 
 @pytest.mark.parametrize("call", ["set_rate_hz", "set_sequence", "fire", "start"])
