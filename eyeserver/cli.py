@@ -31,6 +31,7 @@ from eyeserver.commands import calibrate as calibrate_commands
 from eyeserver.commands import devices as devices_commands
 from eyeserver.commands import pose as pose_commands
 from eyeserver.commands import sim as sim_commands
+from eyeserver.core.memory import keep_freed_memory
 from eyeserver.errors import EyeserverError
 
 __all__ = ["REGISTRARS", "Registrar", "Subparsers", "build_parser", "main"]
@@ -140,6 +141,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except SystemExit as exc:  # --help, --version and usage errors
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     handler: Handler = args.handler
+    keep_freed_memory()  # every command's array work runs faster (eyeserver.core.memory)
     try:
         return handler(args)
     except EyeserverError as exc:

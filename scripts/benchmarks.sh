@@ -8,11 +8,12 @@
 # a full disk, load and fuzz through daemons on loopback, a few minutes; its full-disk part needs
 # root for its tmpfs and says skipped otherwise) and render their JSON.
 # Figures and PNGs are kept in build/benchmarks/.
-# Usage: bash scripts/benchmarks.sh [--quick | --accuracy | --reliability] [--poses N]
-#   --accuracy, --reliability: only that bench (the full accuracy protocol, ≈ 10 minutes, or the
-#   reliability bench, a few minutes), its part of the page made anew and the rest left as it is
-#   (the accuracy run's part: the page's head and its Accuracy section, the daily QA's figures
-#   with it; its calibration in build/benchmarks/accuracy/ is the one later full runs use).
+# Usage: bash scripts/benchmarks.sh [--quick | --accuracy | --speed | --reliability] [--poses N]
+#   --accuracy, --speed, --reliability: only that bench (the full accuracy protocol, ≈ 10
+#   minutes, the speed bench, ≈ 8, or the reliability bench, a few), its part of the page made
+#   anew and the rest left as it is (the accuracy run's part: the page's head and its Accuracy
+#   section, the daily QA's figures with it; its calibration in build/benchmarks/accuracy/ is
+#   the one later full runs and --speed use: run --accuracy first on a fresh clone).
 #   --poses N: N patient eyes (with --displacement) and N sharp eyes, N/3 with biometry, instead
 #   of 600, 600 and 200 (the page names each run's count; its bootstrap intervals show the cost).
 set -euo pipefail
@@ -40,6 +41,8 @@ splice_only() {
 case "${1:-}" in
     --accuracy) splice_only accuracy .venv/bin/eyeserver bench accuracy --json \
         --out "$out/accuracy" ;;
+    --speed) splice_only speed .venv/bin/eyeserver bench speed --json \
+        --calibration "$out/accuracy/calibration" ;;
     --reliability) splice_only reliability .venv/bin/eyeserver bench reliability --json ;;
 esac
 quick=()
@@ -48,7 +51,8 @@ while [[ $# -gt 0 ]]; do
     case "$1" in
         --quick) quick=(--quick); shift ;;
         --poses) poses="$2"; shift 2 ;;
-        *) echo "usage: bash scripts/benchmarks.sh [--quick | --accuracy | --reliability]" \
+        *) echo "usage: bash scripts/benchmarks.sh [--quick | --accuracy | --speed |" \
+                "--reliability]" \
                 "[--poses N]" >&2
            exit 2 ;;
     esac

@@ -178,6 +178,11 @@ def test_the_accuracy_part_is_spliced_into_the_page_alone(
     speed = {"frameset_2cam_ms": 123.4, "pending": {}}
     assert splice(render(old, speed), render_accuracy(new)) == render(new, speed)
     assert splice(render(new, speed), render_accuracy(new)) == render(new, speed)
+    # The speed section alone (scripts/benchmarks.sh --speed), before the pose sections.
+    faster = {"frameset_2cam_ms": 61.5, "pending": {}}
+    assert splice(page, render_speed(faster)) == (
+        render_accuracy(old) + render_speed(faster).rstrip("\n") + "\n\n"
+        + others[others.index("## Eye pose"):])
     # The reliability section through the same splice: its own ### headings go with it.
     assert splice(page, "## Reliability\n\nnew run\n") == (
         render_accuracy(old) + others.replace("old run\n\n### Load\n\nbusy\n", "new run\n"))

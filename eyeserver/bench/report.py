@@ -3,10 +3,10 @@ benches and this module; the page is never edited by hand).
 
 Usage: ``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...]
 [--reliability RELIABILITY.json] > docs/benchmarks.md``, or ``python -m eyeserver.bench.report
---splice docs/benchmarks.md [--accuracy ACCURACY.json] [--reliability RELIABILITY.json]``: the
-page with only the parts of the runs given made anew (the accuracy run's: the page's head and
-its accuracy section; the reliability run's: its section), on stdout
-(``scripts/benchmarks.sh --accuracy`` or ``--reliability``).
+--splice docs/benchmarks.md [--accuracy ACCURACY.json] [--speed SPEED.json] [--reliability
+RELIABILITY.json]``: the page with only the parts of the runs given made anew (the accuracy
+run's: the page's head and its accuracy section; the speed and the reliability runs': their
+sections), on stdout (``scripts/benchmarks.sh --accuracy``, ``--speed`` or ``--reliability``).
 """
 
 from __future__ import annotations
@@ -173,12 +173,28 @@ def render_speed(speed: dict[str, Any]) -> str:
     for name, value in speed.get("reconstruction", {}).items():
         lines.append(f"- reconstruction {name.replace('_', ' ')}: median "
                      f"{value['median_ms']:.1f} ms, p95 {value['p95_ms']:.1f} ms")
+    stages = speed.get("stages")
+    if stages:
+        sets = list(stages["per_frameset"])
+        lines += ["", f"Stage by stage (each timed on its own, {stages['passes']} passes, summed "
+                  "over a frame-set's cameras; median ms):", "",
+                  "| stage | " + " | ".join(sets) + " |", "|---|" + "---|" * len(sets)]
+        names = [*stages["per_frameset"][sets[0]]] if sets else []
+        for name in names:
+            lines.append(f"| `{name}` | " + " | ".join(
+                _value(stages["per_frameset"][label][name]["median_ms"], 1)
+                for label in sets) + " |")
+        lines.append("")
     for key, value in speed.get("peers", {}).items():
         if value.get("available"):
             lines.append(f"- peer `{key}` ({value.get('peer')} against {value.get('against')}): "
                          f"{_value(value.get('peer_median_ms'), 1)} ms against "
                          f"{_value(value.get('ours_median_ms'), 1)} ms, ratio "
                          f"{_value(value.get('time_ratio'), 2)}")
+            bent = value.get("with_bend_correction")
+            if bent:
+                lines[-1] += (f"; with our bend correction {_value(bent.get('ours_median_ms'), 1)}"
+                              f" ms, ratio {_value(bent.get('time_ratio'), 2)}")
         else:
             lines.append(f"- peer `{key}`: unavailable ({value.get('reason')})")
     if "frame_path" in speed:
@@ -635,13 +651,13 @@ def splice(page: str, part: str) -> str:
 
 
 SPLICED: dict[str, Callable[[dict[str, Any]], str]] = {
-    "--accuracy": render_accuracy, "--reliability": render_reliability}
+    "--accuracy": render_accuracy, "--speed": render_speed, "--reliability": render_reliability}
 """The parts of the page ``--splice`` makes anew, by the option naming their run's JSON."""
 
 USAGE = ("usage: python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...] "
          "[--reliability RELIABILITY.json]\n"
          "       python -m eyeserver.bench.report --splice PAGE.md [--accuracy ACCURACY.json] "
-         "[--reliability RELIABILITY.json]")
+         "[--speed SPEED.json] [--reliability RELIABILITY.json]")
 
 
 def _option(args: list[str], name: str) -> str | None:
@@ -670,13 +686,15 @@ def _read(path: str, as_json: bool = True) -> Any:
 def main(argv: list[str] | None = None) -> int:
     """``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...]
     [--reliability RELIABILITY.json]`` or ``--splice PAGE [--accuracy ACCURACY.json]
-    [--reliability RELIABILITY.json]`` (at least one): the page on stdout."""
+    [--speed SPEED.json] [--reliability RELIABILITY.json]`` (at least one): the page on
+    stdout."""
     args = list(sys.argv[1:] if argv is None else argv)
     page_path = _option(args, "--splice")
     given = {name: _option(args, name) for name in SPLICED}
     if "" in (page_path, *given.values()) or (page_path is not None and (
             args or not any(given.values()))) or (page_path is None and (
-            given["--accuracy"] is not None or len(args) < 2)):
+            given["--accuracy"] is not None or given["--speed"] is not None
+            or len(args) < 2)):
         print(USAGE, file=sys.stderr)
         return 2
     try:

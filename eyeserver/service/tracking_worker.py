@@ -31,7 +31,6 @@ reported as :class:`TrackingWorkerError` on the next frame: the session ends wit
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import fcntl
 import logging
 import os
@@ -44,9 +43,9 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 import cv2
-import numpy as np
 from threadpoolctl import threadpool_limits
 
+from eyeserver.core.memory import keep_freed_memory
 from eyeserver.errors import EyeserverError
 from eyeserver.eye import EyeModel, EyePose, PoseError, fit_eye, track_eye
 from eyeserver.io import RigSpec
@@ -122,33 +121,17 @@ def _widen(connection: Connection) -> None:
 KEPT_MEMORY_BYTES = 64 << 20
 """Memory a worker touches once at its start and keeps (:func:`_keep_memory`)."""
 
-_M_TRIM_THRESHOLD = -1
-_M_MMAP_THRESHOLD = -3
-_MMAP_THRESHOLD_MAX = 32 << 20  # glibc's largest on 64-bit systems
-
 
 def _keep_memory() -> None:
-    """Have the C allocator keep the memory it was given, and give it some at once.
+    """Keep the C allocator's memory (:func:`~eyeserver.core.memory.keep_freed_memory`) and
+    touch :data:`KEPT_MEMORY_BYTES` of it before the stream.
 
     A frame set whose tracking window is new (the eye turned or blinked) allocates arrays of
-    new sizes. By default glibc serves large ones with fresh pages from the kernel and gives
-    freed ones back, and on this kind of virtual machine a fresh page's first touch costs
-    ≈ 10–20 µs: measured in the tracking bench, such frames took 1300–2900 page faults and
-    20–50 ms of system time (51–96 ms a frame set against ≈ 20), the frames right after a
-    saccade or a blink, when the beam hold matters most. So large blocks come from the heap
-    (below glibc's 32 MB cap), freed memory is not trimmed, and :data:`KEPT_MEMORY_BYTES`
-    are touched now, before the stream. Elsewhere than glibc: nothing to do.
+    new sizes: measured in the tracking bench without this, such frames took 1300–2900 page
+    faults and 20–50 ms of system time (51–96 ms a frame set against ≈ 20), the frames right
+    after a saccade or a blink, when the beam hold matters most.
     """
-    try:
-        libc = ctypes.CDLL(None)
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return
-    mallopt(_M_TRIM_THRESHOLD, ctypes.c_int(2**31 - 1))
-    mallopt(_M_MMAP_THRESHOLD, ctypes.c_int(_MMAP_THRESHOLD_MAX))
-    block = _MMAP_THRESHOLD_MAX // 2
-    touched = [np.ones(block, dtype=np.uint8) for _ in range(KEPT_MEMORY_BYTES // block)]
-    del touched
+    keep_freed_memory(KEPT_MEMORY_BYTES)
 
 
 def _serve(connection: _Channel, calibration: str, rig: RigSpec, model: EyeModel) -> None:
