@@ -713,8 +713,9 @@ def test_the_replay_bench_counts_every_frame_it_hands_the_tracking_worker(
 
 
 def test_the_speed_report_shows_live_tracking_rendered_live_and_ahead() -> None:
-    """The two runs of ``eyeserver bench tracking`` land in the speed report and its page,
-    each with its own figures (made-up reports: the runs themselves are tested above)."""
+    """The three runs of ``eyeserver bench tracking`` (one unit rendered live and ahead, both
+    units) land in the speed report and its page, each with its own figures and goal (made-up
+    reports: the runs themselves are tested above)."""
     def run(median: float, p99: float) -> dict[str, Any]:
         return {"seconds": 60, "slowest": [{"latency_ms": p99 + 20, "script_s": 33.09}],
                 "reference_fft_ms": {"at_start": 0.61, "at_end": 0.64},
@@ -729,19 +730,25 @@ def test_the_speed_report_shows_live_tracking_rendered_live_and_ahead() -> None:
                 "clients": {"readers": 19, "reader_rate_hz_min": 24.9,
                             "reader_rate_hz_max": 25.0, "reader_messages_lost": 0}}
 
-    figures = speed.tracking_figures(run(38.0, 90.0), run(30.0, 39.0))
-    assert (figures["frame_to_pose_p99_ms"], figures["prerendered_frame_to_pose_p99_ms"]) \
-        == (90.0, 39.0)
+    figures = speed.tracking_figures(run(38.0, 90.0), run(30.0, 39.0), run(52.0, 81.0))
+    assert (figures["frame_to_pose_p99_ms"], figures["prerendered_frame_to_pose_p99_ms"],
+            figures["both_units_frame_to_pose_p99_ms"]) == (90.0, 39.0, 81.0)
     assert figures["frame_to_pose_goal_p99_ms"] == 40.0
+    assert figures["tracking_both_units"]["goal_p99_ms"] == 25.0
+    assert "--unit all" in figures["tracking_both_units"]["what"]
     assert "rendered before tracking" in figures["tracking_prerendered"]["what"]
     page = render_speed({"pending": {}, **figures})
-    assert "38 ms median, 90 ms p99" in page and "30 ms median, 39 ms p99" in page
+    assert "38 ms median, 90 ms p99 (goal p99 40 ms)" in page
+    assert "30 ms median, 39 ms p99 (goal p99 40 ms)" in page
+    assert "52 ms median, 81 ms p99 (goal p99 25 ms)" in page
     assert "110 at 33.09" in page and "0.61 ms at its start" in page
     assert "8° saccade held the beam" in page and "8° saccade did NOT hold" in page
     assert "Of the 5 processed frames of the 0.3-s blink" in page
     assert "19 WebSocket clients reading beside one that never read received 24.9–25.0" in page
     text = "\n".join(speed.tracking_lines(figures))
     assert "the simulated room rendered ahead): frame → pose message 30 ms median" in text
+    assert "both units tracked): frame → pose message 52 ms median, 81 ms p99 (goal p99 25" \
+        in text
     assert speed.tracking_figures(None, None) == {}
 
 

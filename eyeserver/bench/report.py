@@ -211,7 +211,8 @@ def render_speed(speed: dict[str, Any]) -> str:
         lines.append("")
     for key, why in speed.get("pending", {}).items():
         lines.append(f"- Pending `{key}`: {why}")
-    for key, prefix in (("tracking", ""), ("tracking_prerendered", "prerendered_")):
+    for key, prefix in (("tracking", ""), ("tracking_prerendered", "prerendered_"),
+                        ("tracking_both_units", "both_units_")):
         lines += _tracking_paragraph(speed, key, prefix)
     alone = speed.get("tracking_replay")
     if alone:
@@ -227,7 +228,7 @@ def render_speed(speed: dict[str, Any]) -> str:
 
 def _tracking_paragraph(speed: dict[str, Any], key: str, prefix: str) -> list[str]:
     """One live-tracking run of the speed report (``key``: ``tracking`` or
-    ``tracking_prerendered``, whose figures start with ``prefix``)."""
+    ``tracking_prerendered`` or ``tracking_both_units``, whose figures start with ``prefix``)."""
     live = speed.get(key)
     if not live:
         return []
@@ -235,7 +236,7 @@ def _tracking_paragraph(speed: dict[str, Any], key: str, prefix: str) -> list[st
     text = (f"Live tracking ({live['seconds']} s at 25 Hz; {live['what']}): frame → pose "
             f"{_value(speed.get(f'{prefix}frame_to_pose_median_ms'), 0)} ms median, "
             f"{_value(speed.get(f'{prefix}frame_to_pose_p99_ms'), 0)} ms p99 (goal p99 "
-            f"{_value(speed.get('frame_to_pose_goal_p99_ms'), 0)} ms); "
+            f"{_value(live.get('goal_p99_ms', speed.get('frame_to_pose_goal_p99_ms')), 0)} ms); "
             f"{frames['processed']} of {frames['camera_periods']} camera frames processed "
             f"(goal 99 %), {frames['dropped']} dropped and {frames['missed']} missed, all "
             "counted.")
