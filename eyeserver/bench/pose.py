@@ -461,6 +461,8 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
                         "centre_error_mm": centre_error,
                         "centre_error_in_sd": [float(e / sd) for e, sd in
                                                zip(np.abs(error_mm), stated, strict=True)],
+                        "centre_error_axes_mm": [float(e) for e in error_mm],
+                        "centre_sd_stated_mm": [float(sd) for sd in stated],
                         "gaze_error_deg": _angle_deg(pose.gaze, truth["gaze"]),
                         "gaze_sd_deg": pose.gaze_sd_deg,
                         "radius_error_mm": pose.globe_radius_mm - truth["globe_radius_mm"],
