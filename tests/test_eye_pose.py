@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -11,6 +12,7 @@ import numpy as np
 import pytest
 
 from eyeserver.cli import main
+from eyeserver.eye import tunables
 from eyeserver.eye.fit import (
     EyeModel,
     PoseError,
@@ -18,6 +20,7 @@ from eyeserver.eye.fit import (
     fit_eye,
     fit_sphere,
     radius_bounds,
+    with_model_error,
 )
 from eyeserver.hardware.sim.config import load_room
 from eyeserver.hardware.sim.scenes import SceneSpec
@@ -83,6 +86,29 @@ def test_synthetic_eye(centre: tuple[float, float, float], radius: float, yaw: f
     assert pose.surface_mad_mm < 0.05
     assert 0.0 < pose.confidence <= 1.0
     json.dumps(pose.to_dict())
+
+
+def test_a_weak_pose_states_a_wider_uncertainty_not_another_pose() -> None:
+    """The error the fit's covariances do not count grows as the confidence falls below
+    MODEL_ERROR_BELOW_CONFIDENCE; the pose and its confidence are unchanged, and so are the
+    sds of a pose at least that confident."""
+    rng = np.random.default_rng(12)
+    pose = fit_eye(_synthetic_eye(np.array([0.0, 0.0, -10.0]), 12.0, _gaze(0.0, 0.0), rng),
+                   EyeModel.population())
+    for confident in (1.0, 0.9, tunables.MODEL_ERROR_BELOW_CONFIDENCE):
+        sure = with_model_error(replace(pose, confidence=confident))
+        assert sure.centre_sd_mm == pose.centre_sd_mm and sure.gaze_sd_deg == pose.gaze_sd_deg
+    widths = []
+    for confidence in (0.45, 0.3, 0.2, 0.05, 0.0):
+        weak = with_model_error(replace(pose, confidence=confidence))
+        assert (weak.centre_mm, weak.gaze, weak.confidence) == (pose.centre_mm, pose.gaze,
+                                                                 confidence)
+        assert all(a > b for a, b in zip(weak.centre_sd_mm, pose.centre_sd_mm, strict=True))
+        assert weak.gaze_sd_deg > pose.gaze_sd_deg
+        widths.append((weak.centre_sd_mm[0], weak.gaze_sd_deg))
+    assert widths == sorted(widths)
+    # At a confidence of 0.2 the centre is known to about a millimetre per axis, no better.
+    assert with_model_error(replace(pose, confidence=0.2)).centre_sd_mm[0] > 1.0
 
 
 def test_no_eye_is_a_pose_error() -> None:

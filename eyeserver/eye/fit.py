@@ -65,6 +65,11 @@ from eyeserver.eye.tunables import (
     IMPLAUSIBLE_RADIUS,
     LID_REACH_MM,
     MIN_SCLERA_POINTS,
+    MODEL_ERROR_BELOW_CONFIDENCE,
+    MODEL_ERROR_CENTRE_MM,
+    MODEL_ERROR_GAZE_DEG,
+    MODEL_ERROR_MIN_CONFIDENCE,
+    MODEL_ERROR_POWER,
     MSAC_HYPOTHESES,
     MSAC_LOCAL_MM,
     NO_GLOBE_FACTOR,
@@ -80,7 +85,8 @@ from eyeserver.eye.tunables import (
 )
 
 __all__ = ["CloudLike", "EyeModel", "EyePose", "Gaze", "PoseError", "checked_cloud", "cloud_gaze",
-           "fit_eye", "fit_sphere", "pose_from_cloud", "pose_on_limbus", "radius_bounds"]
+           "fit_eye", "fit_sphere", "pose_from_cloud", "pose_on_limbus", "radius_bounds",
+           "with_model_error"]
 
 
 class CloudLike(Protocol):
@@ -192,8 +198,8 @@ class EyePose:
     REMEASURED_SCLERA_BIAS_MM` for the sclera remeasured in the images,
     :data:`~eyeserver.eye.tunables.CLOUD_SCLERA_BIAS_MM` for the cloud's while tracking), which
     moves a fitted globe's depth (``eyeserver bench pose`` reports how often the errors lie
-    within one and two). A pose from the cloud alone (``gaze_source`` other than
-    ``"limbus (images)"``) still counts its points as independent: its sds are too small."""
+    within one and two). :func:`fit_eye` adds what the covariances cannot count, growing as the
+    confidence falls (:func:`with_model_error`); live tracking's frame-to-frame poses do not."""
     globe_radius_mm: float
     limbus_centre_mm: tuple[float, float, float] | None
     limbus_sd_mm: float | None
@@ -742,6 +748,7 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
     Returns
     -------
     EyePose
+        Its sds include the error the fit's covariances do not count (:func:`with_model_error`).
 
     Raises
     ------
@@ -751,6 +758,25 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
     ValueError
         ``cloud.points`` is not (N, 3) or holds non-finite values.
     """
+    return with_model_error(_fit(cloud, model, views))
+
+
+def with_model_error(pose: EyePose) -> EyePose:
+    """``pose`` with the error its fit's covariances do not count added to its centre's and its
+    gaze's sds, growing as its confidence falls below :data:`~eyeserver.eye.tunables.
+    MODEL_ERROR_BELOW_CONFIDENCE` (:data:`~eyeserver.eye.tunables.MODEL_ERROR_CENTRE_MM`): a
+    pose whose evidence is weak says how little it knows. The confidence and the pose itself
+    are unchanged."""
+    c = min(max(pose.confidence, MODEL_ERROR_MIN_CONFIDENCE), 1.0)
+    weakness = (max(0.0, MODEL_ERROR_BELOW_CONFIDENCE - c) / c) ** MODEL_ERROR_POWER
+    centre = MODEL_ERROR_CENTRE_MM * weakness
+    gaze = MODEL_ERROR_GAZE_DEG * weakness
+    x, y, z = (math.hypot(sd, centre) for sd in pose.centre_sd_mm)
+    return replace(pose, centre_sd_mm=(x, y, z), gaze_sd_deg=math.hypot(pose.gaze_sd_deg, gaze))
+
+
+def _fit(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView]) -> EyePose:
+    """:func:`fit_eye` before :func:`with_model_error`."""
     started = time.perf_counter()
     points, weights = checked_cloud(cloud)
     if len(points) < MIN_SCLERA_POINTS:

@@ -218,6 +218,31 @@ visible sclera puts the centre 1.5 times the axial semi-axis's difference from t
 along the gaze: 0.62–0.72 mm sd for 11–13-mm globes (geometry alone, no rendering;
 docs/notes/patient-eye.md)."""
 
+MODEL_ERROR_CENTRE_MM = 0.98
+"""Scale (mm) of the error the fit's own covariances do not count (the limbus mistaken, the lids
+taken for sclera, a globe that is no sphere), added per axis to a pose's centre sd as
+``MODEL_ERROR_CENTRE_MM · (max(0, c₀ − c)/c)^MODEL_ERROR_POWER`` for its confidence ``c`` and
+``c₀`` = :data:`MODEL_ERROR_BELOW_CONFIDENCE` (:func:`~eyeserver.eye.fit.with_model_error`).
+Calibrated on draws the benchmarks never report (seed 7: 60 patient eyes, 24 with biometry,
+30 sharp), so that 97.5 % of their errors lie within 2 sd (``scripts/calibrate_model_error.py``;
+docs/notes/patient-eye.md, "Sixth session")."""
+
+MODEL_ERROR_GAZE_DEG = 7.7
+"""The same for the gaze's sd, degrees (calibrated with :data:`MODEL_ERROR_CENTRE_MM`)."""
+
+MODEL_ERROR_BELOW_CONFIDENCE = 0.5
+"""Poses this confident or more have none added: on the calibration draws their covariances
+(with the globe's unknown shape) held every error within 2 sd (the sharp eyes, 0.82–0.97), and
+no patient eye reached it (0–0.47)."""
+
+MODEL_ERROR_POWER = 0.5
+"""How fast the unexplained error grows as the confidence falls (see
+:data:`MODEL_ERROR_CENTRE_MM`): of the powers 0.25–3, 0.5 left the narrowest sds that cover the
+calibration draws (1.2 mm per axis at a confidence of 0.2, 2.9 mm at 0.05)."""
+
+MODEL_ERROR_MIN_CONFIDENCE = 0.01
+"""The confidence below which the unexplained error stops growing (a pose of no confidence)."""
+
 WELL_SEEN_POINTS = 300
 """Sclera points at which the confidence's point term reaches 1 − 1/e. Count; chosen by hand."""
 
