@@ -32,6 +32,7 @@ from pathlib import Path
 
 
 def _median_ms(call: Callable[[], object], runs: int) -> float:
+    # bench.speed._repeat's loop, kept here: this script also runs against older checkouts.
     call()
     samples = []
     for _ in range(runs):
