@@ -211,9 +211,10 @@ def render_speed(speed: dict[str, Any]) -> str:
         lines.append("")
     for key, why in speed.get("pending", {}).items():
         lines.append(f"- Pending `{key}`: {why}")
-    for key, prefix in (("tracking", ""), ("tracking_prerendered", "prerendered_"),
-                        ("tracking_both_units", "both_units_")):
-        lines += _tracking_paragraph(speed, key, prefix)
+    from eyeserver.bench.speed import TRACKING_RUNS
+
+    for key in TRACKING_RUNS:
+        lines += _tracking_paragraph(speed, key)
     alone = speed.get("tracking_replay")
     if alone:
         from eyeserver.bench.tracking import format_replayed
@@ -226,21 +227,21 @@ def render_speed(speed: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _tracking_paragraph(speed: dict[str, Any], key: str, prefix: str) -> list[str]:
-    """One live-tracking run of the speed report (``key``: ``tracking`` or
-    ``tracking_prerendered`` or ``tracking_both_units``, whose figures start with ``prefix``)."""
+def _tracking_paragraph(speed: dict[str, Any], key: str) -> list[str]:
+    """One live-tracking run of the speed report (``key``, one of
+    :data:`~eyeserver.bench.speed.TRACKING_RUNS`)."""
     live = speed.get(key)
     if not live:
         return []
     frames = live["frames"]
+    latency = live.get("latency_ms", {})
     text = (f"Live tracking ({live['seconds']} s at 25 Hz; {live['what']}): frame → pose "
-            f"{_value(speed.get(f'{prefix}frame_to_pose_median_ms'), 0)} ms median, "
-            f"{_value(speed.get(f'{prefix}frame_to_pose_p99_ms'), 0)} ms p99 (goal p99 "
+            f"{_value(latency.get('end_to_end_median'), 0)} ms median, "
+            f"{_value(latency.get('end_to_end_p99'), 0)} ms p99 (goal p99 "
             f"{_value(live.get('goal_p99_ms', speed.get('frame_to_pose_goal_p99_ms')), 0)} ms); "
             f"{frames['processed']} of {frames['camera_periods']} camera frames processed "
             f"(goal 99 %), {frames['dropped']} dropped and {frames['missed']} missed, all "
             "counted.")
-    latency = live.get("latency_ms", {})
     if latency.get("delivery_median") is not None:
         text += (f" Of that latency, the frames reached the daemon "
                  f"{_value(latency['delivery_median'], 0)} ms (median; p99 "
