@@ -2,12 +2,10 @@
 
 By default glibc serves each block over 128 KB (a 640 × 512 float32 image is 1.3 MB) with fresh
 pages from the kernel and gives it back when freed, and on this kind of virtual machine a fresh
-page's first touch costs ≈ 10–20 µs. Every array of a frame's reconstruction is such a block, so
-by default they are paid for again on every frame: measured with ``eyeserver bench speed``'s
-stage table, ``demodulate`` took 2.4× as long and the plain FFT peer 2.6× (how, in
-docs/notes/speed.md). With :func:`keep_freed_memory` large blocks come from the heap (below
-glibc's 32 MB cap) and freed memory is not trimmed, so a process's resident memory stays at its
-peak: the price, a few hundred MB for the daemon at most.
+page's first touch is costly. Every array of a frame's reconstruction is such a block, so by
+default they are paid for again and again (what it costs: docs/notes/speed.md). With
+:func:`keep_freed_memory` large blocks come from the heap (below glibc's 32 MB cap) and freed
+memory is not trimmed, so a process's resident memory stays at its peak.
 """
 
 from __future__ import annotations

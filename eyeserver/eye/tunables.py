@@ -232,13 +232,13 @@ MODEL_ERROR_GAZE_DEG = 7.7
 
 MODEL_ERROR_BELOW_CONFIDENCE = 0.5
 """Poses this confident or more have none added: on the calibration draws their covariances
-(with the globe's unknown shape) held every error within 2 sd (the sharp eyes, 0.82–0.97), and
-no patient eye reached it (0–0.47)."""
+(with the globe's unknown shape) already held every error within 2 sd, and no patient eye
+reached this confidence."""
 
 MODEL_ERROR_POWER = 0.5
 """How fast the unexplained error grows as the confidence falls (see
-:data:`MODEL_ERROR_CENTRE_MM`): of the powers 0.25–3, 0.5 left the narrowest sds that cover the
-calibration draws (1.2 mm per axis at a confidence of 0.2, 2.9 mm at 0.05)."""
+:data:`MODEL_ERROR_CENTRE_MM`): the power that left the narrowest sds covering the calibration
+draws."""
 
 MODEL_ERROR_MIN_CONFIDENCE = 0.01
 """The confidence below which the unexplained error stops growing (a pose of no confidence)."""

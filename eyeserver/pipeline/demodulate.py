@@ -609,14 +609,20 @@ def _pass_band(fy: npt.NDArray[np.floating[Any]], fx: npt.NDArray[np.floating[An
     return gain.astype(np.float32)
 
 
+def _band_shape(carrier: Carrier, bandwidth: float, taper: float,
+                ) -> tuple[float, float, tuple[float, float]]:
+    """The pass band's outer and flat-top radii along the carrier (cycles/px) and the carrier's
+    unit direction ``(dy, dx)``: what :func:`_pass_band` takes besides the offsets."""
+    f = carrier.cycles_per_px
+    outer = bandwidth * f
+    return outer, (1.0 - taper) * outer, (carrier.frequency[0] / f, carrier.frequency[1] / f)
+
+
 def band_gain(carrier: Carrier, fy: npt.ArrayLike, fx: npt.ArrayLike) -> npt.NDArray[np.float32]:
     """The default pass band's gain (0–1) for fringes of local frequency ``carrier + (fy, fx)``
     (cycles/px): 1 on its flat top, where :func:`demodulate`'s phase is unbiased."""
-    f = carrier.cycles_per_px
-    outer = BANDWIDTH * f
-    direction = (carrier.frequency[0] / f, carrier.frequency[1] / f)
-    return _pass_band(np.asarray(fy, np.float64), np.asarray(fx, np.float64), outer,
-                      (1.0 - TAPER) * outer, direction, ELONGATION)
+    return _pass_band(np.asarray(fy, np.float64), np.asarray(fx, np.float64),
+                      *_band_shape(carrier, BANDWIDTH, TAPER), ELONGATION)
 
 
 def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = BANDWIDTH,
@@ -736,8 +742,8 @@ def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = BAN
     padded_w = _padded_length(width, pad_px, fx0) if pad_px else width
     padded = np.empty((padded_h, padded_w), dtype=np.float32)
     # The mean goes first: the continuation and the float32 transforms then work on the fringe.
-    # (cv2.mean and an in-place subtraction: numpy's float64 mean and casting subtraction took
-    # 0.7 ms of a 640 × 512 image's 2.6.)
+    # (cv2.mean and an in-place subtraction: faster than numpy's float64 mean and casting
+    # subtraction, docs/notes/speed.md.)
     inner = padded[:height, :width]
     inner[...] = values
     inner -= np.float32(cv2.mean(inner)[0])
@@ -759,8 +765,8 @@ def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = BAN
     columns[:, np.mod(band_kx, padded_w)] = band[:height]
     analytic = scipy.fft.ifft(columns, axis=1, workers=workers, overwrite_x=True)[:, :width]
 
-    # Phase and magnitude from contiguous copies of the parts: np.angle's and np.abs's passes
-    # over the complex array's strided views took twice as long.
+    # Phase and magnitude from contiguous copies of the parts: faster than np.angle's and
+    # np.abs's passes over the complex array's strided views (docs/notes/speed.md).
     real, imaginary = np.ascontiguousarray(analytic.real), np.ascontiguousarray(analytic.imag)
     wrapped_phase = np.arctan2(imaginary, real)
     # The band holds one side of the spectrum: its magnitude is B/2.
@@ -778,11 +784,8 @@ def with_bend_bias(result: Demodulated, carrier: Carrier, *, bandwidth: float = 
     """``result`` (of :func:`demodulate` with ``measure_bends=False`` and the same band) with its
     :attr:`~Demodulated.bend_bias` measured: what ``measure_bends=True`` adds, on its own so
     ``eyeserver bench speed`` can time it apart from the Fourier-transform method itself."""
-    outer = bandwidth * carrier.cycles_per_px
-    direction = (carrier.frequency[0] / carrier.cycles_per_px,
-                 carrier.frequency[1] / carrier.cycles_per_px)
-    bias = _bend_bias(result.wrapped_phase, result.modulation, carrier, outer,
-                      (1.0 - taper) * outer, direction, elongation)
+    bias = _bend_bias(result.wrapped_phase, result.modulation, carrier,
+                      *_band_shape(carrier, bandwidth, taper), elongation)
     return Demodulated(result.wrapped_phase, result.modulation, bias)
 
 
@@ -791,11 +794,9 @@ def _band(padded_h: int, padded_w: int, carrier: Carrier, bandwidth: float, tape
           elongation: float) -> tuple[npt.NDArray[np.intp], F32]:
     """The pass band on a padded image's transform: the signed column bins it touches and its
     gain on every row of those columns (zero on the rows it does not touch). It depends on the
-    sizes and the carrier only, so it is made once per window shape (measured: 0.3 ms of a
-    640 × 512 image's 2.6)."""
+    sizes and the carrier only, so it is made once per window shape (docs/notes/speed.md)."""
     fy0, fx0 = carrier.frequency
-    outer = bandwidth * carrier.cycles_per_px
-    dy, dx = fy0 / carrier.cycles_per_px, fx0 / carrier.cycles_per_px
+    outer, flat, (dy, dx) = _band_shape(carrier, bandwidth, taper)
     # The ellipse's extent along each axis: radius ``outer`` along the carrier, ``elongation``
     # times that across it.
     reach_x = outer * math.hypot(dx, elongation * dy)
@@ -807,8 +808,8 @@ def _band(padded_h: int, padded_w: int, carrier: Carrier, bandwidth: float, tape
     band_rows = np.abs(fy_offsets) < reach_y
     weights = np.zeros((padded_h, band_kx.size), np.float32)
     weights[band_rows] = _pass_band(fy_offsets[band_rows, None],
-                                    (band_kx / padded_w)[None, :] - fx0, outer,
-                                    (1.0 - taper) * outer, (dy, dx), elongation)
+                                    (band_kx / padded_w)[None, :] - fx0, outer, flat, (dy, dx),
+                                    elongation)
     for array in (band_kx, weights):
         array.flags.writeable = False  # shared by every call
     return band_kx, weights
@@ -888,9 +889,9 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     centre = _pass_band(offset_y.astype(np.float32), offset_x.astype(np.float32), outer, flat,
                         direction, elongation)
     # The band's derivatives by finite differences over ``step``, not in closed form: the raised
-    # cosine's curvature jumps at the flat top's edge, and the closed form's jump left the worst
-    # pixel of bent fringes (tests/test_demodulate.py) 0.79 of its uncorrected error against
-    # 0.50. All nine evaluations in one float32 pass (float64 took 1.2 ms more an image).
+    # cosine's curvature jumps at the flat top's edge, and the differences average the jump as
+    # the fringes' own spread of frequencies does (the closed form corrected bent fringes less
+    # well, docs/notes/speed.md). All nine evaluations in one float32 pass.
     shifts = np.array([(0.0, 0.0), (step, 0.0), (-step, 0.0), (0.0, step), (0.0, -step),
                        (step, step), (step, -step), (-step, step), (-step, -step)])
     gains = _pass_band((offset_y[off_top][None, :] + shifts[:, :1]).astype(np.float32),
@@ -907,7 +908,7 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     curve_yy, curve_yx = _gradient(slope_y64, factor, off_top)
     curve_xy, curve_xx = _gradient(slope_x64, factor, off_top)
     # (The log of the block averages, not the average of the logs: the same where the fringe
-    # is smooth, and the edge rule below drops the rest; a full-size log took 0.4 ms.)
+    # is smooth, and the edge rule below drops the rest; a log of the full image costs more.)
     fringe = np.asarray(cv2.resize(modulation, coarse, interpolation=cv2.INTER_AREA))
     log_fringe = np.log(np.maximum(fringe, np.float32(1e-3)))
     fading_y, fading_x = _gradient(np.asarray(cv2.GaussianBlur(log_fringe, (0, 0), sigma / factor),

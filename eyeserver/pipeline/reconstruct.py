@@ -650,7 +650,7 @@ def _mismatch(cam_a: CalibratedCamera, cam_b: CalibratedCamera, view_b: F32,
     cos_b, sin_b, valid_b = (seen[:, c].reshape(z.shape) for c in range(3))
     # The seen phase less the predicted one, wrapped: the same as the angle of the seen
     # (cos, sin) turned by −predicted, with one arctan2 instead of a cos, a sin and an arctan2
-    # (measured: 15 of a 2-camera frame-set's 128 ms went to those three).
+    # (docs/notes/speed.md).
     mismatch = np.arctan2(sin_b, cos_b).astype(np.float64) - predicted
     with np.errstate(invalid="ignore"):  # an infinite prediction: not judged, below
         mismatch -= TWO_PI * np.rint(mismatch / TWO_PI)
