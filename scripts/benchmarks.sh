@@ -8,16 +8,31 @@
 # a full disk, load and fuzz through daemons on loopback, a few minutes; its full-disk part needs
 # root for its tmpfs and says skipped otherwise) and render their JSON.
 # Figures and PNGs are kept in build/benchmarks/.
-# Usage: bash scripts/benchmarks.sh [--quick | --accuracy | --speed | --reliability] [--poses N]
-#   --accuracy, --speed, --reliability: only that bench (the full accuracy protocol, ≈ 10
-#   minutes, the speed bench, ≈ 8, or the reliability bench, a few), its part of the page made
-#   anew and the rest left as it is (the accuracy run's part: the page's head and its Accuracy
-#   section, the daily QA's figures with it; its calibration in build/benchmarks/accuracy/ is
-#   the one later full runs and --speed use: run --accuracy first on a fresh clone).
+# Usage: bash scripts/benchmarks.sh [--quick | --accuracy | --speed | --reliability | --pose]
+#                                   [--poses N]
+#   --accuracy, --speed, --reliability, --pose: only that bench (the full accuracy protocol, ≈ 10
+#   minutes, the speed bench, ≈ 8, the reliability bench, a few, or the eye pose bench's three
+#   runs, ≈ 3 hours), its part of the page made anew and the rest left as it is (the accuracy
+#   run's part: the page's head and its Accuracy section, the daily QA's figures with it; its
+#   calibration in build/benchmarks/accuracy/ is the one later full runs, --speed and --pose
+#   use: run --accuracy first on a fresh clone).
 #   --poses N: N patient eyes (with --displacement) and N sharp eyes, N/3 with biometry, instead
 #   of 600, 600 and 200 (the page names each run's count; its bootstrap intervals show the cost).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+mode=all
+quick=()
+poses=600
+while [[ $# -gt 0 ]]; do
+    case "$1" in
+        --accuracy | --speed | --reliability | --pose) mode="${1#--}"; shift ;;
+        --quick) quick=(--quick); shift ;;
+        --poses) poses="$2"; shift 2 ;;
+        *) echo "usage: bash scripts/benchmarks.sh [--quick | --accuracy | --speed |" \
+                "--reliability | --pose] [--poses N]" >&2
+           exit 2 ;;
+    esac
+done
 bash scripts/setup.sh
 out=build/benchmarks
 mkdir -p "$out"
@@ -38,33 +53,33 @@ splice_only() {
     echo "docs/benchmarks.md: its $name part regenerated"
     exit 0
 }
-case "${1:-}" in
-    --accuracy) splice_only accuracy .venv/bin/eyeserver bench accuracy --json \
+pose_runs() {
+    # The eye pose bench's three runs, their JSON in $out/pose*.json.
+    .venv/bin/eyeserver bench pose --json --poses "$poses" --displacement \
+        --calibration "$out/accuracy/calibration" > "$out/pose.json"
+    .venv/bin/eyeserver bench pose --json --poses "$((poses / 3))" --biometry \
+        --calibration "$out/accuracy/calibration" > "$out/pose_biometry.json"
+    .venv/bin/eyeserver bench pose --json --eyes sharp --poses "$poses" \
+        --calibration "$out/accuracy/calibration" > "$out/pose_sharp.json"
+}
+case "$mode" in
+    accuracy) splice_only accuracy .venv/bin/eyeserver bench accuracy --json \
         --out "$out/accuracy" ;;
-    --speed) splice_only speed .venv/bin/eyeserver bench speed --json \
+    speed) splice_only speed .venv/bin/eyeserver bench speed --json \
         --calibration "$out/accuracy/calibration" ;;
-    --reliability) splice_only reliability .venv/bin/eyeserver bench reliability --json ;;
+    reliability) splice_only reliability .venv/bin/eyeserver bench reliability --json ;;
+    pose)
+        pose_runs
+        .venv/bin/python -m eyeserver.bench.report --splice docs/benchmarks.md \
+            --pose "$out/pose.json" --pose "$out/pose_biometry.json" \
+            --pose "$out/pose_sharp.json" > "$out/benchmarks.md"
+        mv "$out/benchmarks.md" docs/benchmarks.md
+        echo "docs/benchmarks.md: its eye pose part regenerated"
+        exit 0 ;;
 esac
-quick=()
-poses=600
-while [[ $# -gt 0 ]]; do
-    case "$1" in
-        --quick) quick=(--quick); shift ;;
-        --poses) poses="$2"; shift 2 ;;
-        *) echo "usage: bash scripts/benchmarks.sh [--quick | --accuracy | --speed |" \
-                "--reliability]" \
-                "[--poses N]" >&2
-           exit 2 ;;
-    esac
-done
 .venv/bin/eyeserver bench accuracy --json "${quick[@]}" --out "$out/accuracy" > "$out/accuracy.json"
 .venv/bin/eyeserver bench speed --json --calibration "$out/accuracy/calibration" > "$out/speed.json"
-.venv/bin/eyeserver bench pose --json --poses "$poses" --displacement \
-    --calibration "$out/accuracy/calibration" > "$out/pose.json"
-.venv/bin/eyeserver bench pose --json --poses "$((poses / 3))" --biometry \
-    --calibration "$out/accuracy/calibration" > "$out/pose_biometry.json"
-.venv/bin/eyeserver bench pose --json --eyes sharp --poses "$poses" \
-    --calibration "$out/accuracy/calibration" > "$out/pose_sharp.json"
+pose_runs
 .venv/bin/eyeserver bench reliability --json > "$out/reliability.json"
 .venv/bin/python -m eyeserver.bench.report "$out/accuracy.json" "$out/speed.json" \
     "$out/pose.json" "$out/pose_biometry.json" "$out/pose_sharp.json" \

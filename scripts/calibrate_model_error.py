@@ -6,11 +6,13 @@ Usage::
 
 POSE.json are ``eyeserver bench pose --json`` documents of seeds the benchmarks never report
 (docs/benchmarks.md reports seed 0; the constants came from seed 7, docs/notes/patient-eye.md).
-For each power ``p`` of ``(max(0, c₀ − c)/c)^p`` it prints the scales (mm for the centre's axes, degrees
-for the gaze) that leave ``P`` % of the draws' errors (default 97.5) within 2 of their stated
-sds once added, and, per document, the median sd that results against the median error and
-the share within 2 sd (centre axes / gaze). Each fitted pose's stated sd here is the bench's:
-the fit's covariances and the globe's unknown shape, before the unexplained error.
+For each power ``p`` of ``(max(0, c₀ − c)/c)^p`` it prints the scales (mm for the centre's axes,
+degrees for the gaze) that leave ``P`` % of the draws' errors (default 97.5) within 2 of their
+stated sds once added, and, per document, the median sd that results against the median error and
+the share within 2 sd (centre axes / gaze). Each fitted pose's stated sd here is the bench's
+less the unexplained error the current constants add for its confidence
+(:func:`eyeserver.eye.fit.model_error_sds`): the fit's covariances and the globe's unknown
+shape. Documents must therefore come from a checkout with the current constants.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from eyeserver.eye.fit import model_error_sds
 from eyeserver.eye.tunables import MODEL_ERROR_BELOW_CONFIDENCE, MODEL_ERROR_MIN_CONFIDENCE
 
 POWERS = (0.25, 0.5, 1.0, 1.5, 2.0, 3.0)
@@ -32,6 +35,15 @@ def weakness(confidence: float, power: float) -> float:
     """``(max(0, c₀ − c)/c)^power``, as :func:`eyeserver.eye.fit.with_model_error` takes it."""
     c = min(max(confidence, MODEL_ERROR_MIN_CONFIDENCE), 1.0)
     return float((max(0.0, MODEL_ERROR_BELOW_CONFIDENCE - c) / c) ** power)
+
+
+def _without_model_error(row: dict[str, Any]) -> dict[str, Any]:
+    """``row`` with the current unexplained error taken out of its stated sds again."""
+    centre, gaze = model_error_sds(row["confidence"])
+    return {**row,
+            "centre_sd_stated_mm": [float(np.sqrt(max(0.0, s**2 - centre**2)))
+                                    for s in row["centre_sd_stated_mm"]],
+            "gaze_sd_deg": float(np.sqrt(max(0.0, row["gaze_sd_deg"] ** 2 - gaze**2)))}
 
 
 def _needed(rows: list[dict[str, Any]], power: float) -> tuple[list[float], list[float]]:
@@ -58,7 +70,8 @@ def main() -> int:
         except (OSError, ValueError, KeyError) as exc:
             print(f"{path}: not an eyeserver bench pose --json document ({exc})", file=sys.stderr)
             return 2
-        sets[path.name] = [r for r in cases if r.get("centre_error_axes_mm") is not None]
+        sets[path.name] = [_without_model_error(r) for r in cases
+                           if r.get("centre_error_axes_mm") is not None]
         if not sets[path.name]:
             print(f"{path}: no fitted pose with its axes' errors (a bench from before they were "
                   "recorded?)", file=sys.stderr)

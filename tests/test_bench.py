@@ -29,6 +29,7 @@ from eyeserver.bench.pose import (
 )
 from eyeserver.bench.pose import format_text as format_pose_text
 from eyeserver.bench.report import (
+    POSE_FAMILY,
     confident_wrong_text,
     p95_text,
     refusals_text,
@@ -186,6 +187,14 @@ def test_the_accuracy_part_is_spliced_into_the_page_alone(
     # The reliability section through the same splice: its own ### headings go with it.
     assert splice(page, "## Reliability\n\nnew run\n") == (
         render_accuracy(old) + others.replace("old run\n\n### Load\n\nbusy\n", "new run\n"))
+    # The eye pose part (--pose): every old run's section goes, whichever runs the page had.
+    poses_page = page.replace("## Eye pose, sharp eyes", "## Eye pose: the runs side by side\n\n"
+                              "old\n\n## Eye pose, sharp eyes")
+    new_poses = ("## Eye pose: the runs side by side\n\nnew\n\n"
+                 "## Eye pose, patient eyes, biometry given\n\n600 poses\n")
+    assert splice(poses_page, new_poses, POSE_FAMILY) == (
+        render_accuracy(old) + "## Speed\n\nfast, as measured before\n\n" + new_poses
+        + "\n## Reliability\n\nold run\n\n### Load\n\nbusy\n")
     # Through the command line; a failed read leaves nothing on stdout.
     (tmp_path / "page.md").write_text(page)
     (tmp_path / "accuracy.json").write_text(json.dumps(new))
@@ -197,6 +206,11 @@ def test_the_accuracy_part_is_spliced_into_the_page_alone(
     assert "usage" in capsys.readouterr().err  # --accuracy only with --splice
     assert report_main(["--splice", str(tmp_path / "page.md"), "--accuracy"]) == 2
     assert "usage" in capsys.readouterr().err
+    for wrong in (["--pose", str(tmp_path / "accuracy.json"), str(tmp_path / "accuracy.json"),
+                   str(tmp_path / "speed.json")],  # --pose only with --splice
+                  ["--splice", str(tmp_path / "page.md"), "--pose"]):
+        assert report_main(wrong) == 2
+        assert "usage" in capsys.readouterr().err
     (tmp_path / "broken.json").write_text("{")
     assert report_main(["--splice", str(tmp_path / "page.md"), "--accuracy",
                         str(tmp_path / "broken.json")]) == 2

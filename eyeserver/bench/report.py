@@ -4,16 +4,18 @@ benches and this module; the page is never edited by hand).
 Usage: ``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...]
 [--reliability RELIABILITY.json] > docs/benchmarks.md``, or ``python -m eyeserver.bench.report
 --splice docs/benchmarks.md [--accuracy ACCURACY.json] [--speed SPEED.json] [--reliability
-RELIABILITY.json]``: the page with only the parts of the runs given made anew (the accuracy
-run's: the page's head and its accuracy section; the speed and the reliability runs': their
-sections), on stdout (``scripts/benchmarks.sh --accuracy``, ``--speed`` or ``--reliability``).
+RELIABILITY.json] [--pose POSE.json ...]``: the page with only the parts of the runs given made
+anew (the accuracy run's: the page's head and its accuracy section; the speed and the
+reliability runs': their sections; the eye pose runs': the runs side by side and a section
+each), on stdout (``scripts/benchmarks.sh --accuracy``, ``--speed``, ``--reliability`` or
+``--pose``).
 """
 
 from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -37,8 +39,7 @@ def render(accuracy: dict[str, Any], speed: dict[str, Any], *poses: dict[str, An
     when given."""
     page = render_accuracy(accuracy) + render_speed(speed)
     if poses:
-        page += "\n".join(render_pose_overview(poses)) + "\n"
-    page += "\n".join("\n".join(render_pose(pose)) for pose in poses)
+        page += render_poses(poses)
     if reliability is not None:
         page += ("\n" if poses else "") + render_reliability(reliability)
     return page
@@ -416,7 +417,14 @@ def refusals_text(pose: dict[str, Any]) -> str:
             + "; ".join(f"{n} × {why}" for why, n in refused["reasons"].items()))
 
 
-def render_pose_overview(poses: tuple[dict[str, Any], ...]) -> list[str]:
+def render_poses(poses: Sequence[dict[str, Any]]) -> str:
+    """The eye pose part of the page: the runs side by side, then each run's section (runs of
+    ``eyeserver bench pose``, in the page's order)."""
+    return ("\n".join(render_pose_overview(poses)) + "\n"
+            + "\n".join("\n".join(render_pose(pose)) for pose in poses))
+
+
+def render_pose_overview(poses: Sequence[dict[str, Any]]) -> list[str]:
     """The eye pose runs side by side (patient eyes beside the old sharp eye)."""
     lines = ["## Eye pose: the runs side by side", "",
              "`eyeserver bench pose` on patient eyes (`--eyes patient`: every property drawn "
@@ -636,10 +644,11 @@ def render_reliability(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def splice(page: str, part: str) -> str:
+def splice(page: str, part: str, family: str | None = None) -> str:
     """``page`` with ``part`` (one of its parts made anew) in place of the old one: from the
     line ``part`` begins with (the accuracy part's title, the reliability section's heading) to
-    the next ``## `` heading that is not one of ``part``'s own, or the page's end; ``part``
+    the next ``## `` heading that is not one of ``part``'s own, nor begins with ``family`` (the
+    eye pose part's sections, whichever runs the old page had), or the page's end; ``part``
     appended when the page has no such line. The rest of the page is kept to the byte."""
     new = part.rstrip("\n").split("\n")
     lines = page.split("\n")
@@ -648,9 +657,13 @@ def splice(page: str, part: str) -> str:
     start = lines.index(new[0])
     own = {line for line in new if line.startswith("## ")}
     end = next((i for i in range(start + 1, len(lines))
-                if lines[i].startswith("## ") and lines[i] not in own), len(lines))
+                if lines[i].startswith("## ") and lines[i] not in own
+                and not (family and lines[i].startswith(family))), len(lines))
     return "\n".join([*lines[:start], *new, "", *lines[end:]])
 
+
+POSE_FAMILY = "## Eye pose"
+"""How the eye pose part's headings begin (:func:`splice` with ``--pose``)."""
 
 SPLICED: dict[str, Callable[[dict[str, Any]], str]] = {
     "--accuracy": render_accuracy, "--speed": render_speed, "--reliability": render_reliability}
@@ -659,7 +672,7 @@ SPLICED: dict[str, Callable[[dict[str, Any]], str]] = {
 USAGE = ("usage: python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...] "
          "[--reliability RELIABILITY.json]\n"
          "       python -m eyeserver.bench.report --splice PAGE.md [--accuracy ACCURACY.json] "
-         "[--speed SPEED.json] [--reliability RELIABILITY.json]")
+         "[--speed SPEED.json] [--reliability RELIABILITY.json] [--pose POSE.json ...]")
 
 
 def _option(args: list[str], name: str) -> str | None:
@@ -688,20 +701,25 @@ def _read(path: str, as_json: bool = True) -> Any:
 def main(argv: list[str] | None = None) -> int:
     """``python -m eyeserver.bench.report ACCURACY.json SPEED.json [POSE.json ...]
     [--reliability RELIABILITY.json]`` or ``--splice PAGE [--accuracy ACCURACY.json]
-    [--speed SPEED.json] [--reliability RELIABILITY.json]`` (at least one): the page on
-    stdout."""
+    [--speed SPEED.json] [--reliability RELIABILITY.json] [--pose POSE.json ...]`` (at least
+    one; ``--pose`` once per eye pose run, in the page's order, all of the page's runs): the
+    page on stdout."""
     args = list(sys.argv[1:] if argv is None else argv)
     page_path = _option(args, "--splice")
     given = {name: _option(args, name) for name in SPLICED}
-    if "" in (page_path, *given.values()) or (page_path is not None and (
-            args or not any(given.values()))) or (page_path is None and (
-            given["--accuracy"] is not None or given["--speed"] is not None
+    pose_paths: list[str] = []
+    while (pose_path := _option(args, "--pose")) is not None:
+        pose_paths.append(pose_path)
+    if "" in (page_path, *given.values(), *pose_paths) or (page_path is not None and (
+            args or not (any(given.values()) or pose_paths))) or (page_path is None and (
+            given["--accuracy"] is not None or given["--speed"] is not None or pose_paths
             or len(args) < 2)):
         print(USAGE, file=sys.stderr)
         return 2
     try:
         documents = [_read(path) for path in args]
         parts = {name: _read(path) for name, path in given.items() if path}
+        poses = [_read(path) for path in pose_paths]
         page = None if page_path is None else str(_read(page_path, as_json=False))
     except _UnreadableError as exc:
         print(f"eyeserver.bench.report: error: {exc}", file=sys.stderr)
@@ -709,6 +727,8 @@ def main(argv: list[str] | None = None) -> int:
     if page is not None:
         for name, document in parts.items():
             page = splice(page, SPLICED[name](document))
+        if poses:
+            page = splice(page, render_poses(poses), POSE_FAMILY)
         print(page, end="")
         return 0
     print(render(*documents, reliability=parts.get("--reliability")))

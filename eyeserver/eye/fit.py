@@ -85,8 +85,8 @@ from eyeserver.eye.tunables import (
 )
 
 __all__ = ["CloudLike", "EyeModel", "EyePose", "Gaze", "PoseError", "checked_cloud", "cloud_gaze",
-           "fit_eye", "fit_sphere", "pose_from_cloud", "pose_on_limbus", "radius_bounds",
-           "with_model_error"]
+           "fit_eye", "fit_sphere", "model_error_sds", "pose_from_cloud", "pose_on_limbus",
+           "radius_bounds", "with_model_error"]
 
 
 class CloudLike(Protocol):
@@ -763,16 +763,21 @@ def fit_eye(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView] = ())
 
 def with_model_error(pose: EyePose) -> EyePose:
     """``pose`` with the error its fit's covariances do not count added to its centre's and its
-    gaze's sds, growing as its confidence falls below :data:`~eyeserver.eye.tunables.
-    MODEL_ERROR_BELOW_CONFIDENCE` (:data:`~eyeserver.eye.tunables.MODEL_ERROR_CENTRE_MM`): a
-    pose whose evidence is weak says how little it knows. The confidence and the pose itself
-    are unchanged."""
-    c = min(max(pose.confidence, MODEL_ERROR_MIN_CONFIDENCE), 1.0)
-    weakness = (max(0.0, MODEL_ERROR_BELOW_CONFIDENCE - c) / c) ** MODEL_ERROR_POWER
-    centre = MODEL_ERROR_CENTRE_MM * weakness
-    gaze = MODEL_ERROR_GAZE_DEG * weakness
+    gaze's sds (:func:`model_error_sds`): a pose whose evidence is weak says how little it
+    knows. The confidence and the pose itself are unchanged."""
+    centre, gaze = model_error_sds(pose.confidence)
     x, y, z = (math.hypot(sd, centre) for sd in pose.centre_sd_mm)
     return replace(pose, centre_sd_mm=(x, y, z), gaze_sd_deg=math.hypot(pose.gaze_sd_deg, gaze))
+
+
+def model_error_sds(confidence: float) -> tuple[float, float]:
+    """The unexplained error :func:`with_model_error` adds for ``confidence``: the sd per centre
+    axis (mm) and the gaze's (degrees), zero at or above :data:`~eyeserver.eye.tunables.
+    MODEL_ERROR_BELOW_CONFIDENCE` and growing as the confidence falls below it
+    (:data:`~eyeserver.eye.tunables.MODEL_ERROR_CENTRE_MM`)."""
+    c = min(max(confidence, MODEL_ERROR_MIN_CONFIDENCE), 1.0)
+    weakness = (max(0.0, MODEL_ERROR_BELOW_CONFIDENCE - c) / c) ** MODEL_ERROR_POWER
+    return MODEL_ERROR_CENTRE_MM * weakness, MODEL_ERROR_GAZE_DEG * weakness
 
 
 def _fit(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView]) -> EyePose:
