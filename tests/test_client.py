@@ -716,9 +716,11 @@ def scripted_tracking(app: FastAPI, base_url: str, physicist: ec.Client, calibra
         control.source_factory = lambda service, units, c: ScriptedSource(c, list(poses),
                                                                           pace_s=0.02)
 
-    # A planned reference is absolute: the MRI's ellipsoid gives the globe's shape.
+    # A planned reference is absolute: the MRI's ellipsoid, known to 0.05 mm, gives the
+    # globe's shape.
     physicist.put_patient("P-TRACK", eye="right", unit="left", tolerance_mm=0.5)
-    physicist.add_eye_model("P-TRACK", ellipsoid={"semi_axes_mm": [12.1, 11.9, 12.4]})
+    physicist.add_eye_model("P-TRACK", ellipsoid={"semi_axes_mm": [12.1, 11.9, 12.4]},
+                            globe_sd_mm=0.05)
     physicist.set_reference("P-TRACK", 1, centre_mm=[0.0, 0.0, -10.0], gaze=[0.0, 0.0, 1.0])
     try:
         yield script

@@ -183,6 +183,32 @@ def test_a_globe_far_outside_the_models_radii_is_refused() -> None:
     _refuse_no_globe(bounds[0] / NO_GLOBE_FACTOR, bounds)
 
 
+def test_a_given_globes_error_moves_the_centres_depth() -> None:
+    """The MRI's radius or semi-axes carry their error (``globe_sd_mm``) into the centre's
+    depth behind the limbus, which the pose states as part of its shape sd: the derivatives of
+    that depth (:meth:`EyeModel.radius_through_limbus`'s), each semi-axis independent; a
+    fitted radius adds none, and without an ellipsoid the unknown shape stays."""
+    def depth(model: EyeModel) -> float:
+        radius = model.radius_through_limbus(model.limbus_diameter_mm / 2)
+        assert radius is not None
+        return math.sqrt(radius**2 - (model.limbus_diameter_mm / 2) ** 2)
+
+    axes = (12.3, 12.1, 11.7)
+    model = EyeModel(globe_semi_axes_mm=axes, globe_sd_mm=0.2)
+    step = 1e-4
+    slopes = [(depth(replace(model, globe_semi_axes_mm=tuple(
+        a + step * (k == i) for k, a in enumerate(axes)))) - depth(model)) / step
+        for i in range(3)]
+    assert model.shape_sd_mm == pytest.approx(0.2 * math.hypot(*slopes), rel=1e-3)
+    assert 0.15 < model.shape_sd_mm < 0.2  # mostly the axial semi-axis's 0.2 mm
+    assert replace(model, globe_sd_mm=0.0).shape_sd_mm == 0.0
+    sphere = EyeModel(globe_radius_mm=12.0)  # the default error, and the shape unknown
+    assert sphere.globe_sd_mm == tunables.MEASURED_GLOBE_SD_MM
+    expected = tunables.MEASURED_GLOBE_SD_MM * 12.0 / math.sqrt(12.0**2 - 5.85**2)
+    assert sphere.shape_sd_mm == pytest.approx(math.hypot(tunables.SHAPE_SD_MM, expected))
+    assert EyeModel.population().shape_sd_mm == tunables.SHAPE_SD_MM
+
+
 def test_an_ellipsoids_limbus_depth_and_surface() -> None:
     """The model's ellipsoid: a sphere's semi-axes give the sphere; an ellipsoid's limbus lies
     where its cross-section's mean radius is the limbus's; its surface turns with the gaze."""

@@ -149,7 +149,7 @@ def test_an_unknown_ellipsoid_is_refused_against_a_planned_pose(calibrated_rooms
                     model_sd_mm=pose.shape_sd_mm)
     verdict = judge(found, Tolerances(), pose.confidence)
     assert not verdict.passed
-    assert any("gives no globe shape" in reason for reason in verdict.reasons)
+    assert any("leaves the globe's shape uncertain" in reason for reason in verdict.reasons)
 
 
 OVAL = SceneSpec(kind="eye", position_mm=(1.5, -1.0, -11.0), eye=EyeSpec(

@@ -132,6 +132,8 @@ def test_eye_models_are_versioned_and_the_newest_is_used(client: Client) -> None
                                                                  [0, 0, 1]]}},
     {"ellipsoid": {"semi_axes_mm": [12, 12, 40]}},
     {"globe_radius_mm": 3},
+    {"globe_sd_mm": 0.1},  # the error of no given globe
+    {"globe_radius_mm": 12.0, "globe_sd_mm": -0.1},
     {"shape": "banana"},
 ])
 def test_impossible_eye_models_are_422(client: Client, model: dict[str, Any]) -> None:

@@ -101,9 +101,10 @@ def test_a_globe_shape_the_model_does_not_give_fails_against_a_planned_pose() ->
 
     assert not verdict.passed and verdict.in_tolerance
     assert verdict.reasons == (
-        "the eye model gives no globe shape: against this reference the centre is known only "
-        "to ±1.30 mm (2 sd) along the gaze, more than 0.5 of the 0.2 mm tolerance; enter the "
-        "MRI's ellipsoid in the eye model or capture a reference at set-up",)
+        "the eye model leaves the globe's shape uncertain (no MRI ellipsoid, or the error of "
+        "the one given): against this reference the centre is known only to ±1.30 mm (2 sd) "
+        "along the gaze, more than 0.5 of the 0.2 mm tolerance; enter the MRI's ellipsoid "
+        "with its error (globe_sd_mm) in the eye model or capture a reference at set-up",)
     # On the limit (2 sd = half the tolerance) it passes.
     assert judge(replace(found, model_sd_mm=0.05), Tolerances(), 0.9).passed
 

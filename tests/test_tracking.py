@@ -708,24 +708,27 @@ def scripted_tracking(app: FastAPI, base_url: str) -> TrackingControl:
     control.finder_factory = lambda service, model: PoseFinder(pipeline.reconstruct,
                                                                pipeline.fit, model)
     control.source_factory = lambda service, units, c: ScriptedSource(c, pace_s=0.002)
-    # A planned reference is absolute: the MRI's ellipsoid gives the globe's shape.
-    _planned_patient(base_url, "P-T1", "right", {"semi_axes_mm": [12.1, 11.9, 12.4]})
+    # A planned reference is absolute: the MRI's ellipsoid, known to 0.05 mm, gives the
+    # globe's shape.
+    _planned_patient(base_url, "P-T1", "right", {"ellipsoid": {"semi_axes_mm": [12.1, 11.9, 12.4]},
+                                                "globe_sd_mm": 0.05})
     return control
 
 
 def _planned_patient(base_url: str, patient_id: str, eye: str,
-                     ellipsoid: dict[str, Any] | None = None) -> None:
+                     model: dict[str, Any] | None = None) -> None:
     """A patient tracked with unit left against the planned ``REFERENCE`` for fraction 1, with
-    the MRI's ``ellipsoid`` as eye model (None: population defaults)."""
+    ``model`` as eye model (an ``ellipsoid`` and its ``globe_sd_mm``; None: population
+    defaults)."""
     physicist = auth(PHYSICIST_TOKEN)
     requests = [
         httpx.put(f"{base_url}{API}/patients/{patient_id}", json={"eye": eye, "unit": "left"},
                   headers=physicist),
         httpx.put(f"{base_url}{API}/patients/{patient_id}/fractions/1/reference",
                   json=REFERENCE, headers=physicist)]
-    if ellipsoid is not None:
+    if model is not None:
         requests.append(httpx.post(f"{base_url}{API}/patients/{patient_id}/eye-models",
-                                   json={"ellipsoid": ellipsoid}, headers=physicist))
+                                   json=model, headers=physicist))
     for request in requests:
         assert request.status_code in (200, 201), request.text
 
@@ -967,8 +970,15 @@ def test_tracking_against_a_planned_pose_needs_the_globes_shape(
     refused = _post(base_url, "/tracking/start", {"patient_id": "P-T2", "fraction": 1})
     assert refused.status_code == 409, refused.text
     reason = refused.json()["detail"]
-    assert "the eye model gives no globe shape" in reason and "±1.30 mm" in reason
+    assert "the eye model leaves the globe's shape uncertain" in reason and "±1.30 mm" in reason
     assert "capture a reference at set-up" in reason
+    assert _get(base_url, "/status")["state"] == "idle"
+    # The MRI's ellipsoid with an MRI's typical error (0.2 mm a semi-axis, the default) still
+    # leaves the centre's depth ±0.36 mm (2 sd): more than half the 0.2-mm tolerance.
+    _planned_patient(base_url, "P-T3", "left", {"ellipsoid": {"semi_axes_mm": [12.1, 11.9, 12.4]}})
+    refused = _post(base_url, "/tracking/start", {"patient_id": "P-T3", "fraction": 1})
+    assert refused.status_code == 409, refused.text
+    assert "±0.36 mm" in refused.json()["detail"]
     assert _get(base_url, "/status")["state"] == "idle"
 
 

@@ -644,7 +644,8 @@ def replayed(calibration: Path, seconds: float = 10.0, *, room_file: Path | None
             steps.append(session.rig.acquire([unit]))
     first = PoseFinder(RigReconstructor(calibration, rig), fit_eye, EyeModel.population())(
         FrameSet(0, 0, steps[0]), None)
-    model = replace(EyeModel.population(), globe_radius_mm=first.globe_radius_mm)
+    model = replace(EyeModel.population(), globe_radius_mm=first.globe_radius_mm,
+                    globe_sd_mm=0.0)  # a fit's radius, not a measured one
     finders = [PoseWorker(calibration, rig, model) for _ in range(workers)]
     for finder in finders:
         finder.start()

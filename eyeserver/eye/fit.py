@@ -64,6 +64,7 @@ from eyeserver.eye.tunables import (
     EDGE_IS_LIMBUS_MM,
     IMPLAUSIBLE_RADIUS,
     LID_REACH_MM,
+    MEASURED_GLOBE_SD_MM,
     MIN_SCLERA_POINTS,
     MODEL_ERROR_BELOW_CONFIDENCE,
     MODEL_ERROR_CENTRE_MM,
@@ -122,6 +123,10 @@ class EyeModel:
         Rotation from the model's axes to the WCS (columns: the semi-axes' directions).
     cornea_radius_mm, limbus_diameter_mm : float
         Anterior corneal radius and limbus diameter.
+    globe_sd_mm : float
+        The sd of the given radius or of each given semi-axis (their measurement's, an MRI's;
+        default :data:`~eyeserver.eye.tunables.MEASURED_GLOBE_SD_MM`): it moves the centre
+        along the gaze (:attr:`shape_sd_mm`).
     """
 
     globe_radius_mm: float | None = None
@@ -129,6 +134,7 @@ class EyeModel:
     orientation: tuple[tuple[float, float, float], ...] | None = None
     cornea_radius_mm: float = 7.8
     limbus_diameter_mm: float = 11.7
+    globe_sd_mm: float = MEASURED_GLOBE_SD_MM
 
     @classmethod
     def population(cls) -> EyeModel:
@@ -170,10 +176,36 @@ class EyeModel:
 
     @property
     def shape_sd_mm(self) -> float:
-        """The globe centre's sd along the gaze (mm) from the globe's shape where the model
-        does not give it (:data:`SHAPE_SD_MM`; 0 with the MRI's ellipsoid, whose own error
-        the daemon is not told)."""
-        return 0.0 if self.globe_semi_axes_mm is not None else SHAPE_SD_MM
+        """The globe centre's sd along the gaze (mm) from what the model leaves uncertain of
+        the globe's shape: its shape where the model does not give it (:data:`SHAPE_SD_MM`,
+        none with the MRI's ellipsoid) and the error of the radius or semi-axes it gives
+        (:attr:`globe_sd_mm`), which the fit turns into the centre's depth behind the limbus
+        (:meth:`measured_depth_sd_mm`)."""
+        unknown = 0.0 if self.globe_semi_axes_mm is not None else SHAPE_SD_MM
+        return math.hypot(unknown, self.measured_depth_sd_mm())
+
+    def measured_depth_sd_mm(self) -> float:
+        """The sd (mm) of the centre's depth behind the limbus (of the model's diameter) that
+        the given radius's or semi-axes' error (:attr:`globe_sd_mm`, each independent) makes;
+        0 where the radius is fitted. A sphere's centre lies ``z = √(R² − r²)`` behind a limbus
+        of radius ``r``, so ``∂z/∂R = R/z`` (1.15 for 12 mm); an ellipsoid's ``z = c·√(1 − s²)``
+        with ``s = 2r/(a + b)`` (:meth:`radius_through_limbus`): ``∂z/∂c = √(1 − s²)``,
+        ``∂z/∂a = ∂z/∂b = c·s²/((a + b)·√(1 − s²))`` (0.87 and 0.14 for 12 mm)."""
+        r = self.limbus_diameter_mm / 2
+        if self.globe_semi_axes_mm is not None:
+            axes = np.asarray(self.globe_semi_axes_mm, dtype=np.float64)
+            _, axial = self.ellipsoid_frame()
+            c = float(axes[axial])
+            across = float(np.delete(axes, axial).sum())
+            s = min(2.0 * r / across, 0.999)
+            root = math.sqrt(1.0 - s * s)
+            gain = math.sqrt(root**2 + 2.0 * (c * s * s / (across * root)) ** 2)
+        elif self.globe_radius_mm is not None:
+            radius = self.globe_radius_mm
+            gain = radius / math.sqrt(max(radius**2 - r**2, 1e-6))
+        else:
+            return 0.0
+        return self.globe_sd_mm * gain
 
     @property
     def prior_radius_mm(self) -> float:
@@ -219,8 +251,9 @@ class EyePose:
     cornea_points: int = 0
     fit_ms: float = 0.0
     shape_sd_mm: float = 0.0
-    """The centre's sd along the gaze (mm) from what the eye model does not say about the
-    globe's shape (:attr:`EyeModel.shape_sd_mm`), beside ``centre_sd_mm``'s measurement
+    """The centre's sd along the gaze (mm) from what the eye model leaves uncertain of the
+    globe's shape (:attr:`EyeModel.shape_sd_mm`: no shape given, or the error of the one
+    given), beside ``centre_sd_mm``'s measurement
     error: common to every fit of one eye with one model, so it cancels from a displacement
     from a reference captured with the same model (but for the gaze's turn between them),
     and counts in full against a planned pose."""

@@ -218,16 +218,24 @@ visible sclera puts the centre 1.5 times the axial semi-axis's difference from t
 along the gaze: 0.62–0.72 mm sd for 11–13-mm globes (geometry alone, no rendering;
 docs/notes/patient-eye.md)."""
 
-MODEL_ERROR_CENTRE_MM = 0.98
+MEASURED_GLOBE_SD_MM = 0.2
+"""The sd (mm) of a globe radius or semi-axis the eye model gives (an MRI's), where the
+physicist states none (:attr:`~eyeserver.eye.fit.EyeModel.globe_sd_mm`): the typical error of
+an MRI-derived radius or ellipsoid semi-axis (docs/eye-model.md: the sub-voxel repeatability of
+MRI ellipsoid fits and the 0.1–0.2 mm repeatability of MRI axial lengths; the larger). The fit
+places the centre behind the limbus at the depth the model's shape gives, so this error moves
+the centre along the gaze by ≈ 0.18 mm (sd) for a 12-mm globe."""
+
+MODEL_ERROR_CENTRE_MM = 1.69
 """Scale (mm) of the error the fit's own covariances do not count (the limbus mistaken, the lids
 taken for sclera, a globe that is no sphere), added per axis to a pose's centre sd as
 ``MODEL_ERROR_CENTRE_MM · (max(0, c₀ − c)/c)^MODEL_ERROR_POWER`` for its confidence ``c`` and
-``c₀`` = :data:`MODEL_ERROR_BELOW_CONFIDENCE` (:func:`~eyeserver.eye.fit.with_model_error`).
-Calibrated on draws the benchmarks never report (seed 7: 60 patient eyes, 24 with biometry,
-30 sharp), so that 97.5 % of their errors lie within 2 sd (``scripts/calibrate_model_error.py``;
-docs/notes/patient-eye.md, "Sixth session")."""
+``c₀`` = :data:`MODEL_ERROR_BELOW_CONFIDENCE` (:func:`~eyeserver.eye.fit.model_error_sds`).
+Calibrated on draws the benchmarks never report (seeds 7 and 8: 120 patient eyes, 48 with
+biometry), so that 97.5 % of their errors lie within 2 sd (``scripts/calibrate_model_error.py``;
+docs/notes/patient-eye.md, "Sixth session" and "Seventh session")."""
 
-MODEL_ERROR_GAZE_DEG = 7.7
+MODEL_ERROR_GAZE_DEG = 10.8
 """The same for the gaze's sd, degrees (calibrated with :data:`MODEL_ERROR_CENTRE_MM`)."""
 
 MODEL_ERROR_BELOW_CONFIDENCE = 0.5

@@ -167,6 +167,11 @@ class EyeModelSpec(NumbersOnly):
         7.8, description="Anterior corneal radius of curvature, mm.")
     limbus_diameter_mm: Annotated[float, Field(gt=6, lt=16)] = Field(
         11.7, description="Limbus (white-to-white) diameter, mm.")
+    globe_sd_mm: Annotated[float, Field(ge=0, lt=2)] | None = Field(
+        None, description="The sd of globe_radius_mm or of each ellipsoid semi-axis (the MRI's "
+        "measurement error), mm; null: 0.2 mm, the typical MRI error. It moves the fitted "
+        "centre along the gaze, counts against a planned reference and cancels from one "
+        "captured at set-up with the same model.", examples=[0.1])
     source: Annotated[str, Field(max_length=500)] | None = Field(
         None, description="Where the model comes from (free text, e.g. the MRI study).",
         examples=["MRI 2026-11-02, T2 3D, segmented by J. Doe"])
@@ -175,6 +180,9 @@ class EyeModelSpec(NumbersOnly):
     def _consistent(self) -> EyeModelSpec:
         if self.globe_radius_mm is not None and self.ellipsoid is not None:
             raise ValueError("give globe_radius_mm or ellipsoid, not both")
+        if self.globe_sd_mm is not None and self.population:
+            raise ValueError("globe_sd_mm is the error of globe_radius_mm or of the ellipsoid: "
+                             "give one of them with it")
         half = self.limbus_diameter_mm / 2
         smallest = min([self.cornea_radius_mm]
                        + ([self.globe_radius_mm] if self.globe_radius_mm else [])
@@ -195,7 +203,8 @@ class EyeModelSpec(NumbersOnly):
             globe_radius_mm=self.globe_radius_mm,
             globe_semi_axes_mm=None if ellipsoid is None else ellipsoid.semi_axes_mm,
             orientation=None if ellipsoid is None else ellipsoid.orientation,
-            cornea_radius_mm=self.cornea_radius_mm, limbus_diameter_mm=self.limbus_diameter_mm)
+            cornea_radius_mm=self.cornea_radius_mm, limbus_diameter_mm=self.limbus_diameter_mm,
+            **({} if self.globe_sd_mm is None else {"globe_sd_mm": self.globe_sd_mm}))
 
 
 class ReferencePoseSpec(NumbersOnly):

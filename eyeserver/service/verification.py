@@ -211,10 +211,11 @@ def shape_reason(model_sd_mm: float, tolerances: Tolerances) -> str | None:
     translation tolerance."""
     if 2.0 * model_sd_mm <= MODEL_SD_SHARE * tolerances.translation_mm:
         return None
-    return (f"the eye model gives no globe shape: against this reference the centre is known "
-            f"only to ±{2.0 * model_sd_mm:.2f} mm (2 sd) along the gaze, more than "
-            f"{MODEL_SD_SHARE:g} of the {tolerances.translation_mm:g} mm tolerance; enter the "
-            "MRI's ellipsoid in the eye model or capture a reference at set-up")
+    return (f"the eye model leaves the globe's shape uncertain (no MRI ellipsoid, or the error "
+            f"of the one given): against this reference the centre is known only to "
+            f"±{2.0 * model_sd_mm:.2f} mm (2 sd) along the gaze, more than {MODEL_SD_SHARE:g} "
+            f"of the {tolerances.translation_mm:g} mm tolerance; enter the MRI's ellipsoid with "
+            "its error (globe_sd_mm) in the eye model or capture a reference at set-up")
 
 
 MIN_UNIT_POINTS = 500
@@ -278,7 +279,8 @@ def measurement_model(stored: EyeModelVersion | None, reference: ReferencePose |
     held = fit.get("globe_radius_mm")
     if isinstance(held, (int, float)) and math.isfinite(held) \
             and model.globe_radius_mm is None and model.globe_semi_axes_mm is None:
-        model = replace(model, globe_radius_mm=float(held))
+        # A fit's radius, not a measured one: its error is the reference's, in both fits.
+        model = replace(model, globe_radius_mm=float(held), globe_sd_mm=0.0)
     return model
 
 

@@ -511,20 +511,24 @@ class AsyncClient:
                             ellipsoid: EllipsoidSpec | Mapping[str, Any] | None = None,
                             cornea_radius_mm: float | None = None,
                             limbus_diameter_mm: float | None = None,
+                            globe_sd_mm: float | None = None,
                             source: str | None = None) -> EyeModelResponse:
         """Store a new version of the patient's eye model, used from now on (physicists only).
 
         Nothing given: the population model (globe radius fitted). ``globe_radius_mm`` gives a
         spherical globe, ``ellipsoid`` the MRI's anterior segment (``semi_axes_mm``,
-        ``orientation``, ``centre_mm``): with it a check against a *planned* reference can
-        pass (without it the globe's unknown shape fails it). Radii and diameter in mm.
+        ``orientation``, ``centre_mm``), ``globe_sd_mm`` the error of either (default 0.2 mm,
+        an MRI's typical): a check against a *planned* reference can pass only with an
+        ellipsoid whose error leaves the centre's depth within half the tolerance (2 sd);
+        otherwise the globe's uncertain shape fails it. Radii, diameter and sd in mm.
         """
         return await self._get(ops.ADD_EYE_MODEL, EyeModelResponse,
                                path={"patient_id": patient_id}, json=_body(
                                    globe_radius_mm=globe_radius_mm,
                                    ellipsoid=None if ellipsoid is None else _dump(ellipsoid),
                                    cornea_radius_mm=cornea_radius_mm,
-                                   limbus_diameter_mm=limbus_diameter_mm, source=source))
+                                   limbus_diameter_mm=limbus_diameter_mm,
+                                   globe_sd_mm=globe_sd_mm, source=source))
 
     async def eye_models(self, patient_id: str) -> list[EyeModelResponse]:
         """Every eye-model version of a patient, oldest first (the last is in use)."""

@@ -309,6 +309,10 @@ class EyeModelSpec(_Body):
     """Anterior corneal radius of curvature, mm."""
     limbus_diameter_mm: float = 11.7
     """Limbus (white-to-white) diameter, mm."""
+    globe_sd_mm: float | None = None
+    """The sd of globe_radius_mm or of each ellipsoid semi-axis (the MRI's measurement error), mm;
+    null: 0.2 mm, the typical MRI error. It moves the fitted centre along the gaze, counts
+    against a planned reference and cancels from one captured at set-up with the same model."""
     source: str | None = None
     """Where the model comes from (free text, e.g. the MRI study)."""
 
