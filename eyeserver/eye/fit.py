@@ -253,10 +253,9 @@ class EyePose:
     shape_sd_mm: float = 0.0
     """The centre's sd along the gaze (mm) from what the eye model leaves uncertain of the
     globe's shape (:attr:`EyeModel.shape_sd_mm`: no shape given, or the error of the one
-    given), beside ``centre_sd_mm``'s measurement
-    error: common to every fit of one eye with one model, so it cancels from a displacement
-    from a reference captured with the same model (but for the gaze's turn between them),
-    and counts in full against a planned pose."""
+    given), beside ``centre_sd_mm``'s measurement error: common to every fit of one eye with
+    one model, so it cancels from a displacement from a reference captured with the same model
+    (but for the gaze's turn between them), and counts in full against a planned pose."""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able dictionary (lists for vectors)."""
