@@ -5,7 +5,8 @@ Usage::
     .venv/bin/python scripts/calibrate_model_error.py [--percentile P] POSE.json...
 
 POSE.json are ``eyeserver bench pose --json`` documents of seeds the benchmarks never report
-(docs/benchmarks.md reports seed 0; the constants came from seed 7, docs/notes/patient-eye.md).
+(docs/benchmarks.md reports seed 0; the constants came from seeds 7 and 8,
+docs/notes/patient-eye.md).
 For each power ``p`` of ``(max(0, c₀ − c)/c)^p`` it prints the scales (mm for the centre's axes,
 degrees for the gaze) that leave ``P`` % of the draws' errors (default 97.5) within 2 of their
 stated sds once added, and, per document, the median sd that results against the median error and

@@ -240,8 +240,8 @@ MODEL_ERROR_GAZE_DEG = 10.8
 
 MODEL_ERROR_BELOW_CONFIDENCE = 0.5
 """Poses this confident or more have none added: on the calibration draws their covariances
-(with the globe's unknown shape) already held every error within 2 sd; one patient eye of the
-168 reached this confidence (0.53), and its error was the MRI's (:data:`MEASURED_GLOBE_SD_MM`)."""
+(with the globe's unknown shape and the MRI's error, :data:`MEASURED_GLOBE_SD_MM`) already
+held every error within 2 sd (docs/notes/patient-eye.md, "Seventh session")."""
 
 MODEL_ERROR_POWER = 0.5
 """How fast the unexplained error grows as the confidence falls (see
