@@ -349,13 +349,15 @@ def _check_pose_report(report: dict[str, Any]) -> None:
     cases = report["cases"]
     assert len(cases) == report["poses"]
     assert report["refusals"]["count"] == report["poses"] - report["fitted"]
-    assert set(report["by_bin"]) == set(BINS)
+    # The MRI's error is a descriptor of the runs that give the fit the patient's biometry.
+    descriptors = set(BINS) - (set() if report["biometry"] else {"mri_sd_mm"})
+    assert set(report["by_bin"]) == descriptors
     for name, entries in report["by_bin"].items():
         assert [e["bin"] for e in entries] == [b.label for b in BINS[name]]
         assert sum(e["poses"] for e in entries) == report["poses"], name  # one bin each
         assert sum(e["fitted"] for e in entries) == report["fitted"], name
     for case in cases:
-        assert set(case["eye"]) == set(BINS)
+        assert set(case["eye"]) == descriptors
         if case["error"] is None:
             assert case["confident_wrong"] == confident_wrong(
                 case["centre_error_mm"], case["confidence"], shape_sd_mm=case["shape_sd_mm"])
@@ -419,8 +421,11 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
     assert sharp["gaze_error_deg"]["max"] < 1.0
     assert sharp["centre_error_mm"]["max"] < 0.6
     for case in sharp["cases"]:
+        mri_sd = case["biometry"]["mri_sd_mm"]  # this patient's MRI, drawn 0.1–0.4 mm
+        assert 0.1 <= mri_sd <= 0.4
         assert case["eye"] == {"limbus_width_mm": 0.0, "limbus_contrast": pytest.approx(0.75),
-                               "lid_cover": 0.0, "anatomy_mismatch_mm": 0.0}
+                               "lid_cover": 0.0, "anatomy_mismatch_mm": 0.0,
+                               "mri_sd_mm": mri_sd}
         measured = case["biometry"]["globe_radius_mm"]
         assert measured != case["globe_radius_mm"]
         assert case["radius_error_mm"] == pytest.approx(measured - case["globe_radius_mm"],
@@ -569,7 +574,13 @@ def test_pose_bins_split_the_poses_by_each_descriptor() -> None:
     mismatch = bins["anatomy_mismatch_mm"]
     assert [mismatch[label]["poses"] for label in ("< 0.4", "0.4–0.6", "0.6–0.8", "≥ 0.8")] \
         == [2, 1, 0, 1]
-    assert set(BINS) == set(describe(SHARP))  # the bins are the population's descriptors
+    assert "mri_sd_mm" not in bins  # no pose of these has the MRI's error: no bins for it
+    # The bins are the population's descriptors and, with biometry given, the MRI's error.
+    assert set(BINS) == set(describe(SHARP)) | {"mri_sd_mm"}
+    measured = {name: {e["bin"]: e["poses"] for e in entries}
+                for name, entries in by_bin([_row(0.05, mri_sd_mm=0.1), _row(0.1, mri_sd_mm=0.2),
+                                             _row(0.4, mri_sd_mm=0.39)]).items()}
+    assert measured["mri_sd_mm"] == {"< 0.2": 1, "0.2–0.3": 1, "≥ 0.3": 1}
 
 
 def test_pose_bench_draws_the_old_sharp_eyes_and_the_same_patient_eyes() -> None:

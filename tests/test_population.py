@@ -8,8 +8,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from eyeserver.eye.tunables import MEASURED_GLOBE_SD_MM
 from eyeserver.hardware.sim.population import (
     BIOMETRY_SD,
+    MRI_ERROR_SCALE,
     SHARP,
     SHARP_RADII_MM,
     VARIANTS,
@@ -203,9 +205,14 @@ def test_biometry_is_never_the_truth(eyes: list[EyeSpec]) -> None:
     rng = np.random.default_rng(3)
     errors: dict[str, list[float]] = {"globe_radius_mm": [], "globe_semi_axes_mm": [],
                                       "cornea_radius_mm": [], "limbus_diameter_mm": []}
+    scales: list[float] = []  # each patient's MRI error in units of the typical one
     for eye in eyes[:1000]:
         measured = biometry(eye, rng)
-        assert set(measured) == set(errors)
+        assert set(measured) == {*errors, "mri_sd_mm"}
+        mri_sd = measured["mri_sd_mm"]
+        assert isinstance(mri_sd, float)
+        scale = mri_sd / BIOMETRY_SD["globe_semi_axes_mm"]
+        scales.append(scale)
         radius, axes = measured["globe_radius_mm"], measured["globe_semi_axes_mm"]
         cornea, limbus = measured["cornea_radius_mm"], measured["limbus_diameter_mm"]
         assert isinstance(radius, float) and isinstance(cornea, float)
@@ -215,13 +222,13 @@ def test_biometry_is_never_the_truth(eyes: list[EyeSpec]) -> None:
         assert limbus != eye.limbus_diameter_mm
         if eye.globe_semi_axes_mm is None:
             assert axes is None
-            errors["globe_radius_mm"].append(radius - eye.globe_radius_mm)
+            errors["globe_radius_mm"].append((radius - eye.globe_radius_mm) / scale)
         else:
             assert isinstance(axes, tuple) and len(axes) == 3
             assert radius == pytest.approx(sum(axes) / 3)  # the physicist's mean radius
             for got, true in zip(axes, eye.globe_semi_axes_mm, strict=True):
                 assert got != true
-                errors["globe_semi_axes_mm"].append(got - true)
+                errors["globe_semi_axes_mm"].append((got - true) / scale)
         errors["cornea_radius_mm"].append(cornea - keratometric_radius(eye))
         errors["limbus_diameter_mm"].append(limbus - eye.limbus_diameter_mm)
     for name, values in errors.items():
@@ -230,6 +237,10 @@ def test_biometry_is_never_the_truth(eyes: list[EyeSpec]) -> None:
         assert np.abs(v).max() <= 3 * sd + 1e-12, name  # within a few sd, never a blunder
         assert abs(float(v.mean())) < 0.2 * sd, name  # unbiased about what is measured
         assert 0.8 * sd < float(v.std()) < 1.1 * sd, name
+    # The MRI's error varies between patients over its whole range, the fit's default inside.
+    low, high = MRI_ERROR_SCALE
+    assert low <= min(scales) < low + 0.05 and high - 0.05 < max(scales) <= high
+    assert low < MEASURED_GLOBE_SD_MM / BIOMETRY_SD["globe_semi_axes_mm"] < float(np.mean(scales))
 
 
 def test_keratometry_reads_the_cornea_flatter_than_its_apex() -> None:

@@ -357,6 +357,8 @@ BINS: dict[str, tuple[Bin, ...]] = {
                   Bin("0.15–0.3", 0.15, 0.3, True), Bin("> 0.3", 0.3, math.inf, True)),
     "anatomy_mismatch_mm": (Bin("< 0.4", -math.inf, 0.4), Bin("0.4–0.6", 0.4, 0.6),
                             Bin("0.6–0.8", 0.6, 0.8), Bin("≥ 0.8", 0.8, math.inf)),
+    "mri_sd_mm": (Bin("< 0.2", -math.inf, 0.2), Bin("0.2–0.3", 0.2, 0.3),
+                  Bin("≥ 0.3", 0.3, math.inf)),
 }
 """The bins of each of :func:`eyeserver.hardware.sim.population.describe`'s descriptors, fixed
 edges chosen for the patient population's draws (docs/eye-model.md; shares of 3000 draws):
@@ -368,7 +370,10 @@ edges chosen for the patient population's draws (docs/eye-model.md; shares of 30
 - lid cover (share of the limbus's circumference, the eye at rest): none (46 % of patient
   eyes, and the sharp eye), up to 0.15, to 0.3, beyond (≈ 10, 25 and 19 %);
 - anatomy mismatch (mm from the fit's own anatomy; patient ≈ 0.08–0.99, median 0.59): 0.4,
-  0.6 and 0.8 (≈ 22, 31, 31 and 16 %), the sharp eye's 0 in the first.
+  0.6 and 0.8 (≈ 22, 31, 31 and 16 %), the sharp eye's 0 in the first;
+- the MRI's error (``--biometry`` only: the sd of this patient's semi-axes' errors, drawn
+  0.1–0.4 mm, :data:`eyeserver.hardware.sim.population.MRI_ERROR_SCALE`): below, at and above
+  the fit's default 0.2 mm (a third, a third and a third).
 
 Each bin of 600 poses thus holds some 60 or more, enough for a p95 whose bootstrap interval
 says how far it may move."""
@@ -381,6 +386,8 @@ def by_bin(rows: list[dict[str, Any]],
     with its bootstrap interval and max over the bin's fitted poses."""
     out: dict[str, list[dict[str, Any]]] = {}
     for name, bins in BINS.items():
+        if not any(name in r["eye"] for r in rows):
+            continue  # a descriptor of another kind of run (the MRI's error without biometry)
         entries = []
         for b in bins:
             these = [r for r in rows if b.holds(r["eye"][name])]
@@ -446,8 +453,11 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
                 progress(f"pose {n + 1}/{poses}")
                 pose, truth, seconds, error = _measure(session, spec, caldir, work / "eye",
                                                        units, model)
+                described = population.describe(spec.eye)
+                if measured is not None:
+                    described["mri_sd_mm"] = measured["mri_sd_mm"]
                 row: dict[str, Any] = {"globe_radius_mm": truth["globe_radius_mm"],
-                                       "eye": population.describe(spec.eye),
+                                       "eye": described,
                                        "biometry": measured, "error": error,
                                        "confident_wrong": False}
                 if pose is not None:

@@ -321,7 +321,8 @@ def uncertainty_coverage(pose: dict[str, Any]) -> str | None:
 
 DESCRIPTORS = {"limbus_width_mm": "limbus width (mm)", "limbus_contrast": "limbus contrast",
                "lid_cover": "lid cover (share of the limbus)",
-               "anatomy_mismatch_mm": "anatomy mismatch (mm)"}
+               "anatomy_mismatch_mm": "anatomy mismatch (mm)",
+               "mri_sd_mm": "the MRI's error (sd, mm)"}
 """How the pose bench's bins (``by_bin``) are named for people."""
 
 

@@ -43,6 +43,7 @@ __all__ = [
     "FIT_LID_GAP_MM",
     "FIT_LIMBUS_DIAMETER_MM",
     "KERATOMETRY_SEMI_CHORD_MM",
+    "MRI_ERROR_SCALE",
     "SHARP",
     "SHARP_RADII_MM",
     "VARIANTS",
@@ -80,11 +81,19 @@ BIOMETRY_SD: dict[str, float] = {
     "cornea_radius_mm": 0.05,
     "limbus_diameter_mm": 0.25,
 }
-"""Standard deviations (mm) of :func:`biometry`'s measurement errors, each truncated at ±3 sd.
+"""Standard deviations (mm) of :func:`biometry`'s measurement errors, each truncated at ±3 sd;
+the globe's (the MRI's) are a typical patient's, scaled per patient by :data:`MRI_ERROR_SCALE`.
 Sources and reasoning in docs/eye-model.md (MRI radius and semi-axes: assumed from the
 sub-voxel repeatability of MRI ellipsoid fits and the 0.1–0.2 mm repeatability of MRI axial
 lengths; keratometry: repeatability ≈ 0.02 mm plus device differences; white-to-white:
 agreement between devices and against the topographic limbus ≈ 0.2–0.3 mm)."""
+
+MRI_ERROR_SCALE = (0.5, 2.0)
+"""The range (uniform) of a patient's MRI error as a multiple of :data:`BIOMETRY_SD`'s globe
+entries, drawn per patient: 0.1–0.4 mm a semi-axis, from the sub-voxel repeatability of a
+dedicated ocular MRI to a protocol with twice the assumed error. The fit's default
+(``tunables.MEASURED_GLOBE_SD_MM``, 0.2 mm) sits inside the range, below its mean, so the
+bench's MRIs are worse on average than the fit assumes, never equal to it by construction."""
 
 _ERROR_TRUNCATION_SD = 3.0
 
@@ -349,10 +358,15 @@ def biometry(eye: EyeSpec, rng: np.random.Generator
     dict
         ``globe_semi_axes_mm``
             The MRI's ellipsoid: each true semi-axis plus an independent error of sd
-            ``BIOMETRY_SD["globe_semi_axes_mm"]`` (0.2 mm); None for a spherical globe.
+            ``mri_sd_mm``; None for a spherical globe.
         ``globe_radius_mm``
             For an ellipsoid the mean of the measured semi-axes (its error has sd
-            0.2/√3 ≈ 0.12 mm); for a sphere the true radius plus an error of sd 0.15 mm.
+            ``mri_sd_mm``/√3); for a sphere the true radius plus an error of sd
+            0.75 ``mri_sd_mm`` (:data:`BIOMETRY_SD`'s ratio).
+        ``mri_sd_mm``
+            This patient's MRI error per semi-axis: ``BIOMETRY_SD["globe_semi_axes_mm"]``
+            (0.2 mm) times a scale drawn from :data:`MRI_ERROR_SCALE`. A record for the bench,
+            not an entry: the physicist does not know it and the daemon takes its default.
         ``cornea_radius_mm``
             Keratometry: the cornea's sagittal radius at the mires
             (:func:`keratometric_radius`, ≈ 0.04 mm flatter than the apex at Q = −0.25) plus
@@ -363,16 +377,17 @@ def biometry(eye: EyeSpec, rng: np.random.Generator
     Notes
     -----
     Every error is normal, truncated at ±3 sd, and independent of the others
-    (:data:`BIOMETRY_SD`; sources in docs/eye-model.md).
+    (:data:`BIOMETRY_SD`, the globe's scaled per patient; sources in docs/eye-model.md).
     """
-    axes_sd = BIOMETRY_SD["globe_semi_axes_mm"]
+    scale = float(rng.uniform(*MRI_ERROR_SCALE))
+    axes_sd = scale * BIOMETRY_SD["globe_semi_axes_mm"]
     semi_axes: tuple[float, float, float] | None = None
     if eye.globe_semi_axes_mm is not None:
         h, v, a = (axis + _error(rng, axes_sd) for axis in eye.globe_semi_axes_mm)
         semi_axes = (h, v, a)
         radius = (h + v + a) / 3
     else:
-        radius = eye.globe_radius_mm + _error(rng, BIOMETRY_SD["globe_radius_mm"])
+        radius = eye.globe_radius_mm + _error(rng, scale * BIOMETRY_SD["globe_radius_mm"])
     cornea = keratometric_radius(eye) + _error(rng, BIOMETRY_SD["cornea_radius_mm"])
     limbus = eye.limbus_diameter_mm + _error(rng, BIOMETRY_SD["limbus_diameter_mm"])
     return {
@@ -380,4 +395,5 @@ def biometry(eye: EyeSpec, rng: np.random.Generator
         "globe_semi_axes_mm": semi_axes,
         "cornea_radius_mm": cornea,
         "limbus_diameter_mm": limbus,
+        "mri_sd_mm": axes_sd,
     }
