@@ -26,8 +26,9 @@ POPULATION = EyeModel.population()
 #: What a pose fitted with the population model records as its model.
 POPULATION_RECORD: dict[str, Any] = {
     "globe_radius_mm": None, "cornea_radius_mm": 7.8, "limbus_diameter_mm": 11.7,
+    "globe_sd_mm": None,
     "source": {"globe_radius_mm": "fitted", "cornea_radius_mm": "population default",
-               "limbus_diameter_mm": "population default"}}
+               "limbus_diameter_mm": "population default", "globe_sd_mm": "fitted"}}
 
 
 class _Fit:
@@ -93,9 +94,32 @@ def test_each_given_value_reaches_the_fit_and_the_rest_stay_population(
     for field, value in given.items():
         assert record[field] == value
         assert record["source"][field] == "given"
-    for field in POPULATION_RECORD["source"].keys() - given.keys():
+    for field in POPULATION_RECORD["source"].keys() - given.keys() - {"globe_sd_mm"}:
         assert record[field] == POPULATION_RECORD[field]
         assert record["source"][field] == POPULATION_RECORD["source"][field]
+    # A given radius carries an MRI's typical error unless told its own.
+    held = "globe_radius_mm" in given
+    assert record["globe_sd_mm"] == (pytest.approx(0.2) if held else None)
+    assert record["source"]["globe_sd_mm"] == ("an MRI's typical error" if held else "fitted")
+
+
+def test_a_given_radiuss_error_reaches_the_fit(
+        fit: _Fit, capsys: pytest.CaptureFixture[str]) -> None:
+    output = _pose(capsys, "--globe-radius", "12.4", "--globe-radius-sd", "0.05")
+
+    assert fit.models == [replace(POPULATION, globe_radius_mm=12.4, globe_sd_mm=0.05)]
+    assert output["model"]["globe_sd_mm"] == 0.05
+    assert output["model"]["source"]["globe_sd_mm"] == "given"
+
+
+def test_a_radiuss_error_without_the_radius_is_refused(
+        fit: _Fit, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["pose", "--calibration", "cal", "--globe-radius-sd", "0.1", "bundle"]) == 2
+
+    err = capsys.readouterr().err
+    assert err.startswith("eyeserver: error: --globe-radius-sd 0.1 mm is the error of "
+                          "--globe-radius, which is not given")
+    assert "Traceback" not in err and fit.models == []
 
 
 def test_the_help_gives_the_pipelines_population_values() -> None:
@@ -103,6 +127,7 @@ def test_the_help_gives_the_pipelines_population_values() -> None:
     assert POPULATION.cornea_radius_mm == pose_command.POPULATION_CORNEA_RADIUS_MM
     assert POPULATION.limbus_diameter_mm == pose_command.POPULATION_LIMBUS_DIAMETER_MM
     assert POPULATION.globe_radius_mm is None
+    assert POPULATION.globe_sd_mm == pose_command.MEASURED_GLOBE_SD_MM
 
 
 def test_the_help_states_units_ranges_and_what_not_given_means(
@@ -111,7 +136,8 @@ def test_the_help_states_units_ranges_and_what_not_given_means(
     text = " ".join(capsys.readouterr().out.split())
 
     for flag, accepted in [("--globe-radius MM", "8–16 mm"), ("--cornea-radius MM", "5–11 mm"),
-                           ("--limbus-diameter MM", "8–15 mm")]:
+                           ("--limbus-diameter MM", "8–15 mm"),
+                           ("--globe-radius-sd MM", "0–2 mm")]:
         assert flag in text and f"accepted {accepted}" in text
     assert "Not given: fitted" in text
     assert "Not given: 7.8 mm (population)" in text
@@ -128,6 +154,7 @@ def test_the_help_states_units_ranges_and_what_not_given_means(
     ("--limbus-diameter", "5.85", "must be between 8 and 15 mm, not 5.85"),
     ("--limbus-diameter", "inf", "must be between 8 and 15 mm, not inf"),
     ("--limbus-diameter", "12mm", "not a length in mm: '12mm'"),
+    ("--globe-radius-sd", "-0.1", "must be between 0 and 2 mm, not -0.1"),
 ])
 def test_a_value_out_of_range_is_a_usage_error_naming_the_flag(
         fit: _Fit, capsys: pytest.CaptureFixture[str], flag: str, value: str, says: str) -> None:
@@ -199,5 +226,6 @@ def test_a_held_globe_radius_reaches_the_fit_of_a_rendered_eye(
     assert output["gaze_source"] == "limbus (images)"
     assert output["model"] == {
         "globe_radius_mm": 13.0, "cornea_radius_mm": 7.8, "limbus_diameter_mm": 11.7,
+        "globe_sd_mm": 0.2,
         "source": {"globe_radius_mm": "given", "cornea_radius_mm": "given",
-                   "limbus_diameter_mm": "given"}}
+                   "limbus_diameter_mm": "given", "globe_sd_mm": "an MRI's typical error"}}

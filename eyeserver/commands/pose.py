@@ -56,6 +56,10 @@ GLOBE_RADIUS = Biometry("--globe-radius", "globe_radius_mm", 8.0, 16.0)
 CORNEA_RADIUS = Biometry("--cornea-radius", "cornea_radius_mm", 5.0, 11.0)
 LIMBUS_DIAMETER = Biometry("--limbus-diameter", "limbus_diameter_mm", 8.0, 15.0)
 BIOMETRY = (GLOBE_RADIUS, CORNEA_RADIUS, LIMBUS_DIAMETER)
+# The given radius's error (the API's globe_sd_mm): up to 2 mm, beyond which it is no MRI's.
+GLOBE_SD = Biometry("--globe-radius-sd", "globe_sd_mm", 0.0, 2.0)
+# The MRI's typical error, for the help text only; a test holds it equal to the fit's default.
+MEASURED_GLOBE_SD_MM = 0.2
 
 
 def add_parser(subparsers: Subparsers) -> None:
@@ -85,6 +89,12 @@ def add_parser(subparsers: Subparsers) -> None:
         f"{GLOBE_RADIUS.least_mm:g}–{GLOBE_RADIUS.most_mm:g} mm. Not given: fitted to the "
         "measured sclera (the output's globe_radius_mm)")
     biometry.add_argument(
+        GLOBE_SD.flag, type=GLOBE_SD.parse, metavar="MM",
+        help="the error (1 sd) of --globe-radius, e.g. from repeat MRI scans: the fit turns it "
+        "into the uncertainty of the centre's depth (the output's shape_sd_mm); accepted "
+        f"{GLOBE_SD.least_mm:g}–{GLOBE_SD.most_mm:g} mm, only with --globe-radius. Not given: "
+        f"{MEASURED_GLOBE_SD_MM:g} mm (an MRI's typical error)")
+    biometry.add_argument(
         CORNEA_RADIUS.flag, type=CORNEA_RADIUS.parse, metavar="MM",
         help="the anterior cornea's radius of curvature (keratometry); accepted "
         f"{CORNEA_RADIUS.least_mm:g}–{CORNEA_RADIUS.most_mm:g} mm. Not given: "
@@ -111,12 +121,24 @@ def eye_model(args: argparse.Namespace) -> tuple[EyeModel, dict[str, Any]]:
 
     given = {item.field: getattr(args, item.dest) for item in BIOMETRY
              if getattr(args, item.dest) is not None}
+    globe_sd = getattr(args, GLOBE_SD.dest, None)
+    if globe_sd is not None:
+        if GLOBE_RADIUS.field not in given:
+            raise EyeserverError(f"{GLOBE_SD.flag} {globe_sd:g} mm is the error of "
+                                 f"{GLOBE_RADIUS.flag}, which is not given (the radius is "
+                                 "fitted, its error the fit's)")
+        given[GLOBE_SD.field] = globe_sd
     model = replace(EyeModel.population(), **given)
     _check_limbus_fits(model, given)
     record: dict[str, Any] = {item.field: getattr(model, item.field) for item in BIOMETRY}
     record["source"] = {item.field: "given" if item.field in given
                         else "fitted" if item.field == GLOBE_RADIUS.field
                         else "population default" for item in BIOMETRY}
+    # A given radius carries its error into the pose; a fitted one carries the fit's.
+    held = GLOBE_RADIUS.field in given
+    record[GLOBE_SD.field] = model.globe_sd_mm if held else None
+    record["source"][GLOBE_SD.field] = ("given" if GLOBE_SD.field in given
+                                        else "an MRI's typical error" if held else "fitted")
     return model, record
 
 
