@@ -46,6 +46,7 @@ from eyeserver.errors import EyeserverError
 from eyeserver.eye.fit import EyePose
 from eyeserver.eye.tunables import SHAPE_SD_MM
 from eyeserver.hardware.sim.config import load_room
+from eyeserver.hardware.sim.motion import MotionSpec
 from eyeserver.hardware.sim.population import SHARP, biometry, describe
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec, scene_truth
 from eyeserver.pipeline.demodulate import Carrier, demodulate
@@ -711,6 +712,32 @@ def test_tracked_poses_are_scored_against_the_truth_at_their_frames_time() -> No
     assert accuracy["centre_error_mm"]["max"] == pytest.approx(0.5)
     assert accuracy["at_rest_centre_error_mm"]["max"] == pytest.approx(0.1)
     assert accuracy["at_rest_gaze_error_deg"]["max"] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_the_beam_is_scored_against_where_the_eye_truly_was() -> None:
+    """A release while the true eye lies out of tolerance of the reference's still eye is the
+    bench's safety figure; the tolerance is the reference's, not the tracked pose's."""
+    motion = MotionSpec(seed=1, drift_deg=0.0, saccade_rate_hz=0.0, blink_rate_hz=0.0,
+                        script=[{"t_s": 2.0, "kind": "saccade", "gaze_deg": (8.0, 0.0),
+                                 "duration_s": 0.03},
+                                {"t_s": 5.0, "kind": "saccade", "gaze_deg": (1.5, 0.0),
+                                 "duration_s": 0.03}])
+    scene = SceneSpec(kind="eye", position_mm=(0.0, 0.0, -10.0), eye=EyeSpec(motion=motion))
+    epoch_ns = 1_000_000_000
+
+    def message(t_s: float, hold: bool) -> dict[str, Any]:
+        return {"t_ns": epoch_ns + round(t_s * 1e9), "beam_hold": hold, "pose": None}
+
+    beam = tracking.beam_against_truth(
+        [message(1.0, False), message(1.5, True), message(3.0, False), message(4.0, True),
+         message(6.0, False), {"t_ns": epoch_ns, "type": "status"}], scene, epoch_ns)
+    # 8° away from the reference is out of the 2° tolerance; 1.5° is within it.
+    assert beam == {"out_of_tolerance": 2, "released_out_of_tolerance": 1,
+                    "within_tolerance": 3, "released_within_tolerance": 2}
+    text = tracking.accuracy_text({**tracking.tracked_accuracy([], scene, epoch_ns, []),
+                                   "beam": beam})
+    assert "the beam was released on 1 of the 2 frames with the eye out of tolerance (goal 0)" \
+        in text
 
 
 def test_the_tracking_bench_takes_the_sharp_or_a_patients_eye(

@@ -283,7 +283,8 @@ def tracked_accuracy(messages: list[dict[str, Any]], scene: SceneSpec, epoch_ns:
     """The tracked poses against the truth at each frame's mid-exposure (the scene's script
     evaluated there): globe centre (mm) and gaze (degrees) errors, median, p95 and max, over
     every pose message with a pose and over those at rest (none of ``events``, ``(start s,
-    duration s)`` on the script's clock, within :data:`MOVING_MARGIN_S`)."""
+    duration s)`` on the script's clock, within :data:`MOVING_MARGIN_S`); and the beam against
+    the truth (:func:`beam_against_truth`)."""
     rows = []
     for message in messages:
         pose = message.get("pose")
@@ -308,7 +309,35 @@ def tracked_accuracy(messages: list[dict[str, Any]], scene: SceneSpec, epoch_ns:
     return {"frames": len(rows), "centre_error_mm": stats([r[0] for r in rows]),
             "gaze_error_deg": stats([r[1] for r in rows]), "frames_at_rest": len(rest),
             "at_rest_centre_error_mm": stats([r[0] for r in rest]),
-            "at_rest_gaze_error_deg": stats([r[1] for r in rest])}
+            "at_rest_gaze_error_deg": stats([r[1] for r in rest]),
+            "beam": beam_against_truth(messages, scene, epoch_ns)}
+
+
+def beam_against_truth(messages: list[dict[str, Any]], scene: SceneSpec,
+                       epoch_ns: int) -> dict[str, int]:
+    """Every pose message's beam decision against where the eye truly was at its frame: out of
+    tolerance when the true centre lies more than :data:`TOLERANCE_MM` from the reference's
+    (the still eye the reference was captured of: ``scene`` without its motion) or the true
+    gaze more than :data:`TOLERANCE_GAZE_DEG` from its gaze. The safety figure is
+    ``released_out_of_tolerance`` (goal 0); ``released_within_tolerance`` of
+    ``within_tolerance`` says how often the beam could be given where it should be."""
+    still = scene.model_copy(update={"eye": scene.eye.model_copy(update={"motion": None})})
+    reference = scene_truth(still, 0.0)["eye"]
+    counts = {"out_of_tolerance": 0, "released_out_of_tolerance": 0, "within_tolerance": 0,
+              "released_within_tolerance": 0}
+    for message in messages:
+        if "beam_hold" not in message:
+            continue
+        eye = scene_truth(scene, float(message["t_ns"] - epoch_ns) / 1e9)["eye"]
+        moved = float(np.linalg.norm(np.subtract(eye["centre_mm"], reference["centre_mm"])))
+        turned = math.degrees(math.acos(max(-1.0, min(1.0, float(
+            np.dot(eye["gaze"], reference["gaze"]))))))
+        where = ("out_of_tolerance" if moved > TOLERANCE_MM or turned > TOLERANCE_GAZE_DEG
+                 else "within_tolerance")
+        counts[where] += 1
+        if not message["beam_hold"]:
+            counts[f"released_{where}"] += 1
+    return counts
 
 
 def _track(client: Any, seconds: float, saccade_s: float, lead_s: float, silent: _Reader,
@@ -471,7 +500,17 @@ def accuracy_text(accuracy: dict[str, Any]) -> str:
             f"{accuracy['frames']} frames with a pose; at rest ({accuracy['frames_at_rest']} "
             f"frames, {MOVING_MARGIN_S:g} s clear of the saccades and the blink) "
             f"{pair('at_rest_centre_error_mm', 3)} mm, {pair('at_rest_gaze_error_deg', 2)}° "
-            "(goal as the global fit's: ≤ 0.1 mm, ≤ 0.5° p95)")
+            "(goal as the global fit's: ≤ 0.1 mm, ≤ 0.5° p95)" + _beam_text(accuracy.get("beam")))
+
+
+def _beam_text(beam: dict[str, int] | None) -> str:
+    """:func:`beam_against_truth` in words ('' for a report without it)."""
+    if beam is None:
+        return ""
+    return (f"; against the truth, the beam was released on {beam['released_out_of_tolerance']}"
+            f" of the {beam['out_of_tolerance']} frames with the eye out of tolerance (goal 0) "
+            f"and on {beam['released_within_tolerance']} of the {beam['within_tolerance']} "
+            f"within it ({TOLERANCE_MM:g} mm, {TOLERANCE_GAZE_DEG:g}° from the reference)")
 
 
 def format_text(report: dict[str, Any]) -> str:
