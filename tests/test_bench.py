@@ -801,6 +801,17 @@ def test_the_speed_report_shows_live_tracking_rendered_live_and_ahead() -> None:
     assert "the simulated room rendered ahead): frame → pose message 30 ms median" in text
     assert "both units tracked): frame → pose message 52 ms median, 81 ms p99 (goal p99 25" \
         in text
+    eye = {"seed": 0, "limbus_width_mm": 1.88, "limbus_contrast": 0.07, "lid_cover": 0.36,
+           "anatomy_mismatch_mm": 0.5}
+    patient = speed.tracking_figures(None, None, None, {**run(31.0, 44.0), "eye": eye})
+    assert set(patient) == {"tracking_patient", "patient_frame_to_pose_median_ms",
+                            "patient_frame_to_pose_p99_ms", "patient_tracking_processed_share",
+                            "frame_to_pose_goal_p99_ms"}
+    page = render_speed({"pending": {}, **patient})
+    assert ("a patient's eye drawn from the population (eyeserver bench tracking --eyes patient "
+            "--prerendered), the room's frames rendered before tracking (seed 0: limbus 1.88 mm "
+            "wide, contrast 0.07, lid cover 0.36, anatomy mismatch 0.50 mm)") in page
+    assert "31 ms median, 44 ms p99 (goal p99 40 ms)" in page
     assert speed.tracking_figures(None, None) == {}
 
 

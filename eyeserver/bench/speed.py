@@ -815,26 +815,45 @@ TRACKING_RUNS: dict[str, TrackingRun] = {
         "both_units_", "both units tracked (eyeserver bench tracking --unit all: four cameras, "
         "each unit's frames in turn), the simulated room renders each frame set on the same "
         "cores", "rendered live, both units tracked", BOTH_UNITS_GOAL_P99_MS),
+    "tracking_patient": TrackingRun(
+        "patient_", "a patient's eye drawn from the population (eyeserver bench tracking "
+        "--eyes patient --prerendered), the room's frames rendered before tracking",
+        "rendered ahead, a patient's eye", TRACKING_GOAL_P99_MS),
 }
 """The speed report's live-tracking runs, by the key of their block."""
 
+PATIENT_EYE_SEED = 0
+"""The patient eye of the speed report's ``tracking_patient`` run
+(:func:`eyeserver.hardware.sim.population.draw` with this seed; the report describes it)."""
+
+
+def _eye_text(eye: dict[str, Any] | None) -> str:
+    """A tracked patient eye's descriptors, for the run's description ('' for the sharp eye)."""
+    if not eye:
+        return ""
+    return (f" (seed {eye['seed']}: limbus {eye['limbus_width_mm']:.2f} mm wide, contrast "
+            f"{eye['limbus_contrast']:.2f}, lid cover {eye['lid_cover']:.2f}, anatomy mismatch "
+            f"{eye['anatomy_mismatch_mm']:.2f} mm)")
+
 
 def tracking_figures(live: dict[str, Any] | None, ahead: dict[str, Any] | None,
-                     both: dict[str, Any] | None = None) -> dict[str, Any]:
+                     both: dict[str, Any] | None = None,
+                     patient: dict[str, Any] | None = None) -> dict[str, Any]:
     """The speed report's part for ``eyeserver bench tracking``'s reports, the simulated room
-    rendered ``live`` and rendered ``ahead``, and ``both`` units tracked, rendered live (any
-    None: not run); the runs as :data:`TRACKING_RUNS` names them."""
+    rendered ``live`` and rendered ``ahead``, ``both`` units tracked, rendered live, and a
+    ``patient``'s eye, rendered ahead (any None: not run); the runs as :data:`TRACKING_RUNS`
+    names them."""
     report: dict[str, Any] = {}
-    for (key, (prefix, how, _, goal_ms)), run_report in zip(TRACKING_RUNS.items(),
-                                                            (live, ahead, both), strict=True):
+    for (key, (prefix, how, _, goal_ms)), run_report in zip(
+            TRACKING_RUNS.items(), (live, ahead, both, patient), strict=True):
         if run_report is None:
             continue
         latency, counted = run_report["latency_ms"], run_report["frames"]
         report[key] = {
             "seconds": run_report["seconds"],
             "what": "eyeserver bench tracking: a daemon on loopback tracks the moving simulated "
-                    f"eye at 25 Hz, {how}; latency from a frame's mid-exposure to its pose "
-                    "message received by a WebSocket client",
+                    f"eye at 25 Hz, {how}{_eye_text(run_report.get('eye'))}; latency from a "
+                    "frame's mid-exposure to its pose message received by a WebSocket client",
             "latency_ms": latency, "frames": counted, "slowest": run_report["slowest"],
             "beam_hold_reaction": run_report["beam_hold_reaction"],
             "blink": run_report.get("blink"), "accuracy": run_report.get("accuracy"),
@@ -856,9 +875,10 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
     simulated rig; made on the spot when not given). ``room_file`` is the file ``config`` came
     from (None: the default room), for the daemon of the API timings; ``api_requests`` requests
     of each kind are timed through the API (0: none); live tracking runs ``tracking_seconds``
-    through a daemon three times (:mod:`eyeserver.bench.tracking`, 0: not run) for the frame →
+    through a daemon four times (:mod:`eyeserver.bench.tracking`, 0: not run) for the frame →
     pose latency, the simulated room rendered live and rendered ahead, both units tracked
-    (rendered live: the room renders ahead for one unit), and its pipeline alone on
+    (rendered live: the room renders ahead for one unit), a patient's eye
+    (:data:`PATIENT_EYE_SEED`, rendered ahead), and its pipeline alone on
     ``replay_seconds`` of frames rendered beforehand
     (:func:`~eyeserver.bench.tracking.replayed` with ``replay_workers`` worker processes, 0:
     not run)."""
@@ -875,7 +895,7 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
         api = None
         if api_requests:
             api = api_latency(calibration, work, api_requests, room_file, progress)
-        live = ahead = both = None
+        live = ahead = both = patient = None
         if tracking_seconds:
             progress(f"live tracking for {tracking_seconds} s (frame → pose latency), the room "
                      "rendered live")
@@ -892,6 +912,13 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
             (work / "tracking-both").mkdir()
             both = tracking.run(tracking_seconds, calibration=calibration, room_file=room_file,
                                 work=work / "tracking-both", unit="all", progress=progress)
+            progress(f"live tracking for {tracking_seconds} s of a patient's eye, the room "
+                     "rendered ahead")
+            (work / "tracking-patient").mkdir()
+            patient = tracking.run(tracking_seconds, calibration=calibration,
+                                   room_file=room_file, work=work / "tracking-patient",
+                                   prerendered=True, eyes="patient", seed=PATIENT_EYE_SEED,
+                                   progress=progress)
         alone = None
         if replay_seconds:
             progress(f"live tracking's pipeline alone, {replay_seconds} s replayed")
@@ -954,7 +981,7 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
         report["sim_render_2cam_ms"] = render["moving_eye_2cam"]["median_ms"]
     if "moving_eye_4cam" in render:
         report["sim_render_4cam_ms"] = render["moving_eye_4cam"]["median_ms"]
-    report.update(tracking_figures(live, ahead, both))
+    report.update(tracking_figures(live, ahead, both, patient))
     if alone is not None:
         report["tracking_replay"] = alone
         report["pipeline_frame_to_pose_median_ms"] = alone["latency_ms"]["median"]
