@@ -3,8 +3,9 @@
 # 2 cores, the speed bench with live tracking, ≈ 8 minutes, and the eye pose bench three times:
 # 600 patient eyes with the radius fitted, each captured again moved (--displacement: what a
 # check against a reference captured at set-up sees), ≈ 2 hours (a patient eye takes two to
-# three times the sharp eye's time to render), 200 with their biometry given, ≈ 20 minutes, and the
-# old sharp-limbus eye on 600, ≈ 25 minutes), the reliability bench (kill -9, unplugged devices,
+# three times the sharp eye's time to render), 200 with their biometry given (each patient's MRI
+# as good or as bad as drawn), captured again moved, ≈ 45 minutes, and the old sharp-limbus eye
+# on 600, ≈ 25 minutes), the reliability bench (kill -9, unplugged devices,
 # a full disk, load and fuzz through daemons on loopback, a few minutes; its full-disk part needs
 # root for its tmpfs and says skipped otherwise) and render their JSON.
 # Figures and PNGs are kept in build/benchmarks/.
@@ -12,7 +13,7 @@
 #                                   [--poses N]
 #   --accuracy, --speed, --reliability, --pose: only that bench (the full accuracy protocol, ≈ 10
 #   minutes, the speed bench, ≈ 8, the reliability bench, a few, or the eye pose bench's three
-#   runs, ≈ 3 hours), its part of the page made anew and the rest left as it is (the accuracy
+#   runs, ≈ 3.5 hours), its part of the page made anew and the rest left as it is (the accuracy
 #   run's part: the page's head and its Accuracy section, the daily QA's figures with it; its
 #   calibration in build/benchmarks/accuracy/ is the one later full runs, --speed and --pose
 #   use: run --accuracy first on a fresh clone).
@@ -57,7 +58,7 @@ pose_runs() {
     # The eye pose bench's three runs, their JSON in $out/pose*.json.
     .venv/bin/eyeserver bench pose --json --poses "$poses" --displacement \
         --calibration "$out/accuracy/calibration" > "$out/pose.json"
-    .venv/bin/eyeserver bench pose --json --poses "$((poses / 3))" --biometry \
+    .venv/bin/eyeserver bench pose --json --poses "$((poses / 3))" --biometry --displacement \
         --calibration "$out/accuracy/calibration" > "$out/pose_biometry.json"
     .venv/bin/eyeserver bench pose --json --eyes sharp --poses "$poses" \
         --calibration "$out/accuracy/calibration" > "$out/pose_sharp.json"
