@@ -827,15 +827,6 @@ PATIENT_EYE_SEED = 0
 (:func:`eyeserver.hardware.sim.population.draw` with this seed; the report describes it)."""
 
 
-def _eye_text(eye: dict[str, Any] | None) -> str:
-    """A tracked patient eye's descriptors, for the run's description ('' for the sharp eye)."""
-    if not eye:
-        return ""
-    return (f" (seed {eye['seed']}: limbus {eye['limbus_width_mm']:.2f} mm wide, contrast "
-            f"{eye['limbus_contrast']:.2f}, lid cover {eye['lid_cover']:.2f}, anatomy mismatch "
-            f"{eye['anatomy_mismatch_mm']:.2f} mm)")
-
-
 def tracking_figures(live: dict[str, Any] | None, ahead: dict[str, Any] | None,
                      both: dict[str, Any] | None = None,
                      patient: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -852,8 +843,9 @@ def tracking_figures(live: dict[str, Any] | None, ahead: dict[str, Any] | None,
         report[key] = {
             "seconds": run_report["seconds"],
             "what": "eyeserver bench tracking: a daemon on loopback tracks the moving simulated "
-                    f"eye at 25 Hz, {how}{_eye_text(run_report.get('eye'))}; latency from a "
-                    "frame's mid-exposure to its pose message received by a WebSocket client",
+                    f"eye at 25 Hz, {how}{tracking.eye_text(run_report.get('eye'))}; latency "
+                    "from a frame's mid-exposure to its pose message received by a WebSocket "
+                    "client",
             "latency_ms": latency, "frames": counted, "slowest": run_report["slowest"],
             "beam_hold_reaction": run_report["beam_hold_reaction"],
             "blink": run_report.get("blink"), "accuracy": run_report.get("accuracy"),

@@ -513,6 +513,16 @@ def _beam_text(beam: dict[str, int] | None) -> str:
             f"within it ({TOLERANCE_MM:g} mm, {TOLERANCE_GAZE_DEG:g}° from the reference)")
 
 
+def eye_text(eye: dict[str, Any] | None) -> str:
+    """A report's patient eye (its ``eye``) in words, `` (seed 0: limbus 1.88 mm wide, …)``;
+    '' for the sharp eye (None)."""
+    if not eye:
+        return ""
+    return (f" (seed {eye['seed']}: limbus {eye['limbus_width_mm']:.2f} mm wide, contrast "
+            f"{eye['limbus_contrast']:.2f}, lid cover {eye['lid_cover']:.2f}, anatomy mismatch "
+            f"{eye['anatomy_mismatch_mm']:.2f} mm)")
+
+
 def format_text(report: dict[str, Any]) -> str:
     """The report for people."""
     f, lat, reaction, clients = (report["frames"], report["latency_ms"],
@@ -521,12 +531,8 @@ def format_text(report: dict[str, Any]) -> str:
     ahead = report.get("prerendered")
     room = ("the simulated room rendered ahead" if ahead else
             "the simulated room, rendered live on the same cores")
-    eye = report.get("eye")
-    if eye:
-        room += (f", a patient's eye (seed {eye['seed']}: limbus {eye['limbus_width_mm']:.2f} mm "
-                 f"wide, contrast {eye['limbus_contrast']:.2f}, lid cover "
-                 f"{eye['lid_cover']:.2f}, anatomy mismatch {eye['anatomy_mismatch_mm']:.2f} "
-                 "mm)")
+    if report.get("eye"):
+        room += f", a patient's eye{eye_text(report['eye'])}"
     lines = [
         f"live tracking, {report['elapsed_s']} s on {room} (unit "
         f"{report['unit']}, cameras at {report['rate_hz']:g} Hz): {report.get('stream_s')} s "
