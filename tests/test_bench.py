@@ -812,6 +812,17 @@ def test_the_speed_report_shows_live_tracking_rendered_live_and_ahead() -> None:
             "--prerendered), the room's frames rendered before tracking (seed 0: limbus 1.88 mm "
             "wide, contrast 0.07, lid cover 0.36, anatomy mismatch 0.50 mm)") in page
     assert "31 ms median, 44 ms p99 (goal p99 40 ms)" in page
+    # A patient's eye whose reference the daemon refused: said so, on the page and in the text.
+    refused = {"tracking_patient_refused": {
+        "seed": 0, "eye": tracking.eye_text(eye),
+        "reason": "cannot take this capture as the reference: the eye was fitted at confidence "
+                  "0.18"}}
+    expected = ("Live tracking of a patient's eye (seed 0: limbus 1.88 mm wide, contrast 0.07, "
+                "lid cover 0.36, anatomy mismatch 0.50 mm): not run, the daemon refused the "
+                "reference captured at rest: cannot take this capture as the reference: the eye "
+                "was fitted at confidence 0.18.")
+    assert expected in render_speed({"pending": {}, **refused})
+    assert expected in "\n".join(speed.tracking_lines(refused))
     assert speed.tracking_figures(None, None) == {}
 
 

@@ -296,6 +296,33 @@ def test_a_failed_fit_is_422_with_its_reason_and_audited(
     assert "P-100" not in (data_dir / "audit.jsonl").read_text()
 
 
+def test_a_weak_pose_is_not_taken_as_the_reference(
+        client: Client, patient: str, fake_fit: FakeFit, calibration_id: str,
+        data_dir: Path) -> None:
+    """Every later check compares with the reference: a pose below the patient's
+    min_confidence is refused with the reason (422), audited, and the reference stays."""
+    before = client.get(f"{API}/patients/{patient}/fractions/1/reference").json()
+    fake_fit.confidence = 0.18
+    try:
+        refused = client.post(f"{API}/patients/{patient}/fractions/1/reference/capture",
+                              headers=OPERATOR)
+    finally:
+        fake_fit.confidence = 0.9
+
+    assert refused.status_code == 422, refused.text
+    assert refused.json()["detail"] == (
+        "cannot take this capture as the reference: the eye was fitted at confidence 0.18, "
+        "below the patient's min_confidence 0.5 (the limbus not seen well: capture again "
+        "with the eye open, still and looking at the fixation light)")
+    assert client.get(f"{API}/patients/{patient}/fractions/1/reference").json() == before
+    last = json.loads((data_dir / "audit.jsonl").read_text().splitlines()[-1])
+    assert (last["action"], last["outcome"]) == ("set_reference_pose", "error")
+    # At the patient's confidence the same capture is taken.
+    taken = client.post(f"{API}/patients/{patient}/fractions/2/reference/capture",
+                        headers=OPERATOR)
+    assert taken.status_code == 201, taken.text
+
+
 @pytest.mark.slow  # it lists the measurements of the tests above, slow ones among them
 def test_measurements_are_found_by_patient_fraction_and_id(
         client: Client, patient: str, calibration_id: str) -> None:

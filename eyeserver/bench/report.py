@@ -216,6 +216,9 @@ def render_speed(speed: dict[str, Any]) -> str:
 
     for key in TRACKING_RUNS:
         lines += _tracking_paragraph(speed, key)
+    if speed.get("tracking_patient_refused"):
+        from eyeserver.bench.speed import refused_text
+        lines += ["", refused_text(speed["tracking_patient_refused"])]
     alone = speed.get("tracking_replay")
     if alone:
         from eyeserver.bench.tracking import format_replayed

@@ -69,6 +69,7 @@ from eyeserver.bench.machine import machine, reference_ms
 from eyeserver.bench.simcal import calibrate_room
 from eyeserver.core.clock import ManualClock
 from eyeserver.core.types import F32, Progress, quiet
+from eyeserver.hardware.sim import population
 from eyeserver.hardware.sim.config import RoomConfig
 from eyeserver.hardware.sim.motion import MotionSpec
 from eyeserver.hardware.sim.room import SimRoom
@@ -888,6 +889,7 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
         if api_requests:
             api = api_latency(calibration, work, api_requests, room_file, progress)
         live = ahead = both = patient = None
+        patient_refused: str | None = None
         if tracking_seconds:
             progress(f"live tracking for {tracking_seconds} s (frame → pose latency), the room "
                      "rendered live")
@@ -907,10 +909,13 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
             progress(f"live tracking for {tracking_seconds} s of a patient's eye, the room "
                      "rendered ahead")
             (work / "tracking-patient").mkdir()
-            patient = tracking.run(tracking_seconds, calibration=calibration,
-                                   room_file=room_file, work=work / "tracking-patient",
-                                   prerendered=True, eyes="patient", seed=PATIENT_EYE_SEED,
-                                   progress=progress)
+            try:
+                patient = tracking.run(tracking_seconds, calibration=calibration,
+                                       room_file=room_file, work=work / "tracking-patient",
+                                       prerendered=True, eyes="patient",
+                                       seed=PATIENT_EYE_SEED, progress=progress)
+            except tracking.ReferenceRefusedError as exc:
+                patient_refused = str(exc)
         alone = None
         if replay_seconds:
             progress(f"live tracking's pipeline alone, {replay_seconds} s replayed")
@@ -974,6 +979,12 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
     if "moving_eye_4cam" in render:
         report["sim_render_4cam_ms"] = render["moving_eye_4cam"]["median_ms"]
     report.update(tracking_figures(live, ahead, both, patient))
+    if patient_refused is not None:
+        report["tracking_patient_refused"] = {
+            "seed": PATIENT_EYE_SEED,
+            "eye": tracking.eye_text({"seed": PATIENT_EYE_SEED, **population.describe(
+                population.draw(np.random.default_rng(PATIENT_EYE_SEED), "patient"))}),
+            "reason": patient_refused}
     if alone is not None:
         report["tracking_replay"] = alone
         report["pipeline_frame_to_pose_median_ms"] = alone["latency_ms"]["median"]
@@ -991,9 +1002,17 @@ def _whole_ms(value: float | None) -> str:
     return "n/a" if value is None else f"{value:.0f} ms"
 
 
+def refused_text(refused: dict[str, Any]) -> str:
+    """The patient-eye run that did not track (``tracking_patient_refused``), in words."""
+    return (f"Live tracking of a patient's eye{refused['eye']}: not run, the daemon refused "
+            f"the reference captured at rest: {refused['reason']}.")
+
+
 def tracking_lines(report: dict[str, Any]) -> list[str]:
     """:func:`format_text`'s lines for the live-tracking runs of a speed report."""
     lines: list[str] = []
+    if report.get("tracking_patient_refused"):
+        lines += ["", refused_text(report["tracking_patient_refused"])]
     for key, run in TRACKING_RUNS.items():
         live = report.get(key)
         if not live:

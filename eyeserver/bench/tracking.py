@@ -46,6 +46,7 @@ from eyeserver.bench.machine import reference_ms
 from eyeserver.bench.simcal import calibrate_room
 from eyeserver.core.clock import MonotonicClock
 from eyeserver.core.types import Progress, quiet
+from eyeserver.errors import EyeserverError
 from eyeserver.eye import EyeModel, fit_eye
 from eyeserver.hardware.sim import population
 from eyeserver.hardware.sim.config import load_room
@@ -161,6 +162,11 @@ def run(seconds: float = 60.0, *, calibration: Path | None = None,
         return report
 
 
+class ReferenceRefusedError(EyeserverError):
+    """The daemon refused the reference captured at rest (its reason the message): the eye was
+    not seen well enough to track from, so the run measures nothing more."""
+
+
 def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: bool,
          eyes: str, seed: int, unit: str, progress: Progress) -> dict[str, Any]:
     client = daemon.client
@@ -178,8 +184,11 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: 
                             .model_dump(mode="json")), "patient eye")
     checked(client.put(f"{API}/sim/eye", json={"motion": None, "gaze_deg": [0.0, 0.0]}),
              "still eye")
-    reference = checked(client.post(f"{API}/patients/{PATIENT}/fractions/1/reference/capture",
-                                     timeout=120), "reference")
+    captured = client.post(f"{API}/patients/{PATIENT}/fractions/1/reference/capture",
+                           timeout=120)
+    if captured.status_code == 422:  # the daemon's answer to a pose too weak to track from
+        raise ReferenceRefusedError(captured.json()["detail"])
+    reference = checked(captured, "reference")
     # The script's clock starts at this PUT: the saccade comes half-way through tracking and
     # the eye returns to the reference gaze one second later.
     lead_s = 3.0

@@ -426,17 +426,28 @@ class PoseVerification:
                           ) -> ReferencePose:
         """Measure the eye at set-up and store the pose as the fraction's next reference.
 
-        Raises as :meth:`measure`, except that no reference is needed.
+        Raises as :meth:`measure`, except that no reference is needed; and
+        :class:`~eyeserver.eye.PoseError` for a pose less confident than the patient's
+        ``min_confidence``: every later measurement and tracked frame is compared with the
+        reference, so a weak one (on a patient's eye whose limbus the images hide: millimetres
+        and tens of degrees off, docs/notes/patient-eye.md) would make every check fail and
+        tracking take the open eye for shut lids.
         """
         patient = self.patients.get(patient_id)
         seen = self._observe(patient, actor, "set_reference_pose", fraction)
-        missing = unit_shortfalls(seen.units)
+        missing = list(unit_shortfalls(seen.units))
+        pose = seen.pose
+        minimum = patient.tolerances.min_confidence
+        if not pose.confidence >= minimum:
+            missing.append(f"the eye was fitted at confidence {pose.confidence:.2f}, below the "
+                           f"patient's min_confidence {minimum:g} (the limbus not seen well: "
+                           "capture again with the eye open, still and looking at the "
+                           "fixation light)")
         if missing:
             reason = "cannot take this capture as the reference: " + "; ".join(missing)
             self._audit_failure(actor, "set_reference_pose", patient, fraction,
                                 seen.capture_id, reason)
             raise PoseError(reason)
-        pose = seen.pose
         return self.patients.set_reference(
             patient_id, fraction, {"centre_mm": list(pose.centre_mm), "gaze": list(pose.gaze),
                                    "limbus_centre_mm": None if pose.limbus_centre_mm is None
