@@ -435,16 +435,16 @@ class PoseVerification:
         """
         patient = self.patients.get(patient_id)
         seen = self._observe(patient, actor, "set_reference_pose", fraction)
-        missing = list(unit_shortfalls(seen.units))
+        reasons = list(unit_shortfalls(seen.units))
         pose = seen.pose
         minimum = patient.tolerances.min_confidence
         if not pose.confidence >= minimum:
-            missing.append(f"the eye was fitted at confidence {pose.confidence:.2f}, below the "
+            reasons.append(f"the eye was fitted at confidence {pose.confidence:.2f}, below the "
                            f"patient's min_confidence {minimum:g} (the limbus not seen well: "
                            "capture again with the eye open, still and looking at the "
                            "fixation light)")
-        if missing:
-            reason = "cannot take this capture as the reference: " + "; ".join(missing)
+        if reasons:
+            reason = "cannot take this capture as the reference: " + "; ".join(reasons)
             self._audit_failure(actor, "set_reference_pose", patient, fraction,
                                 seen.capture_id, reason)
             raise PoseError(reason)
