@@ -69,7 +69,6 @@ from eyeserver.bench.machine import machine, reference_ms
 from eyeserver.bench.simcal import calibrate_room
 from eyeserver.core.clock import ManualClock
 from eyeserver.core.types import F32, Progress, quiet
-from eyeserver.hardware.sim import population
 from eyeserver.hardware.sim.config import RoomConfig
 from eyeserver.hardware.sim.motion import MotionSpec
 from eyeserver.hardware.sim.room import SimRoom
@@ -889,7 +888,7 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
         if api_requests:
             api = api_latency(calibration, work, api_requests, room_file, progress)
         live = ahead = both = patient = None
-        patient_refused: str | None = None
+        patient_refused: dict[str, Any] | None = None
         if tracking_seconds:
             progress(f"live tracking for {tracking_seconds} s (frame → pose latency), the room "
                      "rendered live")
@@ -915,7 +914,8 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
                                        prerendered=True, eyes="patient",
                                        seed=PATIENT_EYE_SEED, progress=progress)
             except tracking.ReferenceRefusedError as exc:
-                patient_refused = str(exc)
+                patient_refused = {"seed": PATIENT_EYE_SEED, "eye": tracking.eye_text(exc.eye),
+                                   "reason": exc.reason}
         alone = None
         if replay_seconds:
             progress(f"live tracking's pipeline alone, {replay_seconds} s replayed")
@@ -980,11 +980,7 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
         report["sim_render_4cam_ms"] = render["moving_eye_4cam"]["median_ms"]
     report.update(tracking_figures(live, ahead, both, patient))
     if patient_refused is not None:
-        report["tracking_patient_refused"] = {
-            "seed": PATIENT_EYE_SEED,
-            "eye": tracking.eye_text({"seed": PATIENT_EYE_SEED, **population.describe(
-                population.draw(np.random.default_rng(PATIENT_EYE_SEED), "patient"))}),
-            "reason": patient_refused}
+        report["tracking_patient_refused"] = patient_refused
     if alone is not None:
         report["tracking_replay"] = alone
         report["pipeline_frame_to_pose_median_ms"] = alone["latency_ms"]["median"]

@@ -164,7 +164,18 @@ def run(seconds: float = 60.0, *, calibration: Path | None = None,
 
 class ReferenceRefusedError(EyeserverError):
     """The daemon refused the reference captured at rest (its reason the message): the eye was
-    not seen well enough to track from, so the run measures nothing more."""
+    not seen well enough to track from, so the run measures nothing more. ``eye``: the
+    patient eye's descriptors as a report carries them (None for the sharp eye)."""
+
+    def __init__(self, reason: str, eye: dict[str, Any] | None) -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.eye = eye
+
+
+def _described(drawn: EyeSpec | None, seed: int) -> dict[str, Any] | None:
+    """A drawn patient eye's descriptors and seed, as a report carries them (None: sharp)."""
+    return None if drawn is None else {"seed": seed, **population.describe(drawn)}
 
 
 def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: bool,
@@ -187,7 +198,7 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: 
     captured = client.post(f"{API}/patients/{PATIENT}/fractions/1/reference/capture",
                            timeout=120)
     if captured.status_code == 422:  # the daemon's answer to a pose too weak to track from
-        raise ReferenceRefusedError(captured.json()["detail"])
+        raise ReferenceRefusedError(captured.json()["detail"], _described(drawn, seed))
     reference = checked(captured, "reference")
     # The script's clock starts at this PUT: the saccade comes half-way through tracking and
     # the eye returns to the reference gaze one second later.
@@ -239,7 +250,7 @@ def _run(daemon: DaemonProcess, seconds: float, calibration: Path, prerendered: 
                              blink_s)
     report["eyes"] = eyes
     report["unit"] = unit
-    report["eye"] = None if drawn is None else {"seed": seed, **population.describe(drawn)}
+    report["eye"] = _described(drawn, seed)
     scene = SceneSpec.model_validate(checked(client.get(f"{API}/sim/scene"), "scene"))
     report["accuracy"] = tracked_accuracy(
         [m for _, m in readers[0].messages if m.get("type") == "pose"], scene, epoch_ns,
@@ -302,8 +313,7 @@ def tracked_accuracy(messages: list[dict[str, Any]], scene: SceneSpec, epoch_ns:
         at = float(message["t_ns"] - epoch_ns) / 1e9
         eye = scene_truth(scene, at)["eye"]
         centre = float(np.linalg.norm(np.subtract(pose["centre_mm"], eye["centre_mm"])))
-        cos = float(np.dot(pose["gaze"], eye["gaze"]) / np.linalg.norm(pose["gaze"]))
-        gaze = math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+        gaze = _angle_deg(pose["gaze"], eye["gaze"])
         moving = any(start - MOVING_MARGIN_S <= at <= start + duration + MOVING_MARGIN_S
                      for start, duration in events)
         rows.append((centre, gaze, moving))
@@ -320,6 +330,12 @@ def tracked_accuracy(messages: list[dict[str, Any]], scene: SceneSpec, epoch_ns:
             "at_rest_centre_error_mm": stats([r[0] for r in rest]),
             "at_rest_gaze_error_deg": stats([r[1] for r in rest]),
             "beam": beam_against_truth(messages, scene, epoch_ns)}
+
+
+def _angle_deg(direction: Any, unit: Any) -> float:
+    """The angle (degrees) between ``direction`` (any length) and the unit vector ``unit``."""
+    cos = float(np.dot(direction, unit) / np.linalg.norm(direction))
+    return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
 
 
 def beam_against_truth(messages: list[dict[str, Any]], scene: SceneSpec,
@@ -339,8 +355,7 @@ def beam_against_truth(messages: list[dict[str, Any]], scene: SceneSpec,
             continue
         eye = scene_truth(scene, float(message["t_ns"] - epoch_ns) / 1e9)["eye"]
         moved = float(np.linalg.norm(np.subtract(eye["centre_mm"], reference["centre_mm"])))
-        turned = math.degrees(math.acos(max(-1.0, min(1.0, float(
-            np.dot(eye["gaze"], reference["gaze"]))))))
+        turned = _angle_deg(eye["gaze"], reference["gaze"])
         where = ("out_of_tolerance" if moved > TOLERANCE_MM or turned > TOLERANCE_GAZE_DEG
                  else "within_tolerance")
         counts[where] += 1
