@@ -429,9 +429,8 @@ class PoseVerification:
         Raises as :meth:`measure`, except that no reference is needed; and
         :class:`~eyeserver.eye.PoseError` for a pose less confident than the patient's
         ``min_confidence``: every later measurement and tracked frame is compared with the
-        reference, so a weak one (on a patient's eye whose limbus the images hide: millimetres
-        and tens of degrees off, docs/notes/patient-eye.md) would make every check fail and
-        tracking take the open eye for shut lids.
+        reference, so a weak one would make every check fail for the wrong reason and tracking
+        take the open eye for shut lids (docs/notes/patient-eye.md, "Eighth session").
         """
         patient = self.patients.get(patient_id)
         seen = self._observe(patient, actor, "set_reference_pose", fraction)
