@@ -20,7 +20,7 @@ from eyeserver.calibration.phase_height import MARGIN_WARNING_RAD
 from eyeserver.core.types import Progress, quiet
 from eyeserver.errors import EyeserverError
 from eyeserver.eye import LimbusView
-from eyeserver.io import Bundle, PointCloud, read_bundle
+from eyeserver.io import Bundle, PointCloud, RigSpec, read_bundle
 from eyeserver.pipeline.demodulate import Carrier
 from eyeserver.pipeline.fusion import Part, Region, fuse
 from eyeserver.pipeline.phase_height import PhaseHeightModel
@@ -28,6 +28,7 @@ from eyeserver.pipeline.reconstruct import (
     METHODS,
     CalibratedCamera,
     CameraCloud,
+    Phase,
     camera_cloud,
     camera_phase,
     unit_clouds,
@@ -46,7 +47,8 @@ BLIND_MARGIN_RAD = 0.01
 """A unit whose calibrated fringe-order margin is below this (rad) gets no evidence of the order
 from its other camera at all, below the phase's own noise: its cameras at one azimuth
 (examples/rooms/blind.toml, 6e-8 rad) picked orders two fringes off with every method that
-trusts that camera, so ``auto`` asks for a depth prior instead."""
+trusts that camera, so ``auto`` takes the orders from another unit's camera
+(:func:`order_judge`) or, without one, asks for a depth prior."""
 
 
 def unit_method(document: dict[str, Any], unit_id: str, method: str, *,
@@ -60,7 +62,8 @@ def unit_method(document: dict[str, Any], unit_id: str, method: str, *,
     tracking, ``eyeserver pose``, whose figures were measured with it) it takes the multi-view
     order where the margin is at least ``MARGIN_WARNING_RAD`` (about half the order's time;
     every point confirmed by both cameras). Below :data:`BLIND_MARGIN_RAD` it gives
-    ``"blind"``: only a depth prior can fix that unit's orders. Any other method is kept.
+    ``"blind"``: another unit's camera (:func:`order_judge`) or a depth prior must fix that
+    unit's orders. Any other method is kept.
     """
     if method != "auto":
         return method, "asked for"
@@ -192,6 +195,22 @@ def unit_pairs(bundle: Bundle) -> list[tuple[int, str, str]]:
     return [(index, ids[0], ids[1]) for (index, _), ids in by_unit.items() if len(ids) >= 2]
 
 
+def order_judge(views: Sequence[tuple[int, str]], rig: RigSpec, unit_id: str,
+                index: int) -> tuple[int, str] | None:
+    """The view ``(frame, camera)`` of another unit nearest in time to frame ``index``, whose
+    fringes fix the orders of unit ``unit_id`` when its own cameras cannot (a blind unit), or
+    None when no other unit's image is among ``views``.
+
+    Any calibrated camera judges a candidate point by its own projector's phase there; across
+    units the wrong orders' points fall on unrelated phases, so the picks are right wherever
+    both units see the surface (measured on examples/rooms/blind.toml: docs/notes/
+    fringe-order.md). The calibration's margin cannot say so: it is a minimum over the volume,
+    and across units the gap sweeps through zero somewhere, where the picks are not confident
+    and do not vote."""
+    others = [view for view in views if rig.unit_of_camera(view[1]).id != unit_id]
+    return min(others, key=lambda view: (abs(view[0] - index), view), default=None)
+
+
 EMPTY_REASON = ("no surface was reconstructed: nothing in the cameras' view carried its "
                 "projector's fringes (an empty room, a dark projector)")
 """Why a reconstruction's cloud is empty: a valid answer, stated in its summary."""
@@ -219,8 +238,9 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
 
     ``frames`` and ``cameras`` restrict the views used (default: every fringe image). A camera's
     fringe order is fixed with its unit's other camera in the same frame (``method``: see
-    :mod:`eyeserver.pipeline.reconstruct`, ``auto`` chosen per unit by :func:`unit_method`); a
-    camera alone in its frame needs ``depth_prior_mm``. ``region`` and ``min_quality`` crop the
+    :mod:`eyeserver.pipeline.reconstruct`, ``auto`` chosen per unit by :func:`unit_method`), a
+    blind unit's with another unit's camera (:func:`order_judge`); a camera alone in its frame
+    needs ``depth_prior_mm``. ``region`` and ``min_quality`` crop the
     fused cloud. Each camera's summary says the method its unit used and why, the pixels that
     saw a fringe (``fringe_pixels``) and the share of them that gave a point (``coverage``).
     ``for_pose``: ``auto`` as the eye pose's path takes it (:func:`unit_method`'s ``for_pose``:
@@ -250,20 +270,46 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
                                   "cameras (a camera's image counts only when its own unit's "
                                   "projector is lit)")
     summary: dict[str, Any] = {"cameras": {}, "method": method}
-    # Per view: its points, the partner that fixed its orders (None: the depth prior did), the
+    # Per view: its points, the camera that fixed its orders (None: the depth prior did), the
     # method and why, and its pixels that see a fringe.
     done: dict[tuple[int, str], tuple[CameraCloud, str | None, str, str, int]] = {}
     methods = {unit.id: unit_method(document, unit.id, method, for_pose=for_pose)
                for unit in rig.units}
+    phases: dict[tuple[int, str], Phase] = {}
+
+    def phase_of(view: tuple[int, str]) -> Phase:
+        if view not in phases:
+            phases[view] = camera_phase(calibrated[view[1]], bundle.load_image(*view), saturation)
+        return phases[view]
+
     for index, camera_id in views:
         if (index, camera_id) in done:
             continue
         unit = rig.unit_of_camera(camera_id)
         partners = [c for c in unit.cameras if c != camera_id and (index, c) in views]
         cam = calibrated[camera_id]
-        phase = camera_phase(cam, bundle.load_image(index, camera_id), saturation)
+        phase = phase_of((index, camera_id))
         seen = int(np.count_nonzero(phase.valid))
         chosen, why = methods[unit.id]
+        judge = order_judge(views, rig, unit.id, index) if chosen == "blind" else None
+        if partners and judge is not None:
+            # A blind unit whose orders another unit's camera fixes: the spatial order, its
+            # regions voted by that camera (docs/notes/fringe-order.md, "A blind unit").
+            partner, judge_view = partners[0], phase_of(judge)
+            judged = (calibrated[judge[1]], judge_view)
+            why = (f"{why}; its orders fixed by camera {judge[1]} of unit "
+                   f"{rig.unit_of_camera(judge[1]).id}")
+            progress(f"frame {index}: cameras {camera_id} and {partner} of blind unit {unit.id}, "
+                     f"fringe order from camera {judge[1]}")
+            partner_phase = phase_of((index, partner))
+            cloud_a, cloud_b = unit_clouds(cam, None, calibrated[partner], None, limits,
+                                           method="spatial", depth_prior_mm=depth_prior_mm,
+                                           phases=(phase, partner_phase),
+                                           order_partners=(judged, judged))
+            done[(index, camera_id)] = (cloud_a, judge[1], "spatial", why, seen)
+            done[(index, partner)] = (cloud_b, judge[1], "spatial", why,
+                                      int(np.count_nonzero(partner_phase.valid)))
+            continue
         if not partners or chosen == "blind":
             if depth_prior_mm is None:
                 raise ReconstructionError(
@@ -271,9 +317,11 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
                     f"camera {camera_id}'s fringe order; give a depth prior (the surface's "
                     "height within half a fringe's depth) to use the camera alone"
                     if not partners else
-                    f"{bundle.path}: unit {unit.id} is blind to the fringe order ({why}); give "
-                    "a depth prior (the surface's height within half a fringe's depth) or move "
-                    "one of its cameras to another azimuth and calibrate again")
+                    f"{bundle.path}: unit {unit.id} is blind to the fringe order ({why}) and no "
+                    "other unit's camera among the chosen views can fix it; give a depth prior "
+                    "(the surface's height within half a fringe's depth), include another "
+                    "unit's images, or move one of its cameras to another azimuth and "
+                    "calibrate again")
             alone_why = "no partner camera" if not partners else "blind unit"
             progress(f"frame {index}: camera {camera_id} ({alone_why}), order from the depth "
                      "prior")
@@ -284,8 +332,7 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
         partner = partners[0]
         progress(f"frame {index}: cameras {camera_id} and {partner} of unit {unit.id} "
                  f"({chosen} fringe order)")
-        partner_phase = camera_phase(calibrated[partner], bundle.load_image(index, partner),
-                                     saturation)
+        partner_phase = phase_of((index, partner))
         cloud_a, cloud_b = unit_clouds(cam, None, calibrated[partner], None, limits,
                                        method=chosen, depth_prior_mm=depth_prior_mm,
                                        phases=(phase, partner_phase))

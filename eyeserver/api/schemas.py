@@ -218,8 +218,9 @@ class CameraSurface(BaseModel):
 
     frame: int = Field(description="The bundle frame its image comes from.", examples=[0])
     points: int = Field(description="Points it measured before fusion.", examples=[120000])
-    partner: str | None = Field(description="The camera of its unit that fixed its fringe "
-                                "order; null when a depth prior did.", examples=["S2"])
+    partner: str | None = Field(description="The camera that fixed its fringe order: its "
+                                "unit's other camera, or another unit's for a unit blind to "
+                                "the order; null when a depth prior did.", examples=["S2"])
     fringe_order: dict[str, int] = Field(
         description="Points per source that fixed their fringe order.",
         examples=[{"multi-view": 118000, "spatial + multi-view": 2000}])

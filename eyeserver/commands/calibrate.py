@@ -151,7 +151,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
     print(f"{summary['points']} points → {args.out} ({time.perf_counter() - started:.1f} s)")
     for cid, cam in summary["cameras"].items():
         orders = ", ".join(f"{n} {name}" for name, n in cam["fringe_order"].items()) or "none"
-        partner = f"checked with {cam['partner']}" if cam["partner"] else "alone"
+        partner = f"orders fixed with {cam['partner']}" if cam["partner"] else "alone"
         print(f"  {cid}: {cam['points']} points, {cam['coverage']:.0%} of the "
               f"{cam['fringe_pixels']} pixels that see a fringe (frame {cam['frame']}, "
               f"{partner}; {cam['method']}: {cam['method_reason']}; fringe order from {orders})")

@@ -23,6 +23,8 @@ The fringe order comes by one of two paths, and the result says which (``CameraC
 
 A camera with no partner in its unit can only use the depth prior, pixel by pixel (``"depth
 prior"``): right only within half a fringe's depth (≈ ±2.5 mm on the default rig) of the prior.
+A unit whose two cameras cannot tell the orders apart (both at one azimuth) can take its picks
+from a camera of another unit instead (:func:`unit_clouds`'s ``order_partners``).
 
 Finally each camera's points are kept only where the other camera's own reconstruction confirms
 them, or (spatial, where B does not see them) does not contradict them (:func:`unit_clouds`), and
@@ -1065,6 +1067,8 @@ def unit_clouds(cam_a: CalibratedCamera, image_a: npt.ArrayLike | None,
                 z_range: tuple[float, float], *,
                 method: str = "multi-view", depth_prior_mm: float | None = None,
                 saturation_dn: float | None = None, phases: tuple[Phase, Phase] | None = None,
+                order_partners: tuple[tuple[CalibratedCamera, Phase],
+                                      tuple[CalibratedCamera, Phase]] | None = None,
                 ) -> tuple[CameraCloud, CameraCloud]:
     """Both cameras' points of one unit, each order fixed with the other camera, and each point
     checked against the other camera's own reconstruction.
@@ -1072,6 +1076,12 @@ def unit_clouds(cam_a: CalibratedCamera, image_a: npt.ArrayLike | None,
     ``phases``: the images' :func:`camera_phase` when the caller has them already (live
     tracking reuses them for the limbus, and reconstructs :func:`decimated` cameras from their
     :meth:`Phase.decimated`); the images are then not read (they may be None).
+
+    ``order_partners``: the cameras (with their phases) whose fringes fix A's and B's orders
+    when the unit's own cameras cannot fix each other's (a unit blind to the order: a camera of
+    another unit, lit by its own projector). Any calibrated camera can judge a candidate point:
+    its phase model predicts its own projector's phase there. The two cameras' clouds are
+    still checked against each other, which needs no fringe.
 
     A wrong order that happens to match the other camera's phase (an occlusion, a far surface
     behind an edge) is a point the other camera does not reconstruct there. The multi-view path
@@ -1085,16 +1095,17 @@ def unit_clouds(cam_a: CalibratedCamera, image_a: npt.ArrayLike | None,
         phases = (camera_phase(cam_a, image_a, saturation_dn),
                   camera_phase(cam_b, image_b, saturation_dn))
     phase_a, phase_b = phases
-    cloud_a = camera_cloud(cam_a, phase_a, cam_b, phase_b, z_range, method=method,
+    (judge_a, view_a), (judge_b, view_b) = order_partners or ((cam_b, phase_b), (cam_a, phase_a))
+    cloud_a = camera_cloud(cam_a, phase_a, judge_a, view_a, z_range, method=method,
                            depth_prior_mm=depth_prior_mm)
-    cloud_b = camera_cloud(cam_b, phase_b, cam_a, phase_a, z_range, method=method,
+    cloud_b = camera_cloud(cam_b, phase_b, judge_b, view_b, z_range, method=method,
                            depth_prior_mm=depth_prior_mm)
     known_a, wrong_a = _contradicted(cloud_a, cam_a, cloud_b, cam_b)
     known_b, wrong_b = _contradicted(cloud_b, cam_b, cloud_a, cam_a)
     checked_a = cloud_a.subset(_checked(cloud_a, known_a, wrong_a, cam_a, phase_a))
     checked_b = cloud_b.subset(_checked(cloud_b, known_b, wrong_b, cam_b, phase_b))
-    return (_despeckled(checked_a, cam_a.shape, cam_a, cam_b, phase_b, z_range),
-            _despeckled(checked_b, cam_b.shape, cam_b, cam_a, phase_a, z_range))
+    return (_despeckled(checked_a, cam_a.shape, cam_a, judge_a, view_a, z_range),
+            _despeckled(checked_b, cam_b.shape, cam_b, judge_b, view_b, z_range))
 
 
 def _despeckled(cloud: CameraCloud, shape: tuple[int, int], cam: CalibratedCamera | None = None,

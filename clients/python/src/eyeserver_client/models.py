@@ -180,7 +180,8 @@ class CameraSurface(_Answer):
     points: int
     """Points it measured before fusion."""
     partner: str | None
-    """The camera of its unit that fixed its fringe order; null when a depth prior did."""
+    """The camera that fixed its fringe order: its unit's other camera, or another unit's for a unit
+    blind to the order; null when a depth prior did."""
     fringe_order: dict[str, int]
     """Points per source that fixed their fringe order."""
     method: str | None = None
