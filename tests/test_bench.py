@@ -12,8 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
+from eyeserver.bench import accuracy, speed, tracking
 from eyeserver.bench import pose as pose_bench
-from eyeserver.bench import speed, tracking
 from eyeserver.bench.figures import FIGURES
 from eyeserver.bench.pose import (
     BINS,
@@ -37,6 +37,7 @@ from eyeserver.bench.report import (
     render_accuracy,
     render_pose,
     render_pose_overview,
+    render_rigs,
     render_speed,
     splice,
 )
@@ -51,6 +52,7 @@ from eyeserver.hardware.sim.population import SHARP, biometry, describe
 from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec, scene_truth
 from eyeserver.pipeline.demodulate import Carrier, demodulate
 from eyeserver.service.patients import DEFAULT_MIN_CONFIDENCE
+from tests.conftest import ROOMS
 
 
 def _json(capsys: pytest.CaptureFixture[str], args: list[str]) -> dict[str, Any]:
@@ -94,6 +96,33 @@ def test_accuracy_bench_reports_the_papers_figures(calibrated_rooms: Any,
     assert "| `localisation_mm` |" in page and "the ball's centre at (0, 0, 0) mm" in page
     assert "| reprojection error, median (px) | 0.88 (IQR 1.44) | ≤ 0.15 |" in page
     assert "`frameset_2cam_ms` | 123.4 |" in page
+
+
+@pytest.mark.slow
+def test_a_rig_is_scored_with_the_default_options(calibrated_rooms: Any, tmp_path: Path) -> None:
+    """The accuracy bench's coverage on each rig (issue 37): the blind rig reconstructs with
+    the default options, each unit's orders from the other unit's camera, and its rows carry
+    what the page shows (the other scenes: tests/test_reconstruct.py)."""
+    _, caldir = calibrated_rooms("blind")
+    rows = accuracy.rig_coverage([("blind", load_room(ROOMS["blind"]), caldir)], tmp_path, 0,
+                                 scenes=("plate",))
+
+    assert [row["scene"] for row in rows] == ["plate"]
+    for row in rows:
+        assert row["methods"] == ["spatial"] and row["passed"], row
+        assert row["lit_share"][0] >= accuracy.RIG_COVERAGE_GOALS[row["scene"]], row
+        assert row["margins_rad"]["left"] < 0.01, row
+    refused = {**rows[0], "refused": "unit left is blind to the fringe order", "passed": False}
+    table = "\n".join(render_rigs([*rows, refused]))
+    assert "| blind | plate | spatial | 0.00" in table and "| pass |" in table
+    assert "| blind | plate | refused: unit left is blind to the fringe order |" in table
+    assert any("refused" in line for line in accuracy.rig_lines([refused]))
+
+
+def test_accuracy_bench_refuses_a_bad_rig_file_before_it_starts(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "accuracy", "--rig", str(tmp_path / "nowhere.toml")]) == 2
+    assert "nowhere.toml" in capsys.readouterr().err
 
 
 def test_accuracy_bench_refuses_an_unknown_phantom(capsys: pytest.CaptureFixture[str]) -> None:

@@ -91,6 +91,10 @@ def add_parser(subparsers: Subparsers) -> None:
     accuracy.add_argument("--phantoms", metavar="NAMES",
                           help="comma-separated phantoms (default: pyramid,wedge,eye_phantom_1,"
                           "eye_phantom_2)")
+    accuracy.add_argument("--rig", type=Path, metavar="FILE", action="append",
+                          help="a room file whose rig is calibrated and its coverage measured "
+                          "with the default options beside the room's own (repeatable; "
+                          "default: every file of examples/rooms; none with --quick)")
     accuracy.set_defaults(handler=_accuracy)
     pose = commands.add_parser(
         "pose", help="eye pose accuracy on random simulated eyes",
@@ -220,8 +224,12 @@ def _accuracy(args: argparse.Namespace) -> int:
         if unknown:
             raise EyeserverError(f"--phantoms: unknown {', '.join(unknown)} (choose from "
                                  f"{', '.join(accuracy.PHANTOMS)})")
+    # Every room file read before the long run: a bad one fails now, naming its file and field.
+    rigs = [] if args.quick else [(path.stem, load_room(path))
+                                  for path in (args.rig or accuracy.example_rooms())]
     report = accuracy.run(load_room(args.room), quick=args.quick, seed=args.seed, out=args.out,
-                          calibration=args.calibration, phantoms=phantoms, progress=_progress)
+                          calibration=args.calibration, phantoms=phantoms, rigs=rigs,
+                          progress=_progress)
     print(json.dumps(report, indent=1) if args.json else accuracy.format_text(report))
     return 0
 
