@@ -17,6 +17,7 @@ import numpy as np
 
 from eyeserver.calibration.artefact import load_calibration
 from eyeserver.calibration.phase_height import MARGIN_WARNING_RAD
+from eyeserver.core.arrays import column_range
 from eyeserver.core.types import Progress, quiet
 from eyeserver.errors import EyeserverError
 from eyeserver.eye import LimbusView
@@ -355,8 +356,8 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
                           "low_quality": fused.dropped_quality,
                           "outside_region": fused.dropped_region}
     if len(cloud):
-        summary["extent_mm"] = {"min": cloud.points.min(axis=0).tolist(),
-                                "max": cloud.points.max(axis=0).tolist()}
+        low, high = column_range(cloud.points)
+        summary["extent_mm"] = {"min": low.tolist(), "max": high.tolist()}
     else:
         summary["extent_mm"] = None
         summary["empty_reason"] = EMPTY_REASON if not region and not min_quality else \

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from eyeserver.core.arrays import column_range
 from eyeserver.pipeline.fusion import Part, Region, fuse
 
 
@@ -52,3 +53,23 @@ def test_bad_input_is_named() -> None:
         fuse([], min_quality=2.0)
     with pytest.raises(ValueError, match="quality"):
         fuse([Part(np.zeros((3, 3)), np.zeros(2, np.float32), 0, "left")])
+
+
+def test_seams_are_found_wherever_the_clouds_lie() -> None:
+    """The cells are counted from the clouds' least corner: clouds at negative X and Y (the
+    room's other side) and one wrong point far off are binned as those at the origin."""
+    shift = np.array([-7.3, -3.1, 0.0])
+    good, wrong = _grid(1.0) + shift, _grid(6.0) + shift + np.array([0.05, 0.05, 0.0])
+    stray = np.array([[-40.0, 25.0, 6.0]])
+    fused = fuse([Part(good, np.full(len(good), 0.9, np.float32), 0, "left"),
+                  Part(np.vstack([wrong, stray]), np.full(len(wrong) + 1, 0.5, np.float32), 2,
+                       "right")])
+    assert fused.dropped_seam == len(wrong)
+    assert fused.points[-1].tolist() == stray[0].tolist()
+
+
+def test_column_range_is_each_columns_least_and_largest() -> None:
+    values = np.array([[3, -1, 7], [-2, 5, 7], [0, 0, 9]], np.int64)
+    low, high = column_range(values)
+    assert low.tolist() == [-2, -1, 7] and high.tolist() == [3, 5, 9]
+    assert low.dtype == np.int64

@@ -54,6 +54,7 @@ import numpy.typing as npt
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from eyeserver.core.arrays import column_range
 from eyeserver.core.types import F64
 from eyeserver.errors import EyeserverError
 from eyeserver.eye.limbus import LimbusNotFoundError, LimbusView, find_limbus, globe_on_limbus
@@ -336,8 +337,9 @@ def _voxel_means(points: F64, size: float) -> tuple[F64, F64, npt.NDArray[np.int
     """Mean point and count of every occupied ``size`` mm voxel: averaging ~50 points per voxel
     cuts the noise enough for curvature at a millimetre's scale."""
     key = np.floor(points / size).astype(np.int64)
-    key -= key.min(axis=0)
-    span = key.max(axis=0) + 1
+    low, high = column_range(key)
+    key -= low
+    span = high - low + 1
     flat = (key[:, 0] * span[1] + key[:, 1]) * span[2] + key[:, 2]
     _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
     inverse = inverse.ravel()
