@@ -86,6 +86,14 @@ def unit_method(document: dict[str, Any], unit_id: str, method: str, *,
                      "fringe orders apart (its cameras see the same depth per fringe)")
 
 
+def blind_units(document: dict[str, Any]) -> dict[str, str]:
+    """The units of a loaded calibration blind to the fringe order (:func:`unit_method`'s
+    ``"blind"``), each with the reason: another unit's images must fix their orders."""
+    units = (document.get("phase_to_height") or {}).get("units") or {}
+    chosen = {unit_id: unit_method(document, unit_id, "auto") for unit_id in units}
+    return {unit_id: why for unit_id, (method, why) in chosen.items() if method == "blind"}
+
+
 @dataclass(frozen=True)
 class ReconstructionOptions:
     """The choices of a reconstruction, as ``eyeserver reconstruct`` offers them.

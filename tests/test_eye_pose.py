@@ -11,6 +11,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from eyeserver.calibration.artefact import load_calibration
 from eyeserver.cli import main
 from eyeserver.eye import tunables
 from eyeserver.eye.fit import (
@@ -27,7 +28,9 @@ from eyeserver.hardware.sim.scenes import SceneSpec
 from eyeserver.hardware.sim.sessions import SimSession
 from eyeserver.hardware.sim.truth import room_truth
 from eyeserver.io.rig_file import rig_from_dict
+from eyeserver.reconstruction import ReconstructionError, blind_units
 from eyeserver.service.frame_pose import FrameSet, PoseFinder, RigReconstructor
+from tests.conftest import ROOMS
 
 
 def _synthetic_eye(centre: np.ndarray, radius: float, gaze: np.ndarray, rng: np.random.Generator,
@@ -243,3 +246,29 @@ def test_an_ellipsoids_limbus_depth_and_surface() -> None:
                                0.1, atol=1e-9)
     sphere = _surface_distance(on, centre, 12.0, gaze, EyeModel.population())
     np.testing.assert_allclose(sphere, np.linalg.norm(on - centre, axis=1) - 12.0)
+
+
+@pytest.mark.slow
+def test_a_blind_rig_poses_the_eye_with_both_units_and_refuses_one(
+        calibrated_rooms) -> None:  # type: ignore[no-untyped-def]
+    """examples/rooms/blind.toml: each unit's orders come from the other unit's camera in the
+    same frame set (as ``reconstruct`` takes them); one blind unit alone cannot be posed, and
+    its calibration says which units need another."""
+    _, caldir = calibrated_rooms("blind")
+    assert set(blind_units(load_calibration(caldir))) == {"left", "right"}
+    assert blind_units(load_calibration(calibrated_rooms("default")[1])) == {}
+    with SimSession.open(load_room(ROOMS["blind"]), seed=20) as session:
+        rig = rig_from_dict(session.rig.spec(), "<simulated rig>")
+        session.room.set_scene(SceneSpec(kind="eye"))
+        units = [unit.id for unit in session.rig.units]
+        both = FrameSet(0, 0, session.rig.acquire(units))
+        alone = FrameSet(1, 0, session.rig.acquire(units[:1]))
+        truth = room_truth(session.room)["eye"]
+    reconstruct = RigReconstructor(caldir, rig)
+    model = EyeModel(globe_radius_mm=truth["globe_radius_mm"])
+
+    pose = PoseFinder(reconstruct, fit_eye, model)(both, None)
+
+    assert np.linalg.norm(np.subtract(pose.centre_mm, truth["centre_mm"])) < 0.2
+    with pytest.raises(ReconstructionError, match="unit left is blind to the fringe order"):
+        reconstruct(alone)

@@ -8,10 +8,12 @@ does not spin) and bounds waits against hangs.
 
 from __future__ import annotations
 
+import io
 import json
 import socket
 import threading
 import time
+import zipfile
 from collections.abc import Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -28,6 +30,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 
 from eyeserver.api import create_app
+from eyeserver.calibration.artefact import ARRAYS_FILE, CALIBRATION_FILE
 from eyeserver.core.clock import Clock, ManualClock, MonotonicClock
 from eyeserver.core.frames import Frame, FrameMeta
 from eyeserver.eye.fit import CloudLike, EyeModel, EyePose, PoseError
@@ -1052,3 +1055,33 @@ def test_twenty_clients_one_never_reading_all_others_get_every_message(
     lost = sum(m["count"] for m in late if m["type"] == "dropped")
     assert lost + len([m for m in late if m["type"] == "pose"]) == processed
     assert late[-1]["frame"] == frames - 1
+
+
+def test_one_blind_unit_is_not_tracked(tmp_path: Any, calibrated_rooms: Any) -> None:
+    """A calibration whose units are blind to the fringe order (examples/rooms/blind.toml):
+    tracking one unit alone is refused (409) with the reason before any frame, since only the
+    other unit's images could fix its orders."""
+    caldir = calibrated_rooms("blind")[1]
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        for name in (CALIBRATION_FILE, ARRAYS_FILE):
+            archive.writestr(name, (caldir / name).read_bytes())
+    app = create_app(test_settings(tmp_path / "data"))
+    with live_server(app) as base_url:
+        physicist = auth(PHYSICIST_TOKEN)
+        imported = httpx.post(f"{base_url}{API}/calibrations", content=buffer.getvalue(),
+                              headers={"content-type": "application/zip", **physicist},
+                              timeout=TIMEOUT_S)
+        assert imported.status_code == 201, imported.text
+        calibration = imported.json()["id"]
+        assert httpx.post(f"{base_url}{API}/calibrations/{calibration}/activate",
+                          headers=physicist, timeout=TIMEOUT_S).status_code == 200
+        _planned_patient(base_url, "P-B1", "right", {
+            "ellipsoid": {"semi_axes_mm": [12.1, 11.9, 12.4]}, "globe_sd_mm": 0.05})
+
+        refused = _post(base_url, "/tracking/start", {"patient_id": "P-B1", "fraction": 1})
+
+        assert refused.status_code == 409, refused.text
+        assert "cannot track unit left alone" in refused.json()["detail"]
+        assert "blind to the fringe order" in refused.json()["detail"]
+        assert _get(base_url, "/tracking")["running"] is False

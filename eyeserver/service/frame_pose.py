@@ -44,6 +44,7 @@ from eyeserver.io import PointCloud, RigSpec
 from eyeserver.pipeline.fusion import Part, fuse
 from eyeserver.pipeline.reconstruct import (
     CalibratedCamera,
+    Phase,
     camera_phase,
     cropped,
     decimated,
@@ -60,7 +61,7 @@ from eyeserver.reconstruction import (
 from eyeserver.service.verification import FitFunction, unit_shortfalls
 
 __all__ = ["WINDOW_DECIMATION", "FindPose", "FocusingReconstructor", "FrameSet", "PoseFinder",
-           "Reconstructor", "RigReconstructor", "TrackFunction", "TrackedCloud"]
+           "Reconstructor", "RigReconstructor", "TrackFunction", "TrackedCloud", "blind_alone"]
 
 _MAX_WINDOWS = 8  # cropped cameras kept (each ≈ 19 MB: pixel grids, rays, the partner maps)
 
@@ -234,15 +235,41 @@ def _views(cloud: CloudLike) -> tuple[LimbusView, ...]:
 
 
 
+def blind_alone(unit_id: str, why: str) -> str:
+    """Why unit ``unit_id``, blind to the fringe order, cannot be reconstructed on its own."""
+    return (f"unit {unit_id} is blind to the fringe order ({why}): its orders need another "
+            "unit's images of the same frame set; use both units ('all'), or move one of its "
+            "cameras to another azimuth and calibrate again")
+
+
+@dataclass(frozen=True)
+class _UnitViews:
+    """One unit's two views of a frame set, as :meth:`RigReconstructor._pair` prepares them:
+    the cameras of the demodulated images (a window, or the whole image) and of the points (the
+    window decimated), the images, their phases and those phases decimated, and the
+    decimation factors."""
+
+    ids: tuple[str, str]
+    cameras: tuple[CalibratedCamera, CalibratedCamera]
+    points: tuple[CalibratedCamera, CalibratedCamera]
+    images: tuple[npt.NDArray[Any], npt.NDArray[Any]]
+    phases: tuple[Phase, Phase]
+    point_phases: tuple[Phase, Phase]
+    factors: tuple[int, int]
+
+
 class RigReconstructor:
     """Reconstructs frame sets of a rig with one calibration, its cameras loaded once.
 
     Each unit's first two cameras fix each other's fringe order, by the method the calibration
-    allows the unit (:func:`~eyeserver.reconstruction.unit_method`'s ``auto``); the clouds of
-    the units are fused. Raises :class:`ReconstructionError` for a calibration without
-    phase-to-height models or with a unit blind to the fringe order, and for a frame set in
-    which a unit gave fewer than :data:`~eyeserver.service.verification.MIN_UNIT_POINTS` points
-    (counted as the pixels they stand for): its projector dark, its view blocked. The frame is
+    allows the unit (:func:`~eyeserver.reconstruction.unit_method`'s ``auto``; a unit blind to
+    the order takes it from the first camera of another unit in the frame set, as
+    :func:`~eyeserver.reconstruction.reconstruct_bundle` does); the clouds of the units are
+    fused. Raises :class:`ReconstructionError` for a calibration without phase-to-height
+    models or with a blind unit and no other, for a frame set with a blind unit alone, and for
+    a frame set in which a unit gave fewer than
+    :data:`~eyeserver.service.verification.MIN_UNIT_POINTS` points (counted as the pixels they
+    stand for): its projector dark, its view blocked. The frame is
     then lost, the beam held with that reason, rather than posed from the other unit alone.
 
     After :meth:`focus` on a pose, each camera's image is reconstructed only inside the window
@@ -264,14 +291,12 @@ class RigReconstructor:
         self._cameras: dict[str, CalibratedCamera] = calibrated_cameras(document)
         self._limits = z_range(document)
         self._rig = rig
-        self._methods: dict[str, str] = {}
+        self._methods: dict[str, tuple[str, str]] = {}
         for unit in rig.units:
             chosen, why = unit_method(document, unit.id, "auto", for_pose=True)
-            if chosen == "blind":
-                raise ReconstructionError(f"unit {unit.id} is blind to the fringe order ({why}): "
-                                          "move one of its cameras to another azimuth and "
-                                          "calibrate again")
-            self._methods[unit.id] = chosen
+            if chosen == "blind" and len(rig.units) < 2:
+                raise ReconstructionError(blind_alone(unit.id, why))
+            self._methods[unit.id] = (chosen, why)
         self._saturation = None if bit_depth is None else float(2 ** bit_depth - 1)
         self._pose: EyePose | None = None
         self._cropped: dict[tuple[str, tuple[int, int, int, int]],
@@ -307,51 +332,69 @@ class RigReconstructor:
         x0, y0, x1, y1 = window
         return *self._cropped[key], image[y0:y1, x0:x1]
 
+    def _pair(self, step: AcquiredStep, camera_ids: list[str]) -> _UnitViews:
+        """A unit's first two cameras of ``step``, demodulated (in their windows, if any)."""
+        if len(camera_ids) < 2:
+            raise ReconstructionError(f"camera {camera_ids[0]} has no partner in its unit to "
+                                      "fix its fringe order")
+        a, b = camera_ids[:2]
+        frame_a, frame_b = step.frames[a], step.frames[b]
+        saturation = self._saturation or float(2 ** frame_a.meta.bit_depth - 1)
+        camera_a, points_a, image_a = self._view(a, np.asarray(frame_a.image))
+        camera_b, points_b, image_b = self._view(b, np.asarray(frame_b.image))
+        # A followed eye's globe keeps its radius and is placed on the limbus, which the band's
+        # own phase shows: only the whole images' (global) fit needs the surface's phase less
+        # the band's bend bias (≈ 3 ms a frame set otherwise).
+        phases = (camera_phase(camera_a, image_a, saturation,
+                               measure_bends=camera_a is self._cameras[a]),
+                  camera_phase(camera_b, image_b, saturation,
+                               measure_bends=camera_b is self._cameras[b]))
+        for camera_id, camera, phase in ((a, camera_a, phases[0]), (b, camera_b, phases[1])):
+            if camera is self._cameras[camera_id]:  # the whole image
+                self._strong[camera_id] = fringe_strength(phase.modulation)
+        factors = (points_a.spacing_px // camera_a.spacing_px,
+                   points_b.spacing_px // camera_b.spacing_px)
+        return _UnitViews((a, b), (camera_a, camera_b), (points_a, points_b),
+                          (image_a, image_b), phases,
+                          (phases[0].decimated(factors[0]), phases[1].decimated(factors[1])),
+                          factors)
+
     def __call__(self, frame_set: FrameSet) -> TrackedCloud:
         parts = []
         views: list[LimbusView] = []
         unit_pixels: dict[str, int] = {}  # the pixels each unit's points stand for
-        for step in frame_set.steps:
+        # Every unit's two views of every step first: a blind unit's orders come from another
+        # unit's, lit in another step of the frame set (the nearest).
+        pairs: list[tuple[int, str, _UnitViews]] = []
+        for index, step in enumerate(frame_set.steps):
             by_unit: dict[str, list[str]] = {}
             for camera_id in step.frames:
                 by_unit.setdefault(self._rig.unit_of_camera(camera_id).id, []).append(camera_id)
-            for unit_id, camera_ids in by_unit.items():
-                if len(camera_ids) < 2:
-                    raise ReconstructionError(f"camera {camera_ids[0]} has no partner in its "
-                                              "unit to fix its fringe order")
-                a, b = camera_ids[:2]
-                frame_a, frame_b = step.frames[a], step.frames[b]
-                saturation = self._saturation or float(2 ** frame_a.meta.bit_depth - 1)
-                camera_a, points_a, image_a = self._view(a, np.asarray(frame_a.image))
-                camera_b, points_b, image_b = self._view(b, np.asarray(frame_b.image))
-                # A followed eye's globe keeps its radius and is placed on the limbus, which
-                # the band's own phase shows: only the whole images' (global) fit needs the
-                # surface's phase less the band's bend bias (≈ 3 ms a frame set otherwise).
-                phases = (camera_phase(camera_a, image_a, saturation,
-                                       measure_bends=camera_a is self._cameras[a]),
-                          camera_phase(camera_b, image_b, saturation,
-                                       measure_bends=camera_b is self._cameras[b]))
-                for camera_id, camera, phase in ((a, camera_a, phases[0]),
-                                                 (b, camera_b, phases[1])):
-                    if camera is self._cameras[camera_id]:  # the whole image
-                        self._strong[camera_id] = fringe_strength(phase.modulation)
-                factor_a = points_a.spacing_px // camera_a.spacing_px
-                factor_b = points_b.spacing_px // camera_b.spacing_px
-                cloud_a, cloud_b = unit_clouds(points_a, None, points_b, None, self._limits,
-                                               method=self._methods[unit_id],
-                                               phases=(phases[0].decimated(factor_a),
-                                                       phases[1].decimated(factor_b)))
-                # The limbus is looked for in the same demodulation, not in one of its own.
-                views += [LimbusView(camera, image, fringe_removed(camera, image, phase))
-                          for camera, image, phase in zip((camera_a, camera_b),
-                                                          (image_a, image_b), phases,
-                                                          strict=True)]
-                for camera_id, cloud, factor in ((a, cloud_a, factor_a),
-                                                 (b, cloud_b, factor_b)):
-                    parts.append(Part(cloud.points, cloud.quality,
-                                      self._rig.camera_index(camera_id), unit_id))
-                    unit_pixels[unit_id] = (unit_pixels.get(unit_id, 0)
-                                            + len(cloud.points) * factor**2)
+            pairs += [(index, unit_id, self._pair(step, camera_ids))
+                      for unit_id, camera_ids in by_unit.items()]
+        for index, unit_id, pair in pairs:
+            method, why = self._methods[unit_id]
+            judges = None
+            if method == "blind":
+                others = [(abs(i - index), p) for i, u, p in pairs if u != unit_id]
+                if not others:
+                    raise ReconstructionError(blind_alone(unit_id, why))
+                other = min(others, key=lambda entry: entry[0])[1]
+                judge = (other.points[0], other.point_phases[0])
+                method, judges = "spatial", (judge, judge)
+            cloud_a, cloud_b = unit_clouds(pair.points[0], None, pair.points[1], None,
+                                           self._limits, method=method,
+                                           phases=pair.point_phases, order_partners=judges)
+            # The limbus is looked for in the same demodulation, not in one of its own.
+            views += [LimbusView(camera, image, fringe_removed(camera, image, phase))
+                      for camera, image, phase in zip(pair.cameras, pair.images, pair.phases,
+                                                      strict=True)]
+            for camera_id, cloud, factor in zip(pair.ids, (cloud_a, cloud_b), pair.factors,
+                                                strict=True):
+                parts.append(Part(cloud.points, cloud.quality,
+                                  self._rig.camera_index(camera_id), unit_id))
+                unit_pixels[unit_id] = (unit_pixels.get(unit_id, 0)
+                                        + len(cloud.points) * factor**2)
         # A unit that sees nothing: the pose would be the other unit's alone (issue 35).
         missing = unit_shortfalls({unit: {"points": n} for unit, n in unit_pixels.items()})
         if missing:

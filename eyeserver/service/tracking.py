@@ -52,16 +52,17 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any, Protocol
 
+from eyeserver.calibration.artefact import load_calibration
 from eyeserver.core.clock import Clock, MonotonicClock
 from eyeserver.core.frames import Frame
 from eyeserver.errors import DeviceError, EyeserverError, StateConflictError
 from eyeserver.eye import LIMBUS_FROM_IMAGES, EyeModel, EyePose, PoseError
 from eyeserver.hardware.rig import AcquiredStep, Rig
-from eyeserver.reconstruction import ReconstructionError
+from eyeserver.reconstruction import ReconstructionError, blind_units
 from eyeserver.service.beamhold import BeamHold, BeamHoldConfig, EyeSeen, FrameObservation
 from eyeserver.service.core import NoActiveCalibrationError, Service
 from eyeserver.service.events import EventBus
-from eyeserver.service.frame_pose import FindPose, FrameSet
+from eyeserver.service.frame_pose import FindPose, FrameSet, blind_alone
 from eyeserver.service.metrics import TRACKING_OUTCOMES, TrackingFigures
 from eyeserver.service.patients import Patients, Tolerances
 from eyeserver.service.tracking_worker import PoseWorker
@@ -765,7 +766,8 @@ class TrackingControl:
         NoActiveCalibrationError, StateConflictError
             No calibration is active, or the daemon is busy (tracking already), or the eye
             model leaves the globe's shape unknown against a reference that was not captured
-            with it (:func:`~eyeserver.service.verification.shape_cancels`) (HTTP 409).
+            with it (:func:`~eyeserver.service.verification.shape_cancels`), or the patient's
+            unit alone is blind to the fringe order (HTTP 409).
         ValueError
             A bad ``dwell_frames``.
         """
@@ -780,6 +782,12 @@ class TrackingControl:
                 raise StateConflictError("cannot track against this reference (from the "
                                          f"{reference.source}): {unknown_shape}")
         unit_ids = service.unit_ids(patient.unit)
+        active = service.store.active_calibration()
+        if active is not None and len(unit_ids) < 2:
+            blind = blind_units(load_calibration(active.path))
+            if unit_ids[0] in blind:
+                raise StateConflictError("cannot track unit " + unit_ids[0] + " alone: "
+                                         + blind_alone(unit_ids[0], blind[unit_ids[0]]))
         with self._lock:
             if self._hold is not None:
                 raise StateConflictError("cannot start tracking: the daemon is tracking")
