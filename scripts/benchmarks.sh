@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Regenerate docs/benchmarks.md: run the benches (the full accuracy protocol, ≈ 10 minutes on
-# 2 cores, the speed bench with live tracking, ≈ 8 minutes, and the eye pose bench three times:
+# Regenerate docs/benchmarks.md: run the benches (the full accuracy protocol with the example
+# rooms' rigs, ≈ 15 minutes on 2 cores, the speed bench with live tracking, ≈ 8 minutes, and the
+# eye pose bench three times:
 # 600 patient eyes with the radius fitted, each captured again moved (--displacement: what a
 # check against a reference captured at set-up sees), ≈ 2 hours (a patient eye takes two to
 # three times the sharp eye's time to render), 200 with their biometry given (each patient's MRI
@@ -11,7 +12,7 @@
 # Figures and PNGs are kept in build/benchmarks/.
 # Usage: bash scripts/benchmarks.sh [--quick | --accuracy | --speed | --reliability | --pose]
 #                                   [--poses N]
-#   --accuracy, --speed, --reliability, --pose: only that bench (the full accuracy protocol, ≈ 10
+#   --accuracy, --speed, --reliability, --pose: only that bench (the full accuracy protocol, ≈ 15
 #   minutes, the speed bench, ≈ 8, the reliability bench, a few, or the eye pose bench's three
 #   runs, ≈ 3.5 hours), its part of the page made anew and the rest left as it is (the accuracy
 #   run's part: the page's head and its Accuracy section, the daily QA's figures with it; its
