@@ -251,14 +251,17 @@ def reconstruct_frameset(frameset: RecordedFrameSet, units: Sequence[UnitImages]
 
 
 @contextmanager
-def _opencv_threads(count: int) -> Iterator[None]:
-    """OpenCV's own thread pool held to ``count`` threads (so "single-threaded" is)."""
+def _threads(count: int) -> Iterator[None]:
+    """OpenCV's own thread pool and the BLAS's held to ``count`` threads (so "single-threaded"
+    is: the BLAS's second thread cost a 4-camera frame-set 5–15 %, docs/notes/speed.md)."""
     import cv2
+    from threadpoolctl import threadpool_limits
 
     previous = cv2.getNumThreads()
     cv2.setNumThreads(count)
     try:
-        yield
+        with threadpool_limits(limits=count, user_api="blas"):
+            yield
     finally:
         cv2.setNumThreads(previous)
 
@@ -923,7 +926,7 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
                                       workers=replay_workers, progress=progress)
     cameras = frame_path(config, min(frames, 100), progress)
     rss_before_mib = peak_rss_mib()
-    with _opencv_threads(1):
+    with _threads(1):
         reconstruction = pipeline(frameset, frames, progress)
         stage_report, peer_report = stages(frameset, frames, progress)
         threads = parallel(frameset, frames, progress)
@@ -936,6 +939,7 @@ def run(config: RoomConfig, frames: int = 100, progress: Progress = quiet,
     report: dict[str, Any] = {
         "format": "eyeserver.bench.speed/1",
         "machine": {**machine(), "opencv_threads_during_reconstruction": 1,
+                    "blas_threads_during_reconstruction": 1,
                     "openblas_num_threads": os.environ.get("OPENBLAS_NUM_THREADS", "unset"),
                     # Other work on the cores inflates every figure: say how busy they were.
                     "load_average_at_start": [round(x, 2) for x in load_at_start],
