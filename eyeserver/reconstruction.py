@@ -284,12 +284,16 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
     done: dict[tuple[int, str], tuple[CameraCloud, str | None, str, str, int]] = {}
     methods = {unit.id: unit_method(document, unit.id, method, for_pose=for_pose)
                for unit in rig.units}
-    phases: dict[tuple[int, str], Phase] = {}
+    judges: dict[tuple[int, str], Phase] = {}  # another unit's views a blind unit needed
 
-    def phase_of(view: tuple[int, str]) -> Phase:
-        if view not in phases:
-            phases[view] = camera_phase(calibrated[view[1]], bundle.load_image(*view), saturation)
-        return phases[view]
+    def phase_of(view: tuple[int, str], judge: bool = False) -> Phase:
+        """A view's phase; a judge's is kept for its own unit's turn, no other (memory)."""
+        phase = judges.get(view) if judge else judges.pop(view, None)
+        if phase is None:
+            phase = camera_phase(calibrated[view[1]], bundle.load_image(*view), saturation)
+            if judge:
+                judges[view] = phase
+        return phase
 
     for index, camera_id in views:
         if (index, camera_id) in done:
@@ -304,7 +308,7 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
         if partners and judge is not None:
             # A blind unit whose orders another unit's camera fixes: the spatial order, its
             # regions voted by that camera (docs/notes/fringe-order.md, "A blind unit").
-            partner, judge_view = partners[0], phase_of(judge)
+            partner, judge_view = partners[0], phase_of(judge, judge=True)
             judged = (calibrated[judge[1]], judge_view)
             why = (f"{why}; its orders fixed by camera {judge[1]} of unit "
                    f"{rig.unit_of_camera(judge[1]).id}")
