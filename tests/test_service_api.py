@@ -214,6 +214,8 @@ def test_a_full_acquisition_queue_answers_503_naming_it(client: Client,
     expected = {"detail": "the acquisition queue is full (8 jobs waiting); try again later"}
     assert (capture.status_code, capture.json()) == (503, expected)
     assert (setting.status_code, setting.json()) == (503, expected)
+    # A full queue clears in a moment: the answer says when to try again.
+    assert capture.headers["retry-after"] == setting.headers["retry-after"] == "1"
     assert client.get(f"{API}/devices/S1").json()["details"]["gain_db"] == 0.0
     _capture(client, "left")  # nothing was lost: the queue works again
 

@@ -13,7 +13,7 @@ error                         status
 ``UploadTooLargeError``       413
 ``ReconstructionError``       422
 ``UnknownUnitError``          422
-``QueueFullError``            503
+``QueueFullError``            503 (with ``Retry-After``)
 ``DeviceTimeoutError``        504
 ``DeviceValueError``          422
 other ``DeviceError``         503
@@ -96,6 +96,12 @@ _STATUS_BY_ERROR: tuple[tuple[type[EyeserverError], int], ...] = (
 )
 
 
+QUEUE_RETRY_AFTER_S = 1
+"""The ``Retry-After`` (seconds) of a 503 for a full queue: its jobs take tens of milliseconds (a
+device setting) to about a second (a reconstruction), and a client that honours it (the Python
+client repeats an idempotent request after it) should not hammer the daemon meanwhile."""
+
+
 def status_code_for(error: EyeserverError) -> int:
     """The HTTP status code that reports ``error`` (see the table in the module docstring)."""
     for error_type, status_code in _STATUS_BY_ERROR:
@@ -119,7 +125,9 @@ async def _eyeserver_error(request: Request, exc: Exception) -> JSONResponse:
             "reason": str(exc),
         },
     )
-    return _answer(status_code, str(exc))
+    headers = ({"Retry-After": str(QUEUE_RETRY_AFTER_S)} if isinstance(exc, QueueFullError)
+               else None)
+    return _answer(status_code, str(exc), headers=headers)
 
 
 def _answer(status_code: int, detail: str, errors: list[Any] | None = None,
