@@ -305,25 +305,7 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
         seen = int(np.count_nonzero(phase.valid))
         chosen, why = methods[unit.id]
         judge = order_judge(views, rig, unit.id, index) if chosen == "blind" else None
-        if partners and judge is not None:
-            # A blind unit whose orders another unit's camera fixes: the spatial order, its
-            # regions voted by that camera (docs/notes/fringe-order.md, "A blind unit").
-            partner, judge_view = partners[0], phase_of(judge, judge=True)
-            judged = (calibrated[judge[1]], judge_view)
-            why = (f"{why}; its orders fixed by camera {judge[1]} of unit "
-                   f"{rig.unit_of_camera(judge[1]).id}")
-            progress(f"frame {index}: cameras {camera_id} and {partner} of blind unit {unit.id}, "
-                     f"fringe order from camera {judge[1]}")
-            partner_phase = phase_of((index, partner))
-            cloud_a, cloud_b = unit_clouds(cam, None, calibrated[partner], None, limits,
-                                           method="spatial", depth_prior_mm=depth_prior_mm,
-                                           phases=(phase, partner_phase),
-                                           order_partners=(judged, judged))
-            done[(index, camera_id)] = (cloud_a, judge[1], "spatial", why, seen)
-            done[(index, partner)] = (cloud_b, judge[1], "spatial", why,
-                                      int(np.count_nonzero(partner_phase.valid)))
-            continue
-        if not partners or chosen == "blind":
+        if not partners or (chosen == "blind" and judge is None):
             if depth_prior_mm is None:
                 raise ReconstructionError(
                     f"{bundle.path}: frame {index} has no other camera of unit {unit.id} to fix "
@@ -343,14 +325,26 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
                                         None, "depth prior", alone_why, seen)
             continue
         partner = partners[0]
+        # Who fixes each camera's orders: its partner, or for a blind unit another unit's
+        # camera, whose regions' votes the spatial order takes (docs/notes/fringe-order.md,
+        # "A blind unit").
+        fixers, judged = (partner, camera_id), None
+        if judge is not None:
+            judged = (calibrated[judge[1]], phase_of(judge, judge=True))
+            fixers, chosen = (judge[1], judge[1]), "spatial"
+            why = (f"{why}; its orders fixed by camera {judge[1]} of unit "
+                   f"{rig.unit_of_camera(judge[1]).id}")
         progress(f"frame {index}: cameras {camera_id} and {partner} of unit {unit.id} "
-                 f"({chosen} fringe order)")
+                 f"({chosen} fringe order"
+                 + (f" from camera {judge[1]})" if judge is not None else ")"))
         partner_phase = phase_of((index, partner))
         cloud_a, cloud_b = unit_clouds(cam, None, calibrated[partner], None, limits,
                                        method=chosen, depth_prior_mm=depth_prior_mm,
-                                       phases=(phase, partner_phase))
-        done[(index, camera_id)] = (cloud_a, partner, chosen, why, seen)
-        done[(index, partner)] = (cloud_b, camera_id, chosen, why,
+                                       phases=(phase, partner_phase),
+                                       order_partners=None if judged is None
+                                       else (judged, judged))
+        done[(index, camera_id)] = (cloud_a, fixers[0], chosen, why, seen)
+        done[(index, partner)] = (cloud_b, fixers[1], chosen, why,
                                   int(np.count_nonzero(partner_phase.valid)))
     parts = []
     for (index, camera_id), (camera_points, partner_id, chosen, why, seen) in done.items():

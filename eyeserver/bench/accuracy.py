@@ -53,6 +53,7 @@ from eyeserver.pipeline.fiducials import (
 from eyeserver.pipeline.reconstruct import unit_clouds
 from eyeserver.pipeline.registration import icp_point_to_plane
 from eyeserver.reconstruction import (
+    ReconstructionError,
     calibrated_cameras,
     reconstruct_bundle,
     unit_pairs,
@@ -130,8 +131,6 @@ def rig_coverage(rooms: Sequence[tuple[str, RoomConfig, Path | None]], work: Pat
     ``rooms``: (name, room, calibration or None); ``scenes``: keys of :data:`RIG_SCENES`. One
     row per rig and scene, with the units' fringe-order methods and the least and largest share
     of the lit pixels per camera."""
-    from eyeserver.reconstruction import ReconstructionError
-
     rows: list[dict[str, Any]] = []
     for name, config, given in rooms:
         if given is None:

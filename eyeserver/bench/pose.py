@@ -63,7 +63,11 @@ from eyeserver.service.patients import (
     EyeModelSpec,
     Tolerances,
 )
-from eyeserver.service.verification import shape_reason, turned_shape_sd_mm
+from eyeserver.service.verification import (
+    gaze_angle_deg,
+    shape_reason,
+    turned_shape_sd_mm,
+)
 
 FORMAT = "eyeserver.bench.pose/2"
 GOALS = {"centre_mm": 0.1, "gaze_deg": 0.5, "surface_mad_mm": 0.10, "paper_surface_mad_mm": 0.43,
@@ -188,12 +192,6 @@ def biometry_model(biometry: Mapping[str, Any]) -> EyeModel:
                             cornea_radius_mm=biometry["cornea_radius_mm"],
                             limbus_diameter_mm=biometry["limbus_diameter_mm"])
     return spec.to_eye_model()
-
-
-def _angle_deg(a: Any, b: Any) -> float:
-    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-    cos = float(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)))
-    return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
 
 
 def _measure(session: SimSession, spec: SceneSpec, caldir: Path, bundle: Path,
@@ -473,7 +471,7 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
                                                zip(np.abs(error_mm), stated, strict=True)],
                         "centre_error_axes_mm": [float(e) for e in error_mm],
                         "centre_sd_stated_mm": [float(sd) for sd in stated],
-                        "gaze_error_deg": _angle_deg(pose.gaze, truth["gaze"]),
+                        "gaze_error_deg": gaze_angle_deg(pose.gaze, truth["gaze"]),
                         "gaze_sd_deg": pose.gaze_sd_deg,
                         "radius_error_mm": pose.globe_radius_mm - truth["globe_radius_mm"],
                         "limbus_error_mm": None if pose.limbus_centre_mm is None

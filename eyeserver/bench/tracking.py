@@ -59,6 +59,7 @@ from eyeserver.service.frame_pose import FrameSet, PoseFinder, RigReconstructor
 from eyeserver.service.patients import Tolerances
 from eyeserver.service.tracking import TrackingSession, start_pose
 from eyeserver.service.tracking_worker import PoseWorker
+from eyeserver.service.verification import gaze_angle_deg
 
 __all__ = ["format_replayed", "format_text", "replayed", "run"]
 
@@ -313,7 +314,7 @@ def tracked_accuracy(messages: list[dict[str, Any]], scene: SceneSpec, epoch_ns:
         at = float(message["t_ns"] - epoch_ns) / 1e9
         eye = scene_truth(scene, at)["eye"]
         centre = float(np.linalg.norm(np.subtract(pose["centre_mm"], eye["centre_mm"])))
-        gaze = _angle_deg(pose["gaze"], eye["gaze"])
+        gaze = gaze_angle_deg(pose["gaze"], eye["gaze"])
         moving = any(start - MOVING_MARGIN_S <= at <= start + duration + MOVING_MARGIN_S
                      for start, duration in events)
         rows.append((centre, gaze, moving))
@@ -330,12 +331,6 @@ def tracked_accuracy(messages: list[dict[str, Any]], scene: SceneSpec, epoch_ns:
             "at_rest_centre_error_mm": stats([r[0] for r in rest]),
             "at_rest_gaze_error_deg": stats([r[1] for r in rest]),
             "beam": beam_against_truth(messages, scene, epoch_ns)}
-
-
-def _angle_deg(direction: Any, unit: Any) -> float:
-    """The angle (degrees) between ``direction`` (any length) and the unit vector ``unit``."""
-    cos = float(np.dot(direction, unit) / np.linalg.norm(direction))
-    return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
 
 
 def beam_against_truth(messages: list[dict[str, Any]], scene: SceneSpec,
@@ -355,7 +350,7 @@ def beam_against_truth(messages: list[dict[str, Any]], scene: SceneSpec,
             continue
         eye = scene_truth(scene, float(message["t_ns"] - epoch_ns) / 1e9)["eye"]
         moved = float(np.linalg.norm(np.subtract(eye["centre_mm"], reference["centre_mm"])))
-        turned = _angle_deg(eye["gaze"], reference["gaze"])
+        turned = gaze_angle_deg(eye["gaze"], reference["gaze"])
         where = ("out_of_tolerance" if moved > TOLERANCE_MM or turned > TOLERANCE_GAZE_DEG
                  else "within_tolerance")
         counts[where] += 1
