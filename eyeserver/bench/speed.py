@@ -252,8 +252,8 @@ def reconstruct_frameset(frameset: RecordedFrameSet, units: Sequence[UnitImages]
 
 @contextmanager
 def _threads(count: int) -> Iterator[None]:
-    """OpenCV's own thread pool and the BLAS's held to ``count`` threads (so "single-threaded"
-    is: the BLAS's second thread cost a 4-camera frame-set 5–15 %, docs/notes/speed.md)."""
+    """OpenCV's own thread pool and the BLAS's held to ``count`` threads, so that
+    "single-threaded" is (the BLAS's second thread slows a frame-set: docs/notes/speed.md)."""
     import cv2
     from threadpoolctl import threadpool_limits
 
