@@ -53,6 +53,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.fft
 
+from eyeserver.core.arrays import angle
 from eyeserver.core.frames import grey
 from eyeserver.core.types import F32, F64
 
@@ -768,7 +769,7 @@ def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = BAN
     # Phase and magnitude from contiguous copies of the parts: faster than np.angle's and
     # np.abs's passes over the complex array's strided views (docs/notes/speed.md).
     real, imaginary = np.ascontiguousarray(analytic.real), np.ascontiguousarray(analytic.imag)
-    wrapped_phase = np.arctan2(imaginary, real)
+    wrapped_phase = angle(imaginary, real)
     # The band holds one side of the spectrum: its magnitude is B/2.
     modulation = np.asarray(cv2.magnitude(real, imaginary), dtype=np.float32)
     modulation *= np.float32(2.0)
