@@ -49,7 +49,7 @@ def angle(y: npt.ArrayLike, x: npt.ArrayLike, *, centred: bool = True) -> npt.ND
         return np.zeros(y32.shape, np.float32)
     # OpenCV takes 2-D matrices: a flat view of any shape, and its shape back.
     flat_x, flat_y = x32.reshape(-1, 1), y32.reshape(-1, 1)
-    result: npt.NDArray[np.float32] = cv2.phase(flat_x, flat_y)
+    result = np.asarray(cv2.phase(flat_x, flat_y), dtype=np.float32)
     if centred:
         # 2π where the angle passes π, taken off: cv2's threshold and subtraction, since
         # NumPy's masked subtraction (``where=``) took ten times as long here.
