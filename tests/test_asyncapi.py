@@ -5,9 +5,11 @@ are generated from (which forbid fields they do not name)."""
 from __future__ import annotations
 
 import json
+import re
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -97,6 +99,22 @@ def test_the_document_lists_every_websocket_route_and_its_messages(
     pose = schemas["PoseMessage"]
     assert pose["additionalProperties"] is False
     assert {"beam_hold", "deviation", "latency_ms", "seq"} <= set(pose["required"])
+
+
+def test_every_event_the_daemon_publishes_is_documented_and_typed_in_the_client() -> None:
+    """Each ``events.publish("<type>", …)`` in the daemon's code has its model in the AsyncAPI
+    document (the live test below cannot provoke every one: the QA's need a phantom run and a
+    physicist), and the Python client parses each documented event into its own model."""
+    from eyeserver_client import messages as client_messages
+
+    source = Path(__file__).resolve().parents[1] / "eyeserver"
+    published = {kind for path in source.rglob("*.py")
+                 for kind in re.findall(r"""\.publish\(\s*["']([a-z_.]+)["']""", path.read_text())}
+    models = _models_by_type()
+    assert {"qa.run", "qa.override", "qa.override_withdrawn", "pose", "hold"} <= published
+    assert published - set(models["events"]) - set(models["pose"]) == set()
+    client_types = set(client_messages._EVENT_TYPES)
+    assert set(models["events"]) == client_types, set(models["events"]) ^ client_types
 
 
 def test_the_documents_are_refused_without_a_token_when_not_public(

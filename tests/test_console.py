@@ -613,6 +613,9 @@ def test_the_daily_qa_locks_the_therapist_until_a_run_through_the_console_passes
     physicist.page.click("#qa-override-withdraw")
     physicist.expect("#qa-status").to_have_attribute("data-locked", "true")
     physicist.expect("#qa-override-now").to_have_count(0)
+    # And of its withdrawal (qa.override_withdrawn): locked again, no override shown.
+    operator.expect("#qa-status").to_have_attribute("data-locked", "true")
+    operator.expect("#qa-override-now").to_have_count(0)
     overrides = [e for e in _http(qa_daemon, "GET", "/audit")["items"]
                  if e["action"].startswith("qa_override")]
     assert sorted(e["action"] for e in overrides) == ["qa_override", "qa_override_withdrawn"]

@@ -288,9 +288,18 @@ def test_yesterdays_qa_does_not_count_today(client: Client, tomorrow: None) -> N
 
 
 @pytest.mark.slow
-def test_a_physicist_overrides_the_lockout_with_a_reason_audited(client: Client,
-                                                                tomorrow: None) -> None:
+def test_a_physicist_overrides_the_lockout_with_a_reason_audited(
+        client: Client, tomorrow: None, app: FastAPI, monkeypatch: pytest.MonkeyPatch) -> None:
     reason = "phantom <cracked>; position checked by X-ray clips instead"
+    bus = app.state.service.events
+    published: list[tuple[str, dict[str, Any]]] = []
+    publish = bus.publish
+
+    def recorded(type: str, **data: Any) -> int:
+        published.append((type, data))
+        return int(publish(type, **data))
+
+    monkeypatch.setattr(bus, "publish", recorded)
     assert client.post(f"{API}/qa/override", json={"reason": reason},
                        headers=OPERATOR).status_code == 403
     assert client.post(f"{API}/qa/override", json={"reason": "   "}).status_code == 422
@@ -315,6 +324,11 @@ def test_a_physicist_overrides_the_lockout_with_a_reason_audited(client: Client,
             if a["action"].startswith("qa_override") and a["outcome"] == "ok"][:2] == [
                 "qa_override_withdrawn", "qa_override"]
     _locked(client)
+    # Every console hears of both (the event stream), the override named.
+    override_id = status["override"]["id"]
+    assert [(t, d) for t, d in published if t.startswith("qa.override")] == [
+        ("qa.override", {"override_id": override_id, "actor": "physicist"}),
+        ("qa.override_withdrawn", {"override_id": override_id, "actor": "physicist"})]
 
 
 @pytest.mark.slow

@@ -211,6 +211,32 @@ class TrackingStopped(_Event):
     error: str | None
 
 
+class QaRunDone(_Event):
+    """A daily QA run (or a physicist's baseline) was stored."""
+
+    type: Literal["qa.run"]
+    run_id: str
+    passed: bool
+    calibration_id: str
+    baseline: bool
+
+
+class QaOverridden(_Event):
+    """A physicist lifted the daily QA's lockout for the rest of the day."""
+
+    type: Literal["qa.override"]
+    override_id: str
+    actor: str
+
+
+class QaOverrideWithdrawn(_Event):
+    """A physicist withdrew the QA override in force: a lockout it lifted holds again."""
+
+    type: Literal["qa.override_withdrawn"]
+    override_id: str
+    actor: str
+
+
 # --- /ws/pose ----------------------------------------------------------------------------------
 
 
@@ -301,8 +327,8 @@ class Heartbeat(_Message):
 EVENT_MESSAGES: tuple[type[BaseModel], ...] = (
     Hello, StateChanged, DeviceFault, DeviceRecovered, CaptureStored, ReconstructionDone,
     CalibrationChanged, CalibrationCreated, CalibrationSessionOpened, CalibrationSessionView,
-    CalibrationSessionPlate, JobStateChanged, JobProgress, PoseMeasured, TrackingStarted,
-    TrackingStopped, Dropped)
+    CalibrationSessionPlate, JobStateChanged, JobProgress, PoseMeasured, QaRunDone, QaOverridden,
+    QaOverrideWithdrawn, TrackingStarted, TrackingStopped, Dropped)
 """What ``/ws/events`` sends."""
 
 POSE_MESSAGES: tuple[type[BaseModel], ...] = (PoseMessage, HoldMessage, Heartbeat, Dropped)

@@ -449,6 +449,11 @@ class DailyQa:
             self._write("overrides", current["id"], current)
             self.service.store.add_audit_entries(actor, "qa_override_withdrawn", current["id"],
                                                  [{"calibration_id": current["calibration_id"]}])
+        # Every console shows the override in force: each must hear that it ended.
+        self.service.events.publish("qa.override_withdrawn", override_id=current["id"],
+                                    actor=actor)
+        _log.warning("QA override withdrawn", extra={"actor": actor,
+                                                     "override_id": current["id"]})
         return self.status()
 
     def overrides(self, day: date | None = None) -> list[dict[str, Any]]:

@@ -51,6 +51,7 @@ __all__ = [
     "PoseMessage",
     "PoseStreamMessage",
     "QaOverridden",
+    "QaOverrideWithdrawn",
     "QaRunDone",
     "ReconstructionDone",
     "Resumed",
@@ -263,6 +264,14 @@ class QaOverridden(Event):
     actor: str
 
 
+class QaOverrideWithdrawn(Event):
+    """A physicist withdrew the QA override in force: a lockout it lifted holds again."""
+
+    type: Literal["qa.override_withdrawn"]
+    override_id: str
+    actor: str
+
+
 class TrackingStarted(Event):
     """Live tracking started for a fraction on a unit."""
 
@@ -405,8 +414,8 @@ EventStreamMessage = (
     Hello | Dropped | StateChanged | DeviceFault | DeviceRecovered | CaptureStored
     | ReconstructionDone | CalibrationEvent | CalibrationCreated | CalibrationSessionOpened
     | CalibrationSessionView | CalibrationSessionPlate | JobStateChanged | JobProgress
-    | PoseMeasured | QaRunDone | QaOverridden | TrackingStarted | TrackingStopped | Disconnected
-    | Resumed | Event | Message
+    | PoseMeasured | QaRunDone | QaOverridden | QaOverrideWithdrawn | TrackingStarted
+    | TrackingStopped | Disconnected | Resumed | Event | Message
 )
 """What iterating ``/ws/events`` yields."""
 
@@ -424,7 +433,7 @@ _EVENT_TYPES: dict[str, type[Message]] = {
     "calibration_session.view": CalibrationSessionView,
     "calibration_session.plate": CalibrationSessionPlate, "job.state": JobStateChanged,
     "job.progress": JobProgress, "pose.measured": PoseMeasured, "qa.run": QaRunDone,
-    "qa.override": QaOverridden,
+    "qa.override": QaOverridden, "qa.override_withdrawn": QaOverrideWithdrawn,
     "tracking.started": TrackingStarted, "tracking.stopped": TrackingStopped,
 }
 _POSE_TYPES: dict[str, type[Message]] = {
