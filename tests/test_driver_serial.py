@@ -419,3 +419,16 @@ def test_stage_faults_and_recovery(zaber: ZaberEmulator, stage: ZaberStage, faul
     stage.move_to(5.0)
     assert zaber.axis().position == steps(5.0)
     assert stage.position_mm == 5.0
+
+
+def test_an_emulator_that_cannot_plug_in_says_why(tmp_path: Path) -> None:
+    """A port link that cannot be made (its directory is missing) fails start() with that
+    error, not a later one from cleaning up half a pty, and leaves no descriptor open."""
+    import os
+
+    before = set(os.listdir("/proc/self/fd"))
+    emulator = GardasoftEmulator(link_dir=tmp_path / "missing")
+    with pytest.raises(FileNotFoundError):
+        emulator.start()
+    emulator.stop()
+    assert set(os.listdir("/proc/self/fd")) <= before

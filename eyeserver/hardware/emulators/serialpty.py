@@ -186,17 +186,19 @@ class SerialPtyEmulator(ServedEmulator):
     def _plug(self) -> None:
         if self._link_dir is None:
             self._link_dir = Path(tempfile.mkdtemp(prefix="eyeserver-pty-"))
+        assert self._selector is not None
         master, slave = pty.openpty()
+        # Held and registered before anything else can fail, so that _unplug undoes exactly
+        # what was done (a link that cannot be made then fails start() with its own error).
+        self._master, self._slave = master, slave
+        self._selector.register(master, selectors.EVENT_READ)
+        self._buffer = b""
         # Raw on both sides of the pty whatever the driver does: no echo, no CR/LF translation.
         tty.setraw(slave)
         os.set_blocking(master, False)
-        self._master, self._slave = master, slave
         link = Path(self.port)
         link.unlink(missing_ok=True)
         link.symlink_to(os.ttyname(slave))
-        assert self._selector is not None
-        self._selector.register(master, selectors.EVENT_READ)
-        self._buffer = b""
 
     def _unplug(self) -> None:
         if self._link_dir is not None:
