@@ -323,6 +323,44 @@ def test_a_weak_pose_is_not_taken_as_the_reference(
     assert taken.status_code == 201, taken.text
 
 
+def test_a_reference_whose_own_open_eye_looks_shut_is_refused(
+        client: Client, patient: str, fake_fit: FakeFit, calibration_id: str) -> None:
+    """Live tracking takes frames for a blink where its blink test finds lids inside the limbus
+    about the reference's gaze: a reference whose own capture of the open eye looks shut there
+    (a gaze 20° off, at a confidence that passes, on an eye with a narrow lid opening) is
+    refused with the reason; the same capture with the true gaze is taken."""
+    scene = client.get(f"{API}/sim/scene").json()
+    placed = client.put(f"{API}/sim/scene", json={
+        "kind": "eye", "position_mm": [1.5, -1.0, -11.0],
+        "eye": {"gaze_deg": [7.0, -4.0], "aperture_mm": [9.0, 5.5]}}, headers=OPERATOR)
+    assert placed.status_code == 200, placed.text
+    truth = client.get(f"{API}/sim/eye").json()["eye"]
+    gaze = truth["gaze"]
+    across = [0.0, gaze[2], -gaze[1]]  # gaze × x̂: a direction across the gaze
+    norm = math.hypot(*across)
+    turn = math.radians(20.0)
+    fake_fit.centre = tuple(truth["centre_mm"])
+    fake_fit.gaze = tuple(math.cos(turn) * g + math.sin(turn) * a / norm
+                          for g, a in zip(gaze, across, strict=True))
+    try:
+        refused = client.post(f"{API}/patients/{patient}/fractions/3/reference/capture",
+                              headers=OPERATOR)
+        fake_fit.gaze = tuple(gaze)
+        taken = client.post(f"{API}/patients/{patient}/fractions/3/reference/capture",
+                            headers=OPERATOR)
+    finally:
+        fake_fit.centre, fake_fit.gaze = (0.0, 0.0, -10.0), (0.0, 0.0, 1.0)
+        client.put(f"{API}/sim/scene", json=scene, headers=OPERATOR)
+
+    assert refused.status_code == 422, refused.text
+    assert refused.json()["detail"] == (
+        "cannot take this capture as the reference: live tracking's blink test finds shut "
+        "lids inside the limbus this pose places on the open eye (its gaze or globe is off, "
+        "or the lids were closing): capture again with the eye open, still and looking at "
+        "the fixation light")
+    assert taken.status_code == 201, taken.text
+
+
 @pytest.mark.slow  # it lists the measurements of the tests above, slow ones among them
 def test_measurements_are_found_by_patient_fraction_and_id(
         client: Client, patient: str, calibration_id: str) -> None:

@@ -35,8 +35,11 @@ from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from typing import Any, Literal, Protocol
 
+import numpy as np
+
 from eyeserver.errors import EyeserverError
 from eyeserver.eye import CloudLike, EyeModel, EyePose, LimbusView, PoseError, fit_eye
+from eyeserver.eye.track import lids_closed
 from eyeserver.io import RigSpec, read_ply
 from eyeserver.reconstruction import limbus_views
 from eyeserver.service.core import NoActiveCalibrationError, Service
@@ -257,6 +260,9 @@ class _Observation:
     cloud_points: int
     units: dict[str, dict[str, Any]]
     pose: EyePose
+    looks_shut: bool = False
+    """Live tracking's blink test (:func:`~eyeserver.eye.track.lids_closed`) finds shut lids
+    inside the fitted limbus: on a capture of an open eye, the pose's gaze or globe is off."""
 
     def evidence(self) -> dict[str, Any]:
         return {"capture_id": self.capture_id, "unit": self.unit,
@@ -336,6 +342,10 @@ class PoseVerification:
             calibration = service.store.get_calibration(str(summary["calibration_id"]))
             views = limbus_views(calibration.path, capture.path)
             pose = self.fit(cloud, model, views)
+            looks_shut = pose.gaze_source != "none" and lids_closed(
+                np.asarray(cloud.points, dtype=np.float64),
+                np.asarray(pose.centre_mm, dtype=np.float64), pose.globe_radius_mm,
+                np.asarray(pose.gaze, dtype=np.float64), model.limbus_diameter_mm / 2)
         except EyeserverError as exc:
             self._audit_failure(actor, action, patient, fraction, capture.id,
                                 str(exc) or type(exc).__name__)
@@ -346,7 +356,7 @@ class PoseVerification:
             None if stored_model is None else stored_model.model.model_dump(mode="json"),
             int(summary["points"]),
             unit_contributions(summary, service.rig_spec(), service.unit_ids(patient.unit)),
-            pose)
+            pose, looks_shut)
 
     def _audit_failure(self, actor: str, action: str, patient: Patient, fraction: int,
                        capture_id: str, error: str) -> None:
@@ -430,7 +440,9 @@ class PoseVerification:
         :class:`~eyeserver.eye.PoseError` for a pose less confident than the patient's
         ``min_confidence``: every later measurement and tracked frame is compared with the
         reference, so a weak one would make every check fail for the wrong reason and tracking
-        take the open eye for shut lids (docs/notes/patient-eye.md, "Eighth session").
+        take the open eye for shut lids (docs/notes/patient-eye.md, "Eighth session"); and for
+        a pose whose own capture live tracking's blink test would take for shut lids (the
+        open eye's pose off, whatever its confidence).
         """
         patient = self.patients.get(patient_id)
         seen = self._observe(patient, actor, "set_reference_pose", fraction)
@@ -442,6 +454,14 @@ class PoseVerification:
                            f"patient's min_confidence {minimum:g} (the limbus not seen well: "
                            "capture again with the eye open, still and looking at the "
                            "fixation light)")
+        if seen.looks_shut:
+            # Tracking's blink test looks for lids inside the limbus about the reference's
+            # gaze: a reference whose own capture looks shut there would hold every open frame
+            # as a blink (docs/notes/patient-eye.md, "Eighth session").
+            reasons.append("live tracking's blink test finds shut lids inside the limbus this "
+                           "pose places on the open eye (its gaze or globe is off, or the lids "
+                           "were closing): capture again with the eye open, still and looking "
+                           "at the fixation light")
         if reasons:
             reason = "cannot take this capture as the reference: " + "; ".join(reasons)
             self._audit_failure(actor, "set_reference_pose", patient, fraction,

@@ -227,8 +227,9 @@ async def put_reference(patient_id: PatientIdPath, fraction: FractionPath,
                         409: {"model": ErrorResponse, "description": "No active calibration, "
                               "or the daemon is busy."},
                         422: {"model": ErrorResponse, "description": "No eye could be "
-                              "fitted, or the pose is less confident than the patient's "
-                              "min_confidence; the reason says why."}})
+                              "fitted, the pose is less confident than the patient's "
+                              "min_confidence, or live tracking's blink test would take this "
+                              "open eye for shut lids; the reason says why."}})
 async def capture_reference(patient_id: PatientIdPath, fraction: FractionPath,
                             verification: VerificationDep, caller: OperatorDep,
                             ) -> ReferenceResponse:
@@ -236,8 +237,9 @@ async def capture_reference(patient_id: PatientIdPath, fraction: FractionPath,
     as the fraction's next reference version, with its evidence. Operators may: the therapist
     who sets the patient up captures it (a new version; the earlier ones are kept, and the
     audit trail names who made each); the physicist owns the calibration, the plan's
-    reference (``PUT``) and the eye model. A pose below the patient's ``min_confidence`` is
-    not taken (422): every later check and tracked frame is compared with the reference."""
+    reference (``PUT``) and the eye model. A pose below the patient's ``min_confidence``, or
+    one whose own capture tracking's blink test takes for shut lids (its gaze off), is not
+    taken (422): every later check and tracked frame is compared with the reference."""
     return _reference(await run_in_threadpool(lambda: verification.capture_reference(
         patient_id, fraction, actor=caller.name)))
 
