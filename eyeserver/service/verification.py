@@ -325,9 +325,11 @@ class PoseVerification:
     # --- measuring --------------------------------------------------------------------------
 
     def _observe(self, patient: Patient, actor: str, action: str, fraction: int,
-                 reference: ReferencePose | None = None) -> _Observation:
+                 reference: ReferencePose | None = None, *, blink_test: bool = False,
+                 ) -> _Observation:
         """Capture, reconstruct and fit (with :func:`measurement_model`); a failure after the
-        capture is audited with it."""
+        capture is audited with it. With ``blink_test``, live tracking's blink test is run on
+        the capture with the pose found (:attr:`_Observation.looks_shut`; ≈ 50 ms)."""
         service = self.service
         if service.store.active_calibration() is None:  # before moving any hardware
             raise NoActiveCalibrationError(
@@ -342,7 +344,7 @@ class PoseVerification:
             calibration = service.store.get_calibration(str(summary["calibration_id"]))
             views = limbus_views(calibration.path, capture.path)
             pose = self.fit(cloud, model, views)
-            looks_shut = pose.gaze_source != "none" and lids_closed(
+            looks_shut = blink_test and pose.gaze_source != "none" and lids_closed(
                 np.asarray(cloud.points, dtype=np.float64),
                 np.asarray(pose.centre_mm, dtype=np.float64), pose.globe_radius_mm,
                 np.asarray(pose.gaze, dtype=np.float64), model.limbus_diameter_mm / 2)
@@ -445,7 +447,7 @@ class PoseVerification:
         open eye's pose off, whatever its confidence).
         """
         patient = self.patients.get(patient_id)
-        seen = self._observe(patient, actor, "set_reference_pose", fraction)
+        seen = self._observe(patient, actor, "set_reference_pose", fraction, blink_test=True)
         reasons = list(unit_shortfalls(seen.units))
         pose = seen.pose
         minimum = patient.tolerances.min_confidence
