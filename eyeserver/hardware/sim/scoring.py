@@ -35,11 +35,9 @@ def score_cloud(truth: dict[str, Any], cloud: PointCloud, room: RoomConfig,
     if cloud.camera is not None:
         for index in np.unique(cloud.camera):
             camera_id = ids[int(index)]
-            cam = sim.renderer.cameras[camera_id]
-            seen = int(np.isfinite(built.scene.cast(cam.centre,
-                                                    cam.rays().reshape(-1, 3)).t).sum())
-            lit = int(sim.renderer.lit_pixels(camera_id, built.scene,
-                                              projector_of[camera_id]).sum())
+            seen_pixels, lit_pixels = sim.renderer.seen_and_lit(camera_id, built.scene,
+                                                                projector_of[camera_id])
+            seen, lit = int(seen_pixels.sum()), int(lit_pixels.sum())
             count = int(np.sum(cloud.camera == index))
             coverage[camera_id] = {"points": count, "share": count / max(seen, 1),
                                    "lit_pixels": lit, "lit_share": count / max(lit, 1)}
