@@ -656,10 +656,17 @@ def _mismatch(cam_a: CalibratedCamera, cam_b: CalibratedCamera, view_b: F32,
     # (docs/notes/speed.md); wrapped below, so the angle's own range does not matter.
     mismatch = angle(sin_b, cos_b, centred=False).astype(np.float64) - predicted
     with np.errstate(invalid="ignore"):  # an infinite prediction: not judged, below
-        mismatch -= TWO_PI * np.rint(mismatch / TWO_PI)
+        _wrap(mismatch)
     np.abs(mismatch, out=mismatch)
     judged = (valid_b > 0.99) & (local[2] > 0) & np.isfinite(predicted)
     return np.asarray(np.where(judged, mismatch, np.pi))
+
+
+def _wrap(phase: F64) -> F64:
+    """``phase`` (radians) wrapped into ``[−π, π]`` in place by taking whole turns off (the
+    angle of a complex exponential took 70 times as long), and returned."""
+    phase -= TWO_PI * np.rint(phase / TWO_PI)
+    return phase
 
 
 def _candidate_orders(camera: CalibratedCamera, x: F64, y: F64,
@@ -1168,12 +1175,8 @@ def _unbiased(cam: CalibratedCamera, phase: Phase, pixels: npt.NDArray[np.intp])
     right, left = np.minimum(cols + 1, w - 1), np.maximum(cols - 1, 0)
     dphi = phase.dphi.astype(np.float64)
     step = 2.0 * cam.spacing_px * TWO_PI  # two samples, radians to cycles
-    # Wrapped by whole turns off (a complex exponential's angle took 70 times as long).
-    fy, fx = dphi[up, cols] - dphi[down, cols], dphi[rows, right] - dphi[rows, left]
-    fy -= TWO_PI * np.rint(fy / TWO_PI)
-    fx -= TWO_PI * np.rint(fx / TWO_PI)
-    fy /= step
-    fx /= step
+    fy = _wrap(dphi[up, cols] - dphi[down, cols]) / step
+    fx = _wrap(dphi[rows, right] - dphi[rows, left]) / step
     return np.asarray(band_gain(cam.carrier, fy, fx) >= EXTENSION_MIN_GAIN)
 
 
