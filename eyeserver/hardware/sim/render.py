@@ -205,10 +205,27 @@ class Renderer:
         ``projectors`` names the projector components wanted (the ambient one always comes).
         ``cache_key`` identifies a still scene: its components are computed once and reused.
         """
-        ambient = self._source(camera_id, scene, supersample, AMBIENT, cache_key)
-        fringe = {pid: self._source(camera_id, scene, supersample, pid, cache_key)
-                  for pid in projectors}
-        return Components(ambient=ambient, fringe=fringe)
+        sources = [AMBIENT, *projectors]
+        keys = {source: (camera_id, source, f"{cache_key}|{supersample}")
+                for source in sources} if cache_key is not None else {}
+        images: dict[str, F32] = {}
+        with self._lock:
+            for source, key in keys.items():
+                if (cached := self._cache.get(key)) is not None:
+                    self._cache.move_to_end(key)
+                    images[source] = cached
+        missing = [source for source in sources if source not in images]
+        if missing:
+            computed = self._compute(camera_id, scene, supersample, missing)
+            images.update(computed)
+            if keys:
+                with self._lock:
+                    for source in missing:
+                        self._cache[keys[source]] = computed[source]
+                    while len(self._cache) > self._cache_size:
+                        self._cache.popitem(last=False)
+        return Components(ambient=images[AMBIENT],
+                          fringe={pid: images[pid] for pid in sources[1:]})
 
     def seen_and_lit(self, camera_id: str, scene: Scene, projector_id: str,
                      ) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
@@ -221,23 +238,6 @@ class Renderer:
         shading = self._shade(cam, scene, cam.rays().reshape(-1, 3), projector_id)
         shape = (cam.config.height, cam.config.width)
         return (shading.label >= 0).reshape(shape), shading.lit.reshape(shape)
-
-    def _source(self, camera_id: str, scene: Scene, s: int, source: str,
-                cache_key: str | None) -> F32:
-        key = (camera_id, source, f"{cache_key}|{s}") if cache_key is not None else None
-        if key is not None:
-            with self._lock:
-                cached = self._cache.get(key)
-                if cached is not None:
-                    self._cache.move_to_end(key)
-                    return cached
-        result = self._compute(camera_id, scene, s, source)
-        if key is not None:
-            with self._lock:
-                self._cache[key] = result
-                while len(self._cache) > self._cache_size:
-                    self._cache.popitem(last=False)
-        return result
 
     def _shade(self, cam: CameraModel, scene: Scene, rays: F64, source: str) -> _Shading:
         """Light reaching the camera along ``rays`` from one source, per unit source strength."""
@@ -517,17 +517,23 @@ class Renderer:
                                                borderType=cv2.BORDER_REFLECT), dtype=np.float32)
         return image
 
-    def _compute(self, camera_id: str, scene: Scene, s: int, source: str) -> F32:
+    def _compute(self, camera_id: str, scene: Scene, s: int, sources: Sequence[str],
+                 ) -> dict[str, F32]:
+        """The finished images of ``sources``, from one ray cast for all of them (a camera's
+        cast took half of a still plate's render per source)."""
         cam = self.cameras[camera_id]
         height, width = cam.shape
-        shading = self._shade(cam, scene, cam.rays().reshape(-1, 3), source)
-        values = shading.values.copy()
+        shadings = self._shade_sources(cam, scene, cam.rays().reshape(-1, 3), sources)
+        values = {source: shading.values.copy() for source, shading in shadings.items()}
         if s > 1:
             # Pixel integration where it matters: a pixel integrates light over its area, which
             # differs from its centre's value only where something changes within it (an edge
             # in albedo, object, shadow or surface orientation). Those pixels get s² rays; the
             # smooth rest keeps one (a 19-px fringe loses 0.05 % of its contrast to that).
-            rows, cols = np.nonzero(_edge_pixels(shading, height, width))
+            # Each source's own edges: a shadow's edge is no edge of the ambient light.
+            edges = {source: _edge_pixels(shading, height, width)
+                     for source, shading in shadings.items()}
+            rows, cols = np.nonzero(np.logical_or.reduce(list(edges.values())))
             offsets = pixel_samples(s * s)
             # In chunks of ~64 k rays: arrays that stay in cache run several times faster.
             chunk = max(1, 65536 // (s * s))
@@ -535,9 +541,12 @@ class Renderer:
                 r, c = rows[start:start + chunk], cols[start:start + chunk]
                 u = (c[:, None] + offsets[None, :, 0]).reshape(-1)
                 v = (r[:, None] + offsets[None, :, 1]).reshape(-1)
-                sub = self._shade(cam, scene, cam.rays_at_subpixels(u, v), source)
-                values[r * width + c] = sub.values.reshape(-1, s * s).mean(axis=1)
-        return self._finish(camera_id, values)
+                subs = self._shade_sources(cam, scene, cam.rays_at_subpixels(u, v), sources)
+                for source, sub in subs.items():
+                    own = edges[source][r, c]
+                    values[source][r[own] * width + c[own]] = (
+                        sub.values.reshape(-1, s * s)[own].mean(axis=1))
+        return {source: self._finish(camera_id, value) for source, value in values.items()}
 
     def expose(self, camera_id: str, components: Components, *, ambient_dn: float,
                projectors: Mapping[str, float], exposure_us: float, gain_db: float,
