@@ -151,24 +151,46 @@ class CameraModel:
             self._rays = self._to_world(grid[..., 0], grid[..., 1])
         return self._rays
 
-    def rays_at_subpixels(self, u: F64, v: F64) -> F64:
-        """Rays through sub-pixel positions by bilinear interpolation of the pixel grid.
+    def rays_at_subpixels(self, rows: npt.NDArray[np.intp], cols: npt.NDArray[np.intp],
+                          offsets: F64) -> F64:
+        """Rays through every pixel ``(rows[i], cols[i])`` at each of ``offsets`` (``(n, 2)``,
+        ``(du, dv)`` in pixels), ``(len(rows) · n, 3)``, pixel by pixel.
 
-        The undistortion map is so smooth that interpolating it places a ray within 2e-5 px of
-        its exact pixel position with the default lens (6e-5 px at the corners of a strongly
-        distorted one; ``tests/test_sim_physics.py`` measures it), far below anything an edge
-        detector resolves, and a hundred times faster than undistorting every sample of a
-        supersampled edge.
+        Each pixel's rays come from a second-order Taylor expansion of the pixel-centre rays
+        about it (central differences over its 3 × 3 neighbours; about the nearest inner pixel
+        on the image's border), renormalised: the undistortion map is so smooth that this
+        places a ray within 5e-7 px of its exact position, corners included, with the default
+        lens and a strongly distorted one (``tests/test_sim_physics.py`` measures it; the
+        bilinear table it replaced: 6e-5 px), far below anything an edge detector resolves.
+        The expansion is one matrix product for the inner pixels: 3× faster than that table,
+        and a hundred times faster than undistorting every sample of a supersampled edge.
         """
-        grid = self.pixel_grid()
+        rays = self.rays()
         h, w = self.shape
-        i0 = np.clip(np.floor(v).astype(np.int64), 0, h - 2)
-        j0 = np.clip(np.floor(u).astype(np.int64), 0, w - 2)
-        fv = (v - i0)[..., None]
-        fu = (u - j0)[..., None]
-        xy = ((1 - fv) * ((1 - fu) * grid[i0, j0] + fu * grid[i0, j0 + 1])
-              + fv * ((1 - fu) * grid[i0 + 1, j0] + fu * grid[i0 + 1, j0 + 1]))
-        return self._to_world(xy[..., 0], xy[..., 1])
+        r0, c0 = np.clip(rows, 1, h - 2), np.clip(cols, 1, w - 2)
+        g = rays[r0, c0]
+        east, west, south, north = (rays[r0, c0 + 1], rays[r0, c0 - 1], rays[r0 + 1, c0],
+                                    rays[r0 - 1, c0])
+        terms = np.stack([g, (east - west) / 2, (south - north) / 2, east - 2 * g + west,
+                          south - 2 * g + north,
+                          (rays[r0 + 1, c0 + 1] - rays[r0 + 1, c0 - 1] - rays[r0 - 1, c0 + 1]
+                           + rays[r0 - 1, c0 - 1]) / 4])  # (6, N, 3)
+
+        def basis(du: F64, dv: F64) -> F64:
+            return np.stack([np.ones_like(du), du, dv, du * du / 2, dv * dv / 2, du * dv],
+                            axis=-1)
+
+        n = len(offsets)
+        out = (basis(offsets[:, 0], offsets[:, 1]) @ terms.reshape(6, -1)).reshape(
+            n, -1, 3).transpose(1, 0, 2).copy()  # (N, n, 3)
+        border = np.flatnonzero((r0 != rows) | (c0 != cols))
+        if border.size:  # offsets from the inner pixel the expansion is about
+            du = (cols - c0)[border, None] + offsets[None, :, 0]
+            dv = (rows - r0)[border, None] + offsets[None, :, 1]
+            out[border] = np.einsum("bkj,jbc->bkc", basis(du, dv), terms[:, border])
+        flat: F64 = out.reshape(-1, 3)
+        flat /= np.sqrt(np.einsum("ij,ij->i", flat, flat))[:, None]
+        return flat
 
     def vignetting(self) -> npt.NDArray[np.float32]:
         """Relative illumination per pixel: 1 on axis, ``1 − vignetting`` at the corners."""

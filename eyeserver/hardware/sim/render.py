@@ -548,9 +548,8 @@ class Renderer:
             chunk = max(1, 65536 // (s * s))
             for start in range(0, rows.size, chunk):
                 r, c = rows[start:start + chunk], cols[start:start + chunk]
-                u = (c[:, None] + offsets[None, :, 0]).reshape(-1)
-                v = (r[:, None] + offsets[None, :, 1]).reshape(-1)
-                subs = self._shade_sources(cam, scene, cam.rays_at_subpixels(u, v), sources)
+                subs = self._shade_sources(cam, scene, cam.rays_at_subpixels(r, c, offsets),
+                                           sources)
                 for source, sub in subs.items():
                     own = edges[source][r, c]
                     values[source][r[own] * width + c[own]] = (
