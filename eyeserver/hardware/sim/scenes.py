@@ -220,14 +220,31 @@ def chessboard_albedo(cols: int, rows: int, square: float) -> AlbedoFn:
 
 
 def dotted_albedo(base: AlbedoFn, dots_local: F64, radius: float) -> AlbedoFn:
-    """``base`` with dark round fiducial dots of ``radius`` mm centred at ``dots_local``."""
-    tree = cKDTree(dots_local) if len(dots_local) else None
+    """``base`` with dark round fiducial dots of ``radius`` mm centred at ``dots_local``.
+
+    Only the points in a cell of a coarse grid that a dot's ball reaches are looked up in the
+    dots' k-d tree: the same answer, and the lookup of every point of a phantom's image took
+    a tenth of the accuracy bench's test."""
+    if not len(dots_local):
+        return base
+    tree = cKDTree(dots_local)
+    cell = float(radius)
+    low = dots_local.min(axis=0) - radius
+    shape = np.floor((dots_local.max(axis=0) + radius - low) / cell).astype(np.int64) + 1
+    reached = np.zeros(tuple(shape), dtype=bool)
+    for dot in dots_local:
+        first = np.floor((dot - radius - low) / cell).astype(np.int64)
+        last = np.floor((dot + radius - low) / cell).astype(np.int64)
+        reached[first[0]:last[0] + 1, first[1]:last[1] + 1, first[2]:last[2] + 1] = True
 
     def albedo(points: F64) -> F64:
         out = base(points)
-        if tree is not None:
-            distance, _ = tree.query(points, distance_upper_bound=radius)
-            out = np.where(np.isfinite(distance), FIDUCIAL_PAINT, out)
+        index = np.floor((points - low) / cell).astype(np.int64)
+        near = np.all((index >= 0) & (index < shape), axis=1)
+        near[near] = reached[tuple(index[near].T)]
+        if near.any():
+            distance, _ = tree.query(points[near], distance_upper_bound=radius)
+            out[near] = np.where(np.isfinite(distance), FIDUCIAL_PAINT, out[near])
         return out
     return albedo
 
