@@ -189,8 +189,9 @@ script's head shifts will end at, cast ahead by :meth:`SimRoom.prepare`)."""
 @functools.lru_cache(maxsize=16)
 def _camera_model(config_json: str) -> CameraModel:
     """The camera model of a camera's configuration (as JSON), shared by every renderer of it:
-    its pixel grid and rays (the lens undone at every pixel, ≈ 0.1 s for 640 × 512) are cast
-    once a process, not once a room (a bench opens hundreds of rooms of the same cameras)."""
+    its pixel grid and rays (the lens undone at every pixel, ≈ 0.2 s a 640 × 512 camera) are
+    computed once a process, not once a room (the benches and tests open many rooms of the
+    same cameras)."""
     return CameraModel(CameraConfig.model_validate_json(config_json))
 
 
