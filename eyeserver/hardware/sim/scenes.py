@@ -238,7 +238,7 @@ def dotted_albedo(base: AlbedoFn, dots_local: F64, radius: float) -> AlbedoFn:
         reached[first[0]:last[0] + 1, first[1]:last[1] + 1, first[2]:last[2] + 1] = True
 
     def albedo(points: F64) -> F64:
-        out = base(points)
+        out = np.array(base(points), dtype=np.float64)  # painted in place below: our own copy
         index = np.floor((points - low) / cell).astype(np.int64)
         near = np.all((index >= 0) & (index < shape), axis=1)
         near[near] = reached[tuple(index[near].T)]
