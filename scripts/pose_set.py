@@ -6,6 +6,7 @@ fit on the same images (the bench renders anew on every run).
     .venv/bin/python scripts/pose_set.py fit --stages --method spatial --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py oracle --method spatial --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py cloud --calibration CALDIR SETDIR
+    .venv/bin/python scripts/pose_set.py ablate --seed 6 --calibration CALDIR SETDIR
     PYTHONPATH=/path/to/other/checkout .venv/bin/python scripts/pose_set.py fit ... SETDIR
 
 Eyes are drawn as ``eyeserver.hardware.sim.population.draw`` draws them and placed within ±5 mm
@@ -15,6 +16,11 @@ from it, each against the truth). ``oracle`` is a diagnostic, not a fit: it hand
 stages the true limbus circle (the corneoscleral junction: the scene's horizontal limbus
 radius), to see what the rest of the fit makes of a perfectly found limbus. A calibration
 comes from ``eyeserver bench accuracy --out`` or the benches' ``calibrate_room``.
+
+``ablate`` renders one drawn patient eye at rest (centred at (0, 0, −10) mm, gaze 0, as a
+reference capture sees it) with each group of its properties in turn set to the sharp eye's
+(``-group``) and the sharp eye given only that group of the patient's (``+group``), and fits
+each: which property alone breaks the fit.
 """
 
 from __future__ import annotations
@@ -124,6 +130,55 @@ def oracle(args: argparse.Namespace) -> None:
               f"{spec['limbus_width_mm']:.2f} mm)", flush=True)
 
 
+ABLATION_GROUPS = {
+    "shape": ("globe_radius_mm", "globe_semi_axes_mm"),
+    "cornea": ("cornea_radius_mm", "cornea_asphericity"),
+    "limbus_size": ("limbus_diameter_mm", "limbus_vertical_ratio"),
+    "limbus_edge": ("limbus_width_mm", "limbus_scatter"),
+    "albedo": ("sclera_albedo", "iris_albedo"),
+    "iris": ("iris_depth_mm", "pupil_diameter_mm"),
+    "tear": ("tear_reflectance", "tear_glints"),
+    "lids": ("aperture_mm", "aperture_offset_mm", "lid_gap_mm"),
+    "lashes": ("lashes",),
+}
+"""The drawn eye's properties (``EyeSpec`` fields), grouped as ``ablate`` swaps them."""
+
+
+def ablate(args: argparse.Namespace) -> None:
+    from eyeserver.errors import EyeserverError
+    from eyeserver.eye.fit import EyeModel, fit_eye
+    from eyeserver.hardware.sim import population
+    from eyeserver.hardware.sim.config import load_room
+    from eyeserver.hardware.sim.scenes import SceneSpec
+    from eyeserver.hardware.sim.sessions import SimSession
+    from eyeserver.reconstruction import limbus_views, reconstruct_bundle
+
+    patient = population.draw(np.random.default_rng(args.seed), "patient")
+    sharp = population.draw(np.random.default_rng(args.seed), "sharp")
+    variants = {"patient": patient, "sharp": sharp}
+    for name, keys in ABLATION_GROUPS.items():
+        variants[f"-{name}"] = patient.model_copy(update={k: getattr(sharp, k) for k in keys})
+        variants[f"+{name}"] = sharp.model_copy(update={k: getattr(patient, k) for k in keys})
+    with SimSession.open(load_room(args.room), seed=3) as session:
+        for name, eye in variants.items():
+            bundle = args.setdir / f"seed{args.seed}{name}"
+            session.record(SceneSpec(kind="eye", position_mm=(0.0, 0.0, -10.0), eye=eye),
+                           bundle, overwrite=True)
+            truth = json.loads((bundle / "truth.json").read_text())["eye"]
+            try:
+                made, _ = reconstruct_bundle(args.calibration, bundle)
+                pose = fit_eye(made, EyeModel.population(),
+                               limbus_views(args.calibration, bundle))
+            except EyeserverError as exc:
+                print(f"{name:14s} refused: {exc}", flush=True)
+                continue
+            centre = float(np.linalg.norm(np.subtract(pose.centre_mm, truth["centre_mm"])))
+            cos = min(1.0, float(np.asarray(pose.gaze) @ np.asarray(truth["gaze"])))
+            print(f"{name:14s} centre {centre:6.3f} mm gaze {math.degrees(math.acos(cos)):5.2f}° "
+                  f"confidence {pose.confidence:.2f} radius {pose.globe_radius_mm:.2f} mm",
+                  flush=True)
+
+
 def cloud(args: argparse.Namespace) -> None:
     """Each eye's cloud against the exact scene (globe, cornea, iris, lids, lashes, skin): is
     the reconstruction right before any fit, and what share of the globe's neighbourhood is
@@ -170,6 +225,13 @@ def main() -> None:
     bound.add_argument("--method", default="multi-view", choices=("multi-view", "spatial"))
     bound.add_argument("setdir", type=Path)
     bound.set_defaults(step=oracle)
+    swap = steps.add_parser("ablate", help="one patient eye at rest with each group of its "
+                            "properties swapped for the sharp eye's, fitted")
+    swap.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
+    swap.add_argument("--seed", type=int, default=6, help="the population draw's seed")
+    swap.add_argument("--room", type=Path, default=None, help="room file (default room)")
+    swap.add_argument("setdir", type=Path)
+    swap.set_defaults(step=ablate)
     scored = steps.add_parser("cloud", help="each eye's cloud against the exact scene")
     scored.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
     scored.add_argument("--method", default="auto", choices=("auto", "multi-view", "spatial"))
