@@ -360,6 +360,7 @@ def test_a_failed_device_is_unavailable_with_its_reason(physicist: ec.Client) ->
             physicist.capture("left")
         assert failed.value.status == 503
         assert failed.value.reason == "S1: camera is not responding"
+        assert failed.value.retry_after_s is not None and failed.value.retry_after_s >= 1
     finally:
         physicist.connect_sim_device("S1", True)
     deadline = time.monotonic() + 60.0

@@ -146,6 +146,8 @@ def test_a_failing_device_answers_503_and_faults_until_it_comes_back(
 
     assert failed.status_code == 503
     assert failed.json() == {"detail": "S2: camera is not responding"}
+    # The fault has just come: the background recovery tries S2 again in a second.
+    assert failed.headers["Retry-After"] == "1"
     assert status["state"] == "fault"
     assert recovered.status_code == 200, recovered.text
     assert recovered.json()["health"] == "ok"

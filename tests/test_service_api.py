@@ -305,6 +305,8 @@ def test_a_failed_device_recovers_in_the_background_with_back_off(
             waits.release()
             waits.wait_for(attempt + 1)
         still_failing = client.get(f"{API}/status").json()
+        # The recovery's next attempt is 30 s away: a refused client is told to wait that long.
+        refused = client.post(f"{API}/captures", json={"unit": "right"})
         camera.reconnect()
         waits.release()  # the seventh retry reopens S3: no capture is needed for that
         recovered = _wait_until(lambda: service.state == "idle")
@@ -318,8 +320,11 @@ def test_a_failed_device_recovers_in_the_background_with_back_off(
 
     assert failed.status_code == 503
     assert failed.json() == {"detail": "S3: camera is not responding"}
+    assert failed.headers["Retry-After"] == "1"
     assert status["state"] == "fault"
     assert first == [1.0]
+    assert refused.status_code == 503
+    assert 20 < int(refused.headers["Retry-After"]) <= 30
     assert still_failing["state"] == "fault"
     assert next(u for u in still_failing["units"] if u["id"] == "right")["reason"] == \
         "S3: camera is not responding"

@@ -16,7 +16,7 @@ error                         status
 ``QueueFullError``            503 (with ``Retry-After``)
 ``DeviceTimeoutError``        504
 ``DeviceValueError``          422
-other ``DeviceError``         503
+other ``DeviceError``         503 (with ``Retry-After``)
 ``NotBuiltError``             501
 ``FormatError``               422
 ``ConfigError``               422
@@ -125,8 +125,14 @@ async def _eyeserver_error(request: Request, exc: Exception) -> JSONResponse:
             "reason": str(exc),
         },
     )
-    headers = ({"Retry-After": str(QUEUE_RETRY_AFTER_S)} if isinstance(exc, QueueFullError)
-               else None)
+    headers = None
+    if isinstance(exc, QueueFullError):
+        headers = {"Retry-After": str(QUEUE_RETRY_AFTER_S)}
+    elif isinstance(exc, DeviceError) and status_code == 503:
+        # A failed device: until the background recovery next tries it, nothing changes.
+        service = getattr(request.app.state, "service", None)
+        if service is not None:
+            headers = {"Retry-After": str(service.device_retry_after_s())}
     return _answer(status_code, str(exc), headers=headers)
 
 

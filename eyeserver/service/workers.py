@@ -21,6 +21,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -250,6 +251,13 @@ class RetryLoop:
         self._wake = threading.Condition()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._due_at: float | None = None  # the next attempt's time.monotonic(), if scheduled
+
+    def next_attempt_in_s(self) -> float | None:
+        """Seconds until the next attempt (0 when it is due or running), or None when none is
+        scheduled (nothing pending, or the thread has not yet seen what is)."""
+        due = self._due_at
+        return None if due is None else max(0.0, due - time.monotonic())
 
     def start(self) -> None:
         """Start the thread. Idempotent."""
@@ -283,12 +291,16 @@ class RetryLoop:
                     delays = backoff_delays(self._first_delay_s, self._max_delay_s)
                     while not self._stop.is_set() and not self._pending():
                         self._wake.wait()
-            if self._stop.is_set() or self._wait(next(delays), self._stop):
+            delay = next(delays)
+            self._due_at = time.monotonic() + delay
+            if self._stop.is_set() or self._wait(delay, self._stop):
                 return
             try:
                 done = self._attempt()
             except Exception:
                 _log.exception("retry attempt failed", extra={"loop": self.name})
                 done = False
+            finally:
+                self._due_at = None
             if done:
                 delays = backoff_delays(self._first_delay_s, self._max_delay_s)
