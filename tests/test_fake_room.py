@@ -118,3 +118,12 @@ def test_a_device_room_file_names_the_file_and_field_of_a_mistake(tmp_path: Path
     room.write_text(room.read_text().replace('id = "T1"', 'id = "T1"\nrate = 25'))
     with pytest.raises(FormatError, match=r"room\.toml: field 'trigger\.rate': unknown key"):
         load_device_room(room)
+    # The stage's id is a device id like the others: unique across the room.
+    room.write_text(room.read_text().replace("rate = 25\n", "")
+                    + '\n[[devices]]\nkind = "projector"\nid = "P1"\n'
+                      'driver = "GardasoftProjector"\n\n[stage]\nid = "S1"\n'
+                      'driver = "ZaberStage"\n')
+    with pytest.raises(FormatError, match=r"room\.toml.*duplicate device id\(s\): S1"):
+        load_device_room(room)
+    room.write_text(room.read_text().replace('[stage]\nid = "S1"', '[stage]\nid = "Z1"'))
+    assert load_device_room(room).device_ids() == ["S1", "P1", "T1", "Z1"]

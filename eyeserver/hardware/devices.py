@@ -39,9 +39,9 @@ the field named (:class:`~eyeserver.errors.FormatError`), or the device named
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Final, Self
+from typing import Final
 
-from pydantic import Field, model_validator
+from pydantic import Field
 
 from eyeserver.core.validation import StrictModel, read_table, validated
 from eyeserver.errors import ConfigError
@@ -72,12 +72,9 @@ class DeviceRoomConfig(HardwareConfig):
 
     stage: StageConfig | None = None
 
-    @model_validator(mode="after")
-    def _stage_id_unique(self) -> Self:
-        if self.stage is not None and self.stage.id in {d.id for d in self.devices} | {
-                self.trigger.id}:
-            raise ValueError(f"duplicate device id(s): {self.stage.id}")
-        return self
+    def device_ids(self) -> list[str]:
+        """Every device's id, the trigger's and the stage's included (checked unique)."""
+        return super().device_ids() + ([self.stage.id] if self.stage is not None else [])
 
 
 def load_device_room(path: str | Path) -> DeviceRoomConfig:

@@ -445,10 +445,13 @@ class HardwareConfig(StrictModel):
     trigger: TriggerConfig
     units: list[UnitConfig] = Field(min_length=1)
 
+    def device_ids(self) -> list[str]:
+        """Every device's id, the trigger's included (a room with more devices adds theirs)."""
+        return [d.id for d in self.devices] + [self.trigger.id]
+
     @model_validator(mode="after")
     def _check_grouping(self) -> Self:
-        ids = [d.id for d in self.devices] + [self.trigger.id]
-        repeated = sorted(i for i, n in Counter(ids).items() if n > 1)
+        repeated = sorted(i for i, n in Counter(self.device_ids()).items() if n > 1)
         if repeated:
             raise ValueError(f"duplicate device id(s): {', '.join(repeated)}")
         repeated = sorted(i for i, n in Counter(u.id for u in self.units).items() if n > 1)
