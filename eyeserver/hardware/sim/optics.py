@@ -8,6 +8,7 @@ lives in the projector's normalised image plane.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -192,14 +193,18 @@ class CameraModel:
         flat /= np.sqrt(np.einsum("ij,ij->i", flat, flat))[:, None]
         return flat
 
+    @functools.cached_property
     def vignetting(self) -> npt.NDArray[np.float32]:
-        """Relative illumination per pixel: 1 on axis, ``1 − vignetting`` at the corners."""
+        """Relative illumination per pixel: 1 on axis, ``1 − vignetting`` at the corners.
+        Computed once per model (read-only), as every renderer of the camera shares it."""
         h, w = self.shape
         cx, cy = self.K[0, 2], self.K[1, 2]
         vv, uu = np.mgrid[0:h, 0:w]
         r2 = (uu - cx) ** 2 + (vv - cy) ** 2
         corner2 = max((x - cx) ** 2 + (y - cy) ** 2 for x in (0, w - 1) for y in (0, h - 1))
-        return np.asarray(1.0 - self.config.vignetting * r2 / corner2, dtype=np.float32)
+        relative = np.asarray(1.0 - self.config.vignetting * r2 / corner2, dtype=np.float32)
+        relative.setflags(write=False)
+        return relative
 
 
 def blurred_square_wave(phase: F64, blur_periods: float, harmonics: int = 15) -> F64:

@@ -202,7 +202,7 @@ class Renderer:
         self.room = room
         self.cameras = {c.id: _camera_model(c.model_dump_json()) for c in room.cameras()}
         self.projectors = {p.id: ProjectorModel(p) for p in room.projectors()}
-        self._vignetting = {cid: cam.vignetting() for cid, cam in self.cameras.items()}
+        self._vignetting = {cid: cam.vignetting for cid, cam in self.cameras.items()}
         self._cache: OrderedDict[tuple[str, str, str], F32] = OrderedDict()
         self._cache_size = cache_size
         self._static: OrderedDict[tuple[str, str], _StaticPart] = OrderedDict()
