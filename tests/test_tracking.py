@@ -30,6 +30,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 
 from eyeserver.api import create_app
+from eyeserver.api.routers import tracking as tracking_routes
 from eyeserver.calibration.artefact import ARRAYS_FILE, CALIBRATION_FILE
 from eyeserver.core.clock import Clock, ManualClock, MonotonicClock
 from eyeserver.core.frames import Frame, FrameMeta
@@ -837,11 +838,19 @@ def test_tracking_starts_streams_and_stops_through_the_api(
 
 @pytest.mark.slow
 def test_the_pose_stream_beats_when_there_is_nothing_to_send_and_status_shows_the_hold(
-    base_url: str, tracking: TrackingControl
+    base_url: str, tracking: TrackingControl, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    with monkeypatch.context() as patched:
+        # The first heartbeat is sent on connecting, not after the stream's silence.
+        patched.setattr(tracking_routes, "HEARTBEAT_S", 3600.0)
+        with _connect(base_url) as ws:
+            first = _recv(ws)
     with _connect(base_url) as ws:
-        message = _recv(ws)  # no tracking: nothing but the heartbeat, within a second or so
+        _recv(ws)
+        message = _recv(ws)  # nothing else to send: the next heartbeat after a second
 
+    assert first["type"] == "heartbeat" and first["tracking"] is False
+    assert first["beam_hold"] is True
     assert message["type"] == "heartbeat"
     assert message["tracking"] is False and message["beam_hold"] is True
     assert message["stalled"] is None and "time" in message

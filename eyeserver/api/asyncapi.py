@@ -53,7 +53,8 @@ CHANNELS: tuple[Channel, ...] = (
             "then again, after the `hello`, as long as the daemon keeps them (its newest "
             "1024; the `hello`'s `last_seq` says where they start).", EVENT_MESSAGES),
     Channel("pose", "/ws/pose",
-            "Live tracking: one `pose` message per processed frame (the beam-hold flag in "
+            "Live tracking: a `heartbeat` at once (whether tracking runs, the beam held), then "
+            "one `pose` message per processed frame (the beam-hold flag in "
             "each), a `hold` message when the daemon holds the beam without a frame, a "
             "`heartbeat` after a second with nothing else: a client that hears nothing for "
             "longer must take the link as dead and hold the beam. The stream outlives "

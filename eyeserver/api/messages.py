@@ -314,8 +314,8 @@ class HoldMessage(_Event):
 
 
 class Heartbeat(_Message):
-    """Sent when the pose stream has sent nothing for a second. A client that hears nothing for
-    longer must take the link as dead and hold the beam."""
+    """Sent first on the pose stream, and whenever it has sent nothing for a second. A client
+    that hears nothing for longer must take the link as dead and hold the beam."""
 
     type: Literal["heartbeat"]
     time: str

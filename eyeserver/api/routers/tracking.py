@@ -10,8 +10,9 @@ acquired, processed, dropped (newest frame wins) and missed, and holds the last 
 ``GET /tracking/preview/{camera}.jpg`` is the newest frame a camera of the tracked unit gave the
 session, for people to watch.
 
-``/ws/pose`` sends every processed frame's message as JSON text, a ``hold`` message when the
-daemon holds the beam without a frame, and a heartbeat when it has sent nothing for a second;
+``/ws/pose`` sends a heartbeat at once (whether tracking runs and the beam is held), then every
+processed frame's message as JSON text, a ``hold`` message when the daemon holds the beam
+without a frame, and a heartbeat whenever it has sent nothing for a second;
 authenticate as for
 ``/ws/events`` (``?token=`` or ``Authorization: Bearer``; otherwise closed with 1008 before any
 message). Each message is ``{"type": "pose", "seq", "time", "t", "t_ns", "frame", "pose",
@@ -25,8 +26,8 @@ the reconstruction and fit. ``{"type": "hold", "reason", "beam_hold": true, "at_
 setting ``tracking_deadline_ms`` (80 ms: two camera periods; then also ``silent_ms``,
 ``last_frame``, ``frames_acquired``), ``ended`` when the session ended; the beam then stays held
 until ``dwell_frames`` good frames came again. ``{"type": "heartbeat", "time", "tracking",
-"beam_hold", "stalled"}`` comes whenever nothing else was sent for a second: a client that hears
-nothing for longer must take the link as dead and hold the beam. A client
+"beam_hold", "stalled"}`` comes first and whenever nothing else was sent for a second: a client
+that hears nothing for longer must take the link as dead and hold the beam. A client
 that reads too slowly loses its oldest messages (at most ``event_queue_size`` are kept for it)
 and gets ``{"type": "dropped", "count": n}`` before the next one, as on ``/ws/events``; it never
 slows the daemon or the other clients. One whose socket accepts nothing for ``ws_stall_s`` gets a
@@ -197,5 +198,7 @@ async def stream_pose(websocket: WebSocket) -> None:
 
     with tracking.messages.subscribe(settings.event_queue_size) as subscription:
         await websocket.accept()
-        await stream(websocket, subscription, prepare=stamped,
+        # A heartbeat first: a client that just connected knows at once whether tracking runs
+        # and the beam is held, as /ws/events's hello tells its state.
+        await stream(websocket, subscription, first=[heartbeat()], prepare=stamped,
                      heartbeat=(HEARTBEAT_S, heartbeat), stall_s=settings.ws_stall_s)

@@ -4,7 +4,7 @@
 daemon in order, each with ``seq`` increasing by one and ``time`` (UTC, ISO 8601 with ms).
 ``/api/v1/ws/pose`` sends a :class:`PoseMessage` per processed tracking frame, a
 :class:`HoldMessage` when the daemon holds the beam without a frame, and a :class:`Heartbeat`
-after a second of silence. Both send :class:`Dropped` before the next message when a slow
+first and after a second of silence. Both send :class:`Dropped` before the next message when a slow
 reader lost ``count`` of them.
 
 The OpenAPI document does not describe WebSocket messages; these models follow the daemon's
@@ -367,9 +367,9 @@ class HoldMessage(Event):
 
 
 class Heartbeat(Message):
-    """Sent when the pose stream has sent nothing for a second. A client that hears nothing
-    for longer must take the link as dead and hold the beam (the pose stream of this client
-    does so: :class:`Disconnected`)."""
+    """Sent first on the pose stream, and whenever it has sent nothing for a second. A client
+    that hears nothing for longer must take the link as dead and hold the beam (the pose
+    stream of this client does so: :class:`Disconnected`)."""
 
     type: Literal["heartbeat"]
     time: str
