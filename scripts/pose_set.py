@@ -52,17 +52,18 @@ def render(args: argparse.Namespace) -> None:
             print(f"rendered eye_{k:03d}", flush=True)
 
 
+def off(pose_centre: Any, pose_gaze: Any, eye: dict[str, Any], key: str = "centre_mm") -> str:
+    """How far a pose (or limbus, ``key``) lies from the truth's: centre in mm, gaze in °."""
+    centre = float(np.linalg.norm(np.subtract(pose_centre, eye[key])))
+    cos = float(np.asarray(pose_gaze) @ np.asarray(eye["gaze"]))
+    return f"centre {centre:.3f} mm gaze {math.degrees(math.acos(min(1.0, cos))):.2f}°"
+
+
 def fit(args: argparse.Namespace) -> None:
     from eyeserver.errors import EyeserverError
     from eyeserver.eye.fit import EyeModel, fit_eye
     from eyeserver.eye.limbus import LimbusNotFoundError, find_limbus
     from eyeserver.reconstruction import limbus_views, reconstruct_bundle
-
-    def off(pose_centre: Any, pose_gaze: Any, eye: dict[str, Any], key: str = "centre_mm"
-            ) -> str:
-        centre = float(np.linalg.norm(np.subtract(pose_centre, eye[key])))
-        cos = float(np.asarray(pose_gaze) @ np.asarray(eye["gaze"]))
-        return f"centre {centre:.3f} mm gaze {math.degrees(math.acos(min(1.0, cos))):.2f}°"
 
     for bundle in sorted(args.setdir.glob("eye_*")):
         truth = json.loads((bundle / "truth.json").read_text())
@@ -172,11 +173,8 @@ def ablate(args: argparse.Namespace) -> None:
             except EyeserverError as exc:
                 print(f"{name:14s} refused: {exc}", flush=True)
                 continue
-            centre = float(np.linalg.norm(np.subtract(pose.centre_mm, truth["centre_mm"])))
-            cos = min(1.0, float(np.asarray(pose.gaze) @ np.asarray(truth["gaze"])))
-            print(f"{name:14s} centre {centre:6.3f} mm gaze {math.degrees(math.acos(cos)):5.2f}° "
-                  f"confidence {pose.confidence:.2f} radius {pose.globe_radius_mm:.2f} mm",
-                  flush=True)
+            print(f"{name:14s} {off(pose.centre_mm, pose.gaze, truth)} confidence "
+                  f"{pose.confidence:.2f} radius {pose.globe_radius_mm:.2f} mm", flush=True)
 
 
 def cloud(args: argparse.Namespace) -> None:

@@ -77,13 +77,7 @@ from eyeserver.service.metrics import ServiceMetrics
 from eyeserver.service.preview import height_map_png
 from eyeserver.service.storage import CalibrationRecord, CaptureRecord, Store
 from eyeserver.service.uploads import UploadTooLargeError, unpack_calibration_zip
-from eyeserver.service.workers import (
-    FIRST_RETRY_DELAY_S,
-    BoundedWorker,
-    RetryLoop,
-    RetryWait,
-    wait_on_event,
-)
+from eyeserver.service.workers import BoundedWorker, RetryLoop, RetryWait, wait_on_event
 
 __all__ = [
     "ALL_UNITS",
@@ -462,10 +456,8 @@ class Service:
     def device_retry_after_s(self) -> int:
         """Whole seconds, at least 1, until the background recovery next tries the devices in
         fault: what a client refused for a failed device is told to wait (``Retry-After``)
-        before it asks again, since nothing changes before then unless the device does. The
-        first wait of the schedule when no attempt is scheduled yet (the fault just came)."""
-        due = self._recovery.next_attempt_in_s()
-        return max(1, math.ceil(FIRST_RETRY_DELAY_S if due is None else due))
+        before it asks again, since nothing changes before then unless the device does."""
+        return max(1, math.ceil(self._recovery.next_attempt_in_s()))
 
     def _retry_faults(self) -> bool:
         """One attempt of the background recovery: reopen every device in fault, through the

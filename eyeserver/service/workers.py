@@ -251,13 +251,13 @@ class RetryLoop:
         self._wake = threading.Condition()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._due_at: float | None = None  # the next attempt's time.monotonic(), if scheduled
+        self._due_at: float | None = None  # the latest attempt's time.monotonic(); None idle
 
-    def next_attempt_in_s(self) -> float | None:
-        """Seconds until the next attempt (0 when it is due or running), or None when none is
-        scheduled (nothing pending, or the thread has not yet seen what is)."""
+    def next_attempt_in_s(self) -> float:
+        """Seconds until the next attempt: 0 when it is due or running, the schedule's first
+        wait while the loop is idle (what something failing now waits)."""
         due = self._due_at
-        return None if due is None else max(0.0, due - time.monotonic())
+        return self._first_delay_s if due is None else max(0.0, due - time.monotonic())
 
     def start(self) -> None:
         """Start the thread. Idempotent."""
@@ -289,6 +289,7 @@ class RetryLoop:
             with self._wake:
                 if not self._pending():
                     delays = backoff_delays(self._first_delay_s, self._max_delay_s)
+                    self._due_at = None
                     while not self._stop.is_set() and not self._pending():
                         self._wake.wait()
             delay = next(delays)
@@ -300,7 +301,5 @@ class RetryLoop:
             except Exception:
                 _log.exception("retry attempt failed", extra={"loop": self.name})
                 done = False
-            finally:
-                self._due_at = None
             if done:
                 delays = backoff_delays(self._first_delay_s, self._max_delay_s)
