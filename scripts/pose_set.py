@@ -7,6 +7,7 @@ fit on the same images (the bench renders anew on every run).
     .venv/bin/python scripts/pose_set.py oracle --method spatial --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py cloud --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py ablate --seed 6 --calibration CALDIR SETDIR
+    .venv/bin/python scripts/pose_set.py lids [--room ROOM] --calibration CALDIR SETDIR
     PYTHONPATH=/path/to/other/checkout .venv/bin/python scripts/pose_set.py fit ... SETDIR
 
 Eyes are drawn as ``eyeserver.hardware.sim.population.draw`` draws them and placed within ±5 mm
@@ -20,7 +21,9 @@ comes from ``eyeserver bench accuracy --out`` or the benches' ``calibrate_room``
 ``ablate`` renders one drawn patient eye at rest (centred at (0, 0, −10) mm, gaze 0, as a
 reference capture sees it) with each group of its properties in turn set to the sharp eye's
 (``-group``) and the sharp eye given only that group of the patient's (``+group``), and fits
-each: which property alone breaks the fit.
+each: which property alone breaks the fit. ``lids`` renders the sharp eye with lids 0.3–0.8 mm
+outside the globe (the population's range reaches 0.3) and two lid openings, and fits each:
+are lids close to the globe told from the sclera.
 """
 
 from __future__ import annotations
@@ -177,6 +180,41 @@ def ablate(args: argparse.Namespace) -> None:
                   f"{pose.confidence:.2f} radius {pose.globe_radius_mm:.2f} mm", flush=True)
 
 
+LID_GAPS_MM = (0.3, 0.45, 0.6, 0.8)
+"""The lid shells' distances from the globe that ``lids`` renders (mm)."""
+
+LID_OPENINGS = (((10.2, 7.5), (-0.1, -0.6)), ((11.0, 6.5), (0.0, -0.3)))
+"""Its lid openings: half-width and half-height, centre from the globe's axis (mm)."""
+
+
+def lids(args: argparse.Namespace) -> None:
+    from eyeserver.errors import EyeserverError
+    from eyeserver.eye.fit import EyeModel, fit_eye
+    from eyeserver.hardware.sim.config import load_room
+    from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
+    from eyeserver.hardware.sim.sessions import SimSession
+    from eyeserver.reconstruction import limbus_views, reconstruct_bundle
+
+    with SimSession.open(load_room(args.room), seed=3) as session:
+        for gap in LID_GAPS_MM:
+            for aperture, offset in LID_OPENINGS:
+                bundle = args.setdir / f"lids{gap:g}_open{aperture[1]:g}"
+                eye = EyeSpec(gaze_deg=(3.0, -2.0), globe_radius_mm=12.0, aperture_mm=aperture,
+                              aperture_offset_mm=offset, lid_gap_mm=gap)
+                session.record(SceneSpec(kind="eye", position_mm=(0.5, -0.5, -10.5), eye=eye),
+                               bundle, overwrite=True)
+                truth = json.loads((bundle / "truth.json").read_text())["eye"]
+                try:
+                    made, _ = reconstruct_bundle(args.calibration, bundle, for_pose=True)
+                    pose = fit_eye(made, EyeModel.population(),
+                                   limbus_views(args.calibration, bundle))
+                except EyeserverError as exc:
+                    print(f"{bundle.name:18s} refused: {exc}", flush=True)
+                    continue
+                print(f"{bundle.name:18s} {off(pose.centre_mm, pose.gaze, truth)} confidence "
+                      f"{pose.confidence:.2f} radius {pose.globe_radius_mm:.2f} mm", flush=True)
+
+
 def cloud(args: argparse.Namespace) -> None:
     """Each eye's cloud against the exact scene (globe, cornea, iris, lids, lashes, skin): is
     the reconstruction right before any fit, and what share of the globe's neighbourhood is
@@ -230,6 +268,11 @@ def main() -> None:
     swap.add_argument("--room", type=Path, default=None, help="room file (default room)")
     swap.add_argument("setdir", type=Path)
     swap.set_defaults(step=ablate)
+    shells = steps.add_parser("lids", help="the sharp eye with lids close to the globe, fitted")
+    shells.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
+    shells.add_argument("--room", type=Path, default=None, help="room file (default room)")
+    shells.add_argument("setdir", type=Path)
+    shells.set_defaults(step=lids)
     scored = steps.add_parser("cloud", help="each eye's cloud against the exact scene")
     scored.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
     scored.add_argument("--method", default="auto", choices=("auto", "multi-view", "spatial"))

@@ -68,6 +68,7 @@ from eyeserver.eye.tunables import (
     GLOBE_DEPTHS_MM,
     GOOD_RESIDUAL_PX,
     LID_CLEARANCE_MM,
+    LID_GAP_MM,
     LIMBUS_CLEARANCE_MM,
     LIMBUS_WINDOW_MARGIN_PX,
     MAX_RESIDUAL_PX,
@@ -80,6 +81,7 @@ from eyeserver.eye.tunables import (
     SAMPLES,
     SHADOW_PROBE_MM,
     SHELL_SEARCH_MM,
+    SHELL_TROUGH,
     START_TILTS_DEG,
 )
 from eyeserver.pipeline.demodulate import demodulate
@@ -754,10 +756,14 @@ def _innermost_depth(votes: F64) -> float:
     limbus.
 
     Nothing but noise lies inside the globe: from the first 0.3 mm window holding a fit's worth
-    of votes, the strongest window within :data:`SHELL_SEARCH_MM` is the sclera's. Measured on
-    200 rendered poses, the first window alone sat on the noise inside the globe in one pose in
-    ten (centre errors up to 2.3 mm); a longer search reaches the lids' votes on the `wide`
-    rig, where they begin ≈ 2.8 mm beyond the sclera's and outnumber them a hundredfold.
+    of votes, the strongest window within :data:`SHELL_SEARCH_MM` is the sclera's, unless a
+    peak inside it holds at least half as many votes and a trough (below
+    :data:`SHELL_TROUGH` of that peak) lies between them: then the strongest is a lid shell
+    close to the globe (0.3–0.5 mm outside it, whose points outnumber the sclera's) and the
+    inner peak is the sclera. Measured on 200 rendered poses, the first window alone sat on
+    the noise inside the globe in one pose in ten (centre errors up to 2.3 mm); a longer search
+    reaches the lids' votes on the `wide` rig, where they begin ≈ 2.8 mm beyond the sclera's
+    and outnumber them a hundredfold. The inner peak: docs/notes/patient-eye.md.
     """
     edges = np.arange(GLOBE_DEPTHS_MM[0], GLOBE_DEPTHS_MM[1] + 0.1, 0.1)
     counts = np.convolve(np.histogram(votes, bins=edges)[0], np.ones(3), mode="same")
@@ -765,8 +771,39 @@ def _innermost_depth(votes: F64) -> float:
     if not len(enough):
         raise LimbusNotFoundError("too little sclera beside the limbus to place the globe")
     first = int(enough[0])
-    span = round(SHELL_SEARCH_MM / 0.1)
-    return float(edges[first + int(np.argmax(counts[first:first + span]))] + 0.05)
+    window = counts[first:first + round(SHELL_SEARCH_MM / 0.1)]
+    chosen = int(np.argmax(window))
+    for k in range(chosen):
+        peak = (window[k] >= 0.5 * window[chosen] and (k == 0 or window[k - 1] <= window[k])
+                and window[k + 1] <= window[k])
+        if peak and window[k:chosen + 1].min() < SHELL_TROUGH * window[k]:
+            chosen = k
+            break
+    return float(edges[first + chosen] + 0.05)
+
+
+def _lid_gap(offset: F64) -> float:
+    """Where the lids begin outside the sphere (mm of radial offset), from the points' offsets
+    to it: the trough between the sclera's peak (about 0) and a lid shell's, where a second
+    peak stands out (at least 0.3 of the sclera's, with a trough below :data:`SHELL_TROUGH`
+    of the smaller); :data:`LID_GAP_MM` without one. A patient's lids may lie 0.3 mm outside
+    the globe, the sclera's own flanks up to 0.3 mm (the band-limited FTM): a fixed clearance
+    takes one for the other either way."""
+    step = 0.05
+    edges = np.arange(-0.3, 1.6 + step / 2, step)
+    counts = np.convolve(np.histogram(offset, bins=edges)[0], np.ones(3) / 3, mode="same")
+    centres = edges[:-1] + step / 2
+    near = np.flatnonzero(np.abs(centres) < 0.15)
+    sclera = int(near[np.argmax(counts[near])])
+    beyond = np.flatnonzero(centres > centres[sclera] + 0.2)
+    if not len(beyond):
+        return LID_GAP_MM
+    lid = int(beyond[np.argmax(counts[beyond])])
+    trough = sclera + int(np.argmin(counts[sclera:lid + 1]))
+    if (counts[sclera] <= 0 or counts[lid] < 0.3 * counts[sclera]
+            or counts[trough] > SHELL_TROUGH * min(counts[sclera], counts[lid])):
+        return LID_GAP_MM
+    return float(np.clip(centres[trough], 0.1, LID_GAP_MM))
 
 
 def _mean_shift(votes: F64, weights: F64, start: float, bandwidths: Sequence[float]) -> float:
@@ -825,7 +862,9 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
     larger, scattered values — often many more of them — so the innermost shell is taken
     (:func:`_innermost_depth`) and refined by weighted mean shift; then again without the points
     within :data:`LID_CLEARANCE_MM` of the lids, which the band-limited FTM pulls towards them (a
-    least-squares fit of the whole cloud's sclera followed those points outwards). Last, ``h`` is
+    least-squares fit of the whole cloud's sclera followed those points outwards). The lids begin
+    where the points' offsets from that sphere show a shell of their own (:func:`_lid_gap`), as
+    close as 0.3 mm outside it, or else :data:`LID_GAP_MM` out. Last, ``h`` is
     fitted by robust least squares to the shell's points clear of the lids (:func:`_fitted_depth`):
     a vote's own noise is wider than the mean shift's last window, whose mode strays with it. A
     ``fixed_radius`` (the patient's model) sets ``h`` outright; the sclera then only measures how
@@ -854,27 +893,28 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
     else:
         depth = _mean_shift(votes, weights, _innermost_depth(votes), (0.4, 0.25, 0.15, 0.1))
     offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
+    gap = _lid_gap(offset[behind])
     # Only points that can be sclera are looked up (an eighth of the cloud or less), among the
     # lid points that can lie within the clearance of one (no further out than the two bands).
-    candidate = behind & (np.abs(offset) < 0.5)
-    lids = cloud[(offset > 0.5) & (offset < 0.5 + LID_CLEARANCE_MM)]
+    candidate = behind & (np.abs(offset) < gap)
+    lids = cloud[(offset > gap) & (offset < gap + LID_CLEARANCE_MM)]
     if len(lids) and candidate.any():
         distance, _ = cKDTree(lids).query(cloud[candidate],
                                           distance_upper_bound=LID_CLEARANCE_MM)
         far = np.zeros(len(cloud), dtype=bool)
         far[candidate] = ~np.isfinite(distance)
-        if (far & (np.abs(offset) < 0.3)).sum() >= MIN_SCLERA_POINTS:
+        if (far & (np.abs(offset) < min(gap, 0.3))).sum() >= MIN_SCLERA_POINTS:
             clear = far
             if fixed_radius is None:
                 votes, weights = _votes(cloud, limbus, behind & clear)
                 depth = _mean_shift(votes, weights, depth, (0.25, 0.15, 0.1))
     offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
-    sclera = behind & clear & (np.abs(offset) < 0.3)
+    sclera = behind & clear & (np.abs(offset) < min(gap, 0.3))
     fitted_sd = None
     if fixed_radius is None and sclera.sum() >= MIN_SCLERA_POINTS:
         depth, fitted_sd = _fitted_depth(cloud[sclera], limbus, depth)
         offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
-        sclera = behind & clear & (np.abs(offset) < 0.3)
+        sclera = behind & clear & (np.abs(offset) < min(gap, 0.3))
     if sclera.sum() < MIN_SCLERA_POINTS:
         if fixed_radius is None:
             raise LimbusNotFoundError("too little sclera beside the limbus to place the globe")

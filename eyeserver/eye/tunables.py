@@ -59,6 +59,11 @@ LID_CLEARANCE_MM = 1.0
 """Sclera points closer than this (mm) to the lid shell are left out of the globe's fit.
 Chosen by hand."""
 
+LID_GAP_MM = 0.5
+"""Points further than this (mm) outside the sphere through the limbus are taken for lids when
+their offsets show no lid shell of their own (:func:`~eyeserver.eye.limbus.globe_on_limbus`).
+Chosen by hand."""
+
 LIMBUS_CLEARANCE_MM = 1.5
 """And so are those closer than this (mm) to the limbus. Chosen by hand."""
 
@@ -78,6 +83,12 @@ SHELL_SEARCH_MM = 2.0
 200 rendered poses: the first window alone sat on the noise inside the globe in one pose in
 ten; a longer search reaches the lids' votes on the `wide` rig, where they begin ≈ 2.8 mm
 beyond the sclera's (docs/notes/limbus.md)."""
+
+SHELL_TROUGH = 0.6
+"""Two shells (the sclera and a lid shell close to it) are told apart where the counts between
+their peaks fall below this share of the smaller peak's (:func:`~eyeserver.eye.limbus.
+globe_on_limbus`). Chosen on rendered eyes with lids 0.3–0.8 mm outside the globe
+(docs/notes/patient-eye.md): 0.5 missed a lid shell 0.45 mm out whose trough stood at 0.56."""
 
 DARK_SHARE = 0.35
 """Fringe-free intensity below this share of the image's bright level (its 95th percentile)
