@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
 import shutil
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -13,8 +15,10 @@ import numpy as np
 import pytest
 
 from eyeserver.bench import accuracy, speed, tracking
+from eyeserver.bench import machine as machine_module
 from eyeserver.bench import pose as pose_bench
 from eyeserver.bench.figures import FIGURES
+from eyeserver.bench.machine import code_version, machine
 from eyeserver.bench.pose import (
     BINS,
     by_bin,
@@ -30,6 +34,7 @@ from eyeserver.bench.pose import (
 from eyeserver.bench.pose import format_text as format_pose_text
 from eyeserver.bench.report import (
     POSE_FAMILY,
+    code_text,
     confident_wrong_text,
     p95_text,
     refusals_text,
@@ -853,6 +858,28 @@ def test_the_speed_report_shows_live_tracking_rendered_live_and_ahead() -> None:
     assert expected in render_speed({"pending": {}, **refused})
     assert expected in "\n".join(speed.tracking_lines(refused))
     assert speed.tracking_figures(None, None) == {}
+
+
+def test_every_run_names_the_code_it_measured(tmp_path: Path) -> None:
+    """The page is spliced from runs made at different times; each part names the checkout
+    its bench ran (a commit, ``-dirty`` with changes not committed), so figures that no longer
+    hold for the code say so. Outside a git checkout nothing is claimed."""
+    code = code_version()
+    assert code is not None  # the tests run in the project's checkout
+    described = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True,
+                               text=True, check=True, cwd=Path(__file__).parents[1])
+    assert code == described.stdout.strip()
+    assert machine()["code"] == code
+    assert code_text({"machine": {"code": "abc1234-dirty"}}) == " Code: `abc1234-dirty`."
+    assert code_text({"machine": {"platform": "x"}}) == ""  # a run from before it was recorded
+    copy = tmp_path / "eyeserver" / "bench"
+    copy.mkdir(parents=True)
+    (copy / "machine.py").write_text(Path(machine_module.__file__).read_text())
+    spec = importlib.util.spec_from_file_location("copied_machine", copy / "machine.py")
+    assert spec is not None and spec.loader is not None
+    copied = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(copied)
+    assert copied.code_version() is None  # no pyproject.toml beside it: not a checkout
 
 
 def test_p95_interval_measures_the_draws_luck() -> None:

@@ -4,20 +4,38 @@ from __future__ import annotations
 
 import os
 import platform
+import subprocess
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import scipy.fft
 
-__all__ = ["machine", "reference_ms"]
+__all__ = ["code_version", "machine", "reference_ms"]
 
 
 def machine() -> dict[str, Any]:
-    """Where the figures came from."""
+    """Where the figures came from: the machine and the code (:func:`code_version`)."""
     return {"python": platform.python_version(), "numpy": np.__version__,
             "platform": platform.platform(), "processor": platform.processor() or "unknown",
-            "cpu_count": os.cpu_count()}
+            "cpu_count": os.cpu_count(), "code": code_version()}
+
+
+def code_version() -> str | None:
+    """The checkout that ran a bench, as ``git describe --always --dirty`` names it (a commit,
+    ``-dirty`` with uncommitted changes), or None where the code is not a git checkout (an
+    installed package): the page of figures is made from runs of several benches, each of
+    which may have run on other code, and says which."""
+    root = Path(__file__).resolve().parents[2]
+    if not (root / "pyproject.toml").is_file():
+        return None
+    try:
+        done = subprocess.run(["git", "-C", str(root), "describe", "--always", "--dirty"],
+                              capture_output=True, text=True, timeout=10, check=False)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return done.stdout.strip() or None if done.returncode == 0 else None
 
 
 def reference_ms(repeats: int = 50) -> float:

@@ -45,6 +45,14 @@ def render(accuracy: dict[str, Any], speed: dict[str, Any], *poses: dict[str, An
     return page
 
 
+def code_text(report: dict[str, Any]) -> str:
+    """Which code a run measured (:func:`~eyeserver.bench.machine.code_version`), as a
+    sentence, or nothing for a run that did not record it: the page's parts are made by
+    separate runs, and a part's figures hold for the code it names."""
+    code = report.get("machine", {}).get("code")
+    return f" Code: `{code}`." if code else ""
+
+
 def render_accuracy(accuracy: dict[str, Any]) -> str:
     """The page's head (its title, what made it, the accuracy run's machine and room) and its
     accuracy section, with the daily QA's figures when the run measured them: the part of the
@@ -59,7 +67,7 @@ def render_accuracy(accuracy: dict[str, Any]) -> str:
         "page with `python -m eyeserver.bench.report`.",
         "",
         f"Machine: {machine['platform']}, {machine['cpu_count']} CPUs, Python "
-        f"{machine['python']}, NumPy {machine['numpy']}.",
+        f"{machine['python']}, NumPy {machine['numpy']}.{code_text(accuracy)}",
         f"Simulated room (default rig), seed {accuracy['seed']}, "
         f"{'quick' if accuracy['quick'] else 'full'} run; noise model: shot noise (full well "
         f"{noise['shot_noise_full_well_e']:.0f} e⁻), read noise {noise['read_noise_dn']} DN, "
@@ -190,7 +198,10 @@ def render_qa(qa: dict[str, Any]) -> list[str]:
 
 def render_speed(speed: dict[str, Any]) -> str:
     """The speed section of the page."""
-    lines = ["## Speed", "", "| figure | median ms |", "|---|---|"]
+    lines = ["## Speed", ""]
+    if code_text(speed):
+        lines += [code_text(speed).strip(), ""]
+    lines += ["| figure | median ms |", "|---|---|"]
     for key in ("sim_render_2cam_ms", "sim_render_4cam_ms", "frameset_2cam_ms",
                 "frameset_4cam_ms", "frameset_4cam_2threads_ms"):
         if key in speed:
@@ -498,7 +509,8 @@ def render_pose(pose: dict[str, Any]) -> list[str]:
              f"{_flags(pose)}`: {pose['fitted']} of {pose['poses']} rendered eyes fitted "
              f"({eyes_text(pose)}; units: {', '.join(pose.get('units', ['all']))}; model: "
              f"{model}); gaze from: " + ", ".join(f"{k} {v}" for k, v in
-                                                  pose.get("gaze_sources", {}).items()) + ".",
+                                                  pose.get("gaze_sources", {}).items()) + "."
+             + code_text(pose),
              "", "| figure | median | p95 (95 % bootstrap interval) | max | goal |",
              "|---|---|---|---|---|",
              row("globe centre error (mm)", "centre_error_mm", "≤ 0.1"),
@@ -567,7 +579,7 @@ def render_reliability(report: dict[str, Any]) -> str:
              f"{machine['cpu_count']} CPUs): what a client sees when the daemon is killed, a "
              "device is unplugged, the disk fills up, many clients call at once, and requests "
              "are fuzzed; every part through a real daemon on loopback (issue 35). The run "
-             f"took {report.get('duration_s')} s.", ""]
+             f"took {report.get('duration_s')} s.{code_text(report)}", ""]
     kill = report["kill"]
     lines += ["### kill -9 during captures", ""]
     if "skipped" in kill:
