@@ -149,13 +149,10 @@ ABLATION_GROUPS = {
 
 
 def ablate(args: argparse.Namespace) -> None:
-    from eyeserver.errors import EyeserverError
-    from eyeserver.eye.fit import EyeModel, fit_eye
     from eyeserver.hardware.sim import population
     from eyeserver.hardware.sim.config import load_room
     from eyeserver.hardware.sim.scenes import SceneSpec
     from eyeserver.hardware.sim.sessions import SimSession
-    from eyeserver.reconstruction import limbus_views, reconstruct_bundle
 
     patient = population.draw(np.random.default_rng(args.seed), "patient")
     sharp = population.draw(np.random.default_rng(args.seed), "sharp")
@@ -168,16 +165,24 @@ def ablate(args: argparse.Namespace) -> None:
             bundle = args.setdir / f"seed{args.seed}{name}"
             session.record(SceneSpec(kind="eye", position_mm=(0.0, 0.0, -10.0), eye=eye),
                            bundle, overwrite=True)
-            truth = json.loads((bundle / "truth.json").read_text())["eye"]
-            try:
-                made, _ = reconstruct_bundle(args.calibration, bundle)
-                pose = fit_eye(made, EyeModel.population(),
-                               limbus_views(args.calibration, bundle))
-            except EyeserverError as exc:
-                print(f"{name:14s} refused: {exc}", flush=True)
-                continue
-            print(f"{name:14s} {off(pose.centre_mm, pose.gaze, truth)} confidence "
-                  f"{pose.confidence:.2f} radius {pose.globe_radius_mm:.2f} mm", flush=True)
+            print(f"{name:14s} {scored(args.calibration, bundle)}", flush=True)
+
+
+def scored(calibration: Path, bundle: Path, for_pose: bool = False) -> str:
+    """``bundle`` reconstructed and fitted with the population's model (radius fitted): how
+    far the pose lies from the truth, its confidence and radius, or why it was refused."""
+    from eyeserver.errors import EyeserverError
+    from eyeserver.eye.fit import EyeModel, fit_eye
+    from eyeserver.reconstruction import limbus_views, reconstruct_bundle
+
+    truth = json.loads((bundle / "truth.json").read_text())["eye"]
+    try:
+        made, _ = reconstruct_bundle(calibration, bundle, for_pose=for_pose)
+        pose = fit_eye(made, EyeModel.population(), limbus_views(calibration, bundle))
+    except EyeserverError as exc:
+        return f"refused: {exc}"
+    return (f"{off(pose.centre_mm, pose.gaze, truth)} confidence {pose.confidence:.2f} "
+            f"radius {pose.globe_radius_mm:.2f} mm")
 
 
 LID_GAPS_MM = (0.3, 0.45, 0.6, 0.8)
@@ -188,12 +193,9 @@ LID_OPENINGS = (((10.2, 7.5), (-0.1, -0.6)), ((11.0, 6.5), (0.0, -0.3)))
 
 
 def lids(args: argparse.Namespace) -> None:
-    from eyeserver.errors import EyeserverError
-    from eyeserver.eye.fit import EyeModel, fit_eye
     from eyeserver.hardware.sim.config import load_room
     from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
     from eyeserver.hardware.sim.sessions import SimSession
-    from eyeserver.reconstruction import limbus_views, reconstruct_bundle
 
     with SimSession.open(load_room(args.room), seed=3) as session:
         for gap in LID_GAPS_MM:
@@ -203,16 +205,8 @@ def lids(args: argparse.Namespace) -> None:
                               aperture_offset_mm=offset, lid_gap_mm=gap)
                 session.record(SceneSpec(kind="eye", position_mm=(0.5, -0.5, -10.5), eye=eye),
                                bundle, overwrite=True)
-                truth = json.loads((bundle / "truth.json").read_text())["eye"]
-                try:
-                    made, _ = reconstruct_bundle(args.calibration, bundle, for_pose=True)
-                    pose = fit_eye(made, EyeModel.population(),
-                                   limbus_views(args.calibration, bundle))
-                except EyeserverError as exc:
-                    print(f"{bundle.name:18s} refused: {exc}", flush=True)
-                    continue
-                print(f"{bundle.name:18s} {off(pose.centre_mm, pose.gaze, truth)} confidence "
-                      f"{pose.confidence:.2f} radius {pose.globe_radius_mm:.2f} mm", flush=True)
+                print(f"{bundle.name:18s} {scored(args.calibration, bundle, for_pose=True)}",
+                      flush=True)
 
 
 def cloud(args: argparse.Namespace) -> None:

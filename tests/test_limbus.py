@@ -369,6 +369,13 @@ def test_one_unit_tries_the_dark_disc_too_when_a_fit_from_the_cloud_looks_good(
     assert np.linalg.norm(np.subtract(pose.centre_mm, truth["centre_mm"])) < 0.15
 
 
+def _found_limbus(radius: float) -> limbus.Limbus:
+    """A limbus circle found at the origin, facing +Z, of ``radius`` (mm)."""
+    return limbus.Limbus(centre=np.zeros(3), normal=np.array([0.0, 0.0, 1.0]), radius=radius,
+                         centre_sd_mm=0.01, gaze_sd_deg=0.1, radius_sd_mm=0.01, residual_px=0.2,
+                         coverage={})
+
+
 def _shell(rng: np.random.Generator, centre: np.ndarray, radii: np.ndarray,
            polar_deg: tuple[float, float]) -> np.ndarray:
     """Points on spheres about ``centre`` (one radius each) at polar angles from +Z."""
@@ -387,9 +394,7 @@ def test_the_globe_on_the_limbus_is_supported_by_a_sclera_shell_not_by_lids() ->
     rng = np.random.default_rng(5)
     r, radius = 11.7 / 2, 12.0
     centre = np.array([0.0, 0.0, -math.sqrt(radius**2 - r**2)])
-    found = limbus.Limbus(centre=np.zeros(3), normal=np.array([0.0, 0.0, 1.0]), radius=r,
-                          centre_sd_mm=0.01, gaze_sd_deg=0.1, radius_sd_mm=0.01,
-                          residual_px=0.2, coverage={})
+    found = _found_limbus(r)
     sclera = _shell(rng, centre, radius + rng.normal(0.0, 0.02, 1500), (32.0, 50.0))
     lids = _shell(rng, centre, rng.uniform(12.8, 15.0, 3000), (30.0, 70.0))
 
@@ -410,9 +415,7 @@ def test_lids_close_to_the_globe_are_told_from_the_sclera_by_their_own_shell() -
     rng = np.random.default_rng(12)
     r, radius = 11.7 / 2, 12.0
     centre = np.array([0.0, 0.0, -math.sqrt(radius**2 - r**2)])
-    found = limbus.Limbus(centre=np.zeros(3), normal=np.array([0.0, 0.0, 1.0]), radius=r,
-                          centre_sd_mm=0.01, gaze_sd_deg=0.1, radius_sd_mm=0.01,
-                          residual_px=0.2, coverage={})
+    found = _found_limbus(r)
     sclera_radii = radius + np.concatenate([rng.normal(0.0, 0.04, 3000),
                                             rng.exponential(0.1, 600)])  # the flanks
     sclera = _shell(rng, centre, sclera_radii, (32.0, 55.0))
@@ -435,9 +438,7 @@ def test_the_globe_depth_takes_the_whole_shell_and_states_the_bias_it_cannot_see
     r, radius = 11.7 / 2, 12.5
     depth = math.sqrt(radius**2 - r**2)
     centre = np.array([0.0, 0.0, -depth])
-    found = limbus.Limbus(centre=np.zeros(3), normal=np.array([0.0, 0.0, 1.0]), radius=r,
-                          centre_sd_mm=0.01, gaze_sd_deg=0.1, radius_sd_mm=0.01,
-                          residual_px=0.2, coverage={})
+    found = _found_limbus(r)
     polar = (37.0, 60.0)
     exact = limbus.globe_on_limbus(_shell(rng, centre, np.full(3000, radius), polar), found)
     noisy = [limbus.globe_on_limbus(
