@@ -425,6 +425,7 @@ def test_lids_close_to_the_globe_are_told_from_the_sclera_by_their_own_shell() -
         assert globe.radius == pytest.approx(radius, abs=0.05), gap
     assert limbus._lid_gap(np.linalg.norm(sclera - centre, axis=1) - radius) == (
         tunables.LID_GAP_MM)
+    assert limbus._lid_gap(np.empty(0)) == tunables.LID_GAP_MM  # nothing behind the limbus
 
 
 def test_the_globe_depth_takes_the_whole_shell_and_states_the_bias_it_cannot_see() -> None:
