@@ -199,8 +199,9 @@ def render_qa(qa: dict[str, Any]) -> list[str]:
 def render_speed(speed: dict[str, Any]) -> str:
     """The speed section of the page."""
     lines = ["## Speed", ""]
-    if code_text(speed):
-        lines += [code_text(speed).strip(), ""]
+    code = code_text(speed).strip()
+    if code:
+        lines += [code, ""]
     lines += ["| figure | median ms |", "|---|---|"]
     for key in ("sim_render_2cam_ms", "sim_render_4cam_ms", "frameset_2cam_ms",
                 "frameset_4cam_ms", "frameset_4cam_2threads_ms"):

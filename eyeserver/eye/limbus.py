@@ -776,10 +776,16 @@ def _innermost_depth(votes: F64) -> float:
     for k in range(chosen):
         peak = (window[k] >= 0.5 * window[chosen] and (k == 0 or window[k - 1] <= window[k])
                 and window[k + 1] <= window[k])
-        if peak and window[k:chosen + 1].min() < SHELL_TROUGH * window[k]:
+        if peak and _shells_apart(window, k, chosen):
             chosen = k
             break
     return float(edges[first + chosen] + 0.05)
+
+
+def _shells_apart(counts: F64, inner: int, outer: int) -> bool:
+    """Whether the histogram's peaks at ``inner`` and ``outer`` are two shells: the counts
+    between them fall below :data:`SHELL_TROUGH` of the smaller peak's."""
+    return bool(counts[inner:outer + 1].min() < SHELL_TROUGH * min(counts[inner], counts[outer]))
 
 
 def _lid_gap(offset: F64) -> float:
@@ -799,10 +805,10 @@ def _lid_gap(offset: F64) -> float:
     if not len(beyond):
         return LID_GAP_MM
     lid = int(beyond[np.argmax(counts[beyond])])
-    trough = sclera + int(np.argmin(counts[sclera:lid + 1]))
     if (counts[sclera] <= 0 or counts[lid] < 0.3 * counts[sclera]
-            or counts[trough] > SHELL_TROUGH * min(counts[sclera], counts[lid])):
+            or not _shells_apart(counts, sclera, lid)):
         return LID_GAP_MM
+    trough = sclera + int(np.argmin(counts[sclera:lid + 1]))
     return float(np.clip(centres[trough], 0.1, LID_GAP_MM))
 
 
@@ -894,6 +900,7 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
         depth = _mean_shift(votes, weights, _innermost_depth(votes), (0.4, 0.25, 0.15, 0.1))
     offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
     gap = _lid_gap(offset[behind])
+    band = min(gap, 0.3)  # the sclera's points: within this (mm) of the sphere
     # Only points that can be sclera are looked up (an eighth of the cloud or less), among the
     # lid points that can lie within the clearance of one (no further out than the two bands).
     candidate = behind & (np.abs(offset) < gap)
@@ -903,18 +910,18 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
                                           distance_upper_bound=LID_CLEARANCE_MM)
         far = np.zeros(len(cloud), dtype=bool)
         far[candidate] = ~np.isfinite(distance)
-        if (far & (np.abs(offset) < min(gap, 0.3))).sum() >= MIN_SCLERA_POINTS:
+        if (far & (np.abs(offset) < band)).sum() >= MIN_SCLERA_POINTS:
             clear = far
             if fixed_radius is None:
                 votes, weights = _votes(cloud, limbus, behind & clear)
                 depth = _mean_shift(votes, weights, depth, (0.25, 0.15, 0.1))
     offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
-    sclera = behind & clear & (np.abs(offset) < min(gap, 0.3))
+    sclera = behind & clear & (np.abs(offset) < band)
     fitted_sd = None
     if fixed_radius is None and sclera.sum() >= MIN_SCLERA_POINTS:
         depth, fitted_sd = _fitted_depth(cloud[sclera], limbus, depth)
         offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
-        sclera = behind & clear & (np.abs(offset) < min(gap, 0.3))
+        sclera = behind & clear & (np.abs(offset) < band)
     if sclera.sum() < MIN_SCLERA_POINTS:
         if fixed_radius is None:
             raise LimbusNotFoundError("too little sclera beside the limbus to place the globe")
