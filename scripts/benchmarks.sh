@@ -56,12 +56,14 @@ splice_only() {
     exit 0
 }
 pose_runs() {
-    # The eye pose bench's three runs, their JSON in $out/pose*.json.
-    .venv/bin/eyeserver bench pose --json --poses "$poses" --displacement \
+    # The eye pose bench's three runs, their JSON in $out/pose*.json, one worker per core.
+    local jobs
+    jobs=$(nproc)
+    .venv/bin/eyeserver bench pose --json --poses "$poses" --displacement --jobs "$jobs" \
         --calibration "$out/accuracy/calibration" > "$out/pose.json"
     .venv/bin/eyeserver bench pose --json --poses "$((poses / 3))" --biometry --displacement \
-        --calibration "$out/accuracy/calibration" > "$out/pose_biometry.json"
-    .venv/bin/eyeserver bench pose --json --eyes sharp --poses "$poses" \
+        --jobs "$jobs" --calibration "$out/accuracy/calibration" > "$out/pose_biometry.json"
+    .venv/bin/eyeserver bench pose --json --eyes sharp --poses "$poses" --jobs "$jobs" \
         --calibration "$out/accuracy/calibration" > "$out/pose_sharp.json"
 }
 case "$mode" in

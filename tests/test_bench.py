@@ -67,6 +67,12 @@ def _json(capsys: pytest.CaptureFixture[str], args: list[str]) -> dict[str, Any]
     return report
 
 
+def _timeless(case: dict[str, Any]) -> dict[str, Any]:
+    """A pose bench's case without its fit's time (the one figure that depends on the
+    machine's load)."""
+    return {key: value for key, value in case.items() if key != "fit_ms"}
+
+
 @pytest.mark.slow
 def test_accuracy_bench_reports_the_papers_figures(calibrated_rooms: Any,
                                                    capsys: pytest.CaptureFixture[str]) -> None:
@@ -426,11 +432,13 @@ def _check_pose_report(report: dict[str, Any]) -> None:
 def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
                                       capsys: pytest.CaptureFixture[str]) -> None:
     """Patient eyes with the radius fitted (figures not checked: two poses say nothing of
-    them), then the old sharp eye with its biometry on one unit, as live tracking measures."""
+    them) on two worker processes, then the old sharp eye with its biometry on one unit, as
+    live tracking measures, in this process and again on two workers: the same figures."""
     _, caldir = calibrated_rooms("default")
-    report = _json(capsys, ["bench", "pose", "--json", "--poses", "2", "--calibration",
-                            str(caldir)])
+    report = _json(capsys, ["bench", "pose", "--json", "--poses", "2", "--jobs", "2",
+                            "--calibration", str(caldir)])
     assert report["poses"] == 2 and report["eyes"] == "patient"
+    assert report["machine"]["jobs"] == 2
     assert report["biometry"] is False and report["model"] == "population, radius fitted"
     assert "by_globe_radius" not in report  # patient globes have no three sizes
     _check_pose_report(report)
@@ -485,6 +493,12 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
     assert all(0.0 < c["displacement"]["true_move_mm"] <= math.sqrt(3) for c in sharp["cases"])
     assert "moves between two captures of an eye (up to 1 mm per axis" in section
     assert "stated uncertainties: centre errors within 1 and 2 sd on" in section
+    # The poses' figures do not depend on the processes that share them (each pose drawn
+    # first, each capture's noise seeded by its number): the first two again, on two workers.
+    again = _json(capsys, ["bench", "pose", "--json", "--poses", "2", "--eyes", "sharp",
+                           "--biometry", "--displacement", "--unit", "left", "--jobs", "2",
+                           "--calibration", str(caldir)])
+    assert [_timeless(c) for c in again["cases"]] == [_timeless(c) for c in sharp["cases"][:2]]
     # Side by side on the page, each run with its options.
     overview = "\n".join(render_pose_overview((report, sharp)))
     assert "| `--eyes patient` | 2 (" in overview

@@ -24,11 +24,14 @@ from __future__ import annotations
 import json
 import math
 import re
+import shutil
 import tempfile
 import time
 from collections import Counter
 from collections.abc import Mapping
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -404,9 +407,133 @@ def by_bin(rows: list[dict[str, Any]],
     return out
 
 
+@dataclass(frozen=True)
+class _Setup:
+    """What every pose of a run shares (sent to each worker process with its cases)."""
+
+    config: RoomConfig
+    calibration: Path
+    units: list[str] | None
+    seed: int
+    work: Path
+    displacement: bool
+    min_confidence: float
+
+
+@dataclass(frozen=True)
+class _Case:
+    """One pose's draws, made in order by the run before any is rendered, so that a pose's
+    figures do not depend on which process renders it or when."""
+
+    n: int
+    spec: SceneSpec
+    model: EyeModel
+    measured: dict[str, Any] | None
+    """The biometry the model was entered from (``--biometry``), else None."""
+    again: SceneSpec | None
+    """The eye moved for its second capture (``--displacement``), else None."""
+
+
+def case_seed(seed: int, n: int) -> int:
+    """The simulated room's seed (its cameras' noise) for the run's ``n``-th capture: a
+    function of the run's seed and ``n`` alone, so a pose renders the same in any worker and
+    any order (``--jobs``)."""
+    return int(np.random.SeedSequence([seed, n]).generate_state(1)[0])
+
+
+def _score(setup: _Setup, case: _Case) -> dict[str, Any]:
+    """Render, reconstruct and fit one pose (and its moved capture) in a room of its own, and
+    score it against the truth: the run's row for it."""
+    work = setup.work / f"pose_{case.n}"
+    try:
+        with SimSession.open(setup.config, seed=case_seed(setup.seed, case.n)) as session:
+            pose, truth, seconds, error = _measure(session, case.spec, setup.calibration,
+                                                   work / "eye", setup.units, case.model)
+            described = population.describe(case.spec.eye)
+            if case.measured is not None:
+                described["mri_sd_mm"] = case.measured["mri_sd_mm"]
+            row: dict[str, Any] = {"globe_radius_mm": truth["globe_radius_mm"],
+                                   "eye": described, "biometry": case.measured,
+                                   "error": error, "confident_wrong": False}
+            if pose is None:
+                return row
+            error_mm = np.asarray(pose.centre_mm) - truth["centre_mm"]
+            centre_error = float(np.linalg.norm(error_mm))
+            # The stated sd per axis: the measurement's and the unknown shape's, the latter
+            # along the gaze.
+            stated = np.hypot(pose.centre_sd_mm,
+                              pose.shape_sd_mm * np.abs(np.asarray(pose.gaze)))
+            row.update({
+                "centre_error_mm": centre_error,
+                "centre_error_in_sd": [float(e / sd) for e, sd in
+                                       zip(np.abs(error_mm), stated, strict=True)],
+                "centre_error_axes_mm": [float(e) for e in error_mm],
+                "centre_sd_stated_mm": [float(sd) for sd in stated],
+                "gaze_error_deg": gaze_angle_deg(pose.gaze, truth["gaze"]),
+                "gaze_sd_deg": pose.gaze_sd_deg,
+                "radius_error_mm": pose.globe_radius_mm - truth["globe_radius_mm"],
+                "limbus_error_mm": None if pose.limbus_centre_mm is None
+                else float(np.linalg.norm(np.asarray(pose.limbus_centre_mm)
+                                          - truth["limbus_centre_mm"])),
+                "gaze_source": pose.gaze_source,
+                "surface_mad_mm": pose.surface_mad_mm,
+                "sclera_points": pose.sclera_points, "confidence": pose.confidence,
+                "shape_sd_mm": pose.shape_sd_mm,
+                "confident_wrong": confident_wrong(centre_error, pose.confidence,
+                                                   setup.min_confidence, pose.shape_sd_mm),
+                "fit_ms": 1000.0 * seconds})
+            if case.again is not None:
+                second, second_truth, _, why = _measure(session, case.again,
+                                                        setup.calibration, work / "moved",
+                                                        setup.units, case.model)
+                row["displacement"] = ({"error": why} if second is None else
+                                       {"error": None, **displacement_error(
+                                           pose, second, truth, second_truth)})
+            return row
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _one_thread() -> None:
+    """A worker process's OpenCV and BLAS on one thread each: ``--jobs`` workers share the
+    cores, and each library's own threads would fight the other workers for them (as the
+    tracking workers found: docs/notes/tracking.md)."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")
+    cv2.setNumThreads(1)
+
+
+def _rows(setup: _Setup, cases: list[_Case], jobs: int, progress: Progress,
+          ) -> list[dict[str, Any]]:
+    """Every case's row, in the cases' order: in this process for one job, else on ``jobs``
+    worker processes (each pose costs seconds of rendering and fitting, so the processes'
+    start and the pickled cases cost little). The first failure stops the run."""
+    total = len(cases)
+    if jobs == 1:
+        rows = []
+        for case in cases:
+            progress(f"pose {case.n + 1}/{total}")
+            rows.append(_score(setup, case))
+        return rows
+    found: dict[int, dict[str, Any]] = {}
+    pool = ProcessPoolExecutor(min(jobs, total), mp_context=get_context("spawn"),
+                               initializer=_one_thread)
+    try:
+        futures = {pool.submit(_score, setup, case): case.n for case in cases}
+        for future in as_completed(futures):
+            found[futures[future]] = future.result()
+            progress(f"pose {len(found)}/{total} done")
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+    return [found[case.n] for case in cases]
+
+
 def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Path | None = None,
         units: list[str] | None = None, eyes: str = "patient", biometry: bool = False,
-        displacement: bool = False, progress: Progress = quiet) -> dict[str, Any]:
+        displacement: bool = False, jobs: int = 1, progress: Progress = quiet,
+        ) -> dict[str, Any]:
     """The pose bench as one JSON-able document.
 
     ``units``: capture only these units (default all: the default room's two look at the one
@@ -414,7 +541,9 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
     biometry with its measurement errors (:func:`biometry_model`) instead of the population
     model with the radius fitted; ``displacement``: each fitted eye captured again, moved
     (:func:`moved`), and the move measured (:func:`displacement_error`): what a verification
-    against a reference captured at set-up sees, where the globe's unknown shape cancels.
+    against a reference captured at set-up sees, where the globe's unknown shape cancels;
+    ``jobs``: worker processes sharing the poses (the figures are the same for any number:
+    every draw is made first, and each capture's noise comes from :func:`case_seed`).
 
     Raises
     ------
@@ -428,6 +557,8 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
                              f"{', '.join(known)})")
     if eyes not in EYES:
         raise EyeserverError(f"no eyes {eyes!r} (choose from {', '.join(EYES)})")
+    if jobs < 1:
+        raise EyeserverError(f"jobs must be at least 1, not {jobs}")
     streams = Streams.from_seed(seed)
     min_confidence = DEFAULT_MIN_CONFIDENCE
 
@@ -437,70 +568,32 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
         measured = dict(population.biometry(eye, streams.errors))
         return biometry_model(measured), measured
 
-    rows: list[dict[str, Any]] = []
+    cases = []
+    for n in range(poses):
+        spec = draw_spec(streams, eyes, n)
+        model, measured = model_of(spec.eye)
+        again = moved(streams.moves, spec) if displacement else None
+        cases.append(_Case(n, spec, model, measured, again))
+    base = (random_spec(streams.poses, 12.0) if eyes == "sharp"
+            else draw_spec(streams, eyes, poses))
+    shifted = base.model_copy(update={"position_mm": (
+        base.position[0] + SHIFT_MM, base.position[1], base.position[2])})
+    shift_model, _ = model_of(base.eye)  # one patient, one model for both captures
+
     with tempfile.TemporaryDirectory(prefix="eyeserver-bench-pose-") as tmp:
         work = Path(tmp)
         caldir = calibration
         if caldir is None:
             progress("calibrating the simulated rig (≈ 1 minute)")
             caldir = calibrate_room(config, work, seed, progress)
-        with SimSession.open(config, seed=seed + 1) as session:
-            for n in range(poses):
-                spec = draw_spec(streams, eyes, n)
-                model, measured = model_of(spec.eye)
-                progress(f"pose {n + 1}/{poses}")
-                pose, truth, seconds, error = _measure(session, spec, caldir, work / "eye",
-                                                       units, model)
-                described = population.describe(spec.eye)
-                if measured is not None:
-                    described["mri_sd_mm"] = measured["mri_sd_mm"]
-                row: dict[str, Any] = {"globe_radius_mm": truth["globe_radius_mm"],
-                                       "eye": described,
-                                       "biometry": measured, "error": error,
-                                       "confident_wrong": False}
-                if pose is not None:
-                    error_mm = np.asarray(pose.centre_mm) - truth["centre_mm"]
-                    centre_error = float(np.linalg.norm(error_mm))
-                    # The stated sd per axis: the measurement's and the unknown shape's, the
-                    # latter along the gaze.
-                    stated = np.hypot(pose.centre_sd_mm,
-                                      pose.shape_sd_mm * np.abs(np.asarray(pose.gaze)))
-                    row.update({
-                        "centre_error_mm": centre_error,
-                        "centre_error_in_sd": [float(e / sd) for e, sd in
-                                               zip(np.abs(error_mm), stated, strict=True)],
-                        "centre_error_axes_mm": [float(e) for e in error_mm],
-                        "centre_sd_stated_mm": [float(sd) for sd in stated],
-                        "gaze_error_deg": gaze_angle_deg(pose.gaze, truth["gaze"]),
-                        "gaze_sd_deg": pose.gaze_sd_deg,
-                        "radius_error_mm": pose.globe_radius_mm - truth["globe_radius_mm"],
-                        "limbus_error_mm": None if pose.limbus_centre_mm is None
-                        else float(np.linalg.norm(np.asarray(pose.limbus_centre_mm)
-                                                  - truth["limbus_centre_mm"])),
-                        "gaze_source": pose.gaze_source,
-                        "surface_mad_mm": pose.surface_mad_mm,
-                        "sclera_points": pose.sclera_points, "confidence": pose.confidence,
-                        "shape_sd_mm": pose.shape_sd_mm,
-                        "confident_wrong": confident_wrong(centre_error, pose.confidence,
-                                                           min_confidence, pose.shape_sd_mm),
-                        "fit_ms": 1000.0 * seconds})
-                    if displacement:
-                        again = moved(streams.moves, spec)
-                        second, second_truth, _, why = _measure(session, again, caldir,
-                                                                work / "moved", units, model)
-                        row["displacement"] = ({"error": why} if second is None else
-                                               {"error": None, **displacement_error(
-                                                   pose, second, truth, second_truth)})
-                rows.append(row)
-            progress("1 mm shift between two captures")
-            base = (random_spec(streams.poses, 12.0) if eyes == "sharp"
-                    else draw_spec(streams, eyes, poses))
-            shifted = base.model_copy(update={"position_mm": (
-                base.position[0] + SHIFT_MM, base.position[1], base.position[2])})
-            model, _ = model_of(base.eye)  # one patient, one model for both captures
-            first, _, _, e1 = _measure(session, base, caldir, work / "shift_a", units, model)
+        setup = _Setup(config, caldir, units, seed, work, displacement, min_confidence)
+        rows = _rows(setup, cases, jobs, progress)
+        progress("1 mm shift between two captures")
+        with SimSession.open(config, seed=case_seed(seed, poses)) as session:
+            first, _, _, e1 = _measure(session, base, caldir, work / "shift_a", units,
+                                       shift_model)
             second, _, _, e2 = _measure(session, shifted, caldir, work / "shift_b", units,
-                                        model)
+                                        shift_model)
     shift: dict[str, Any] = {"true_shift_mm": SHIFT_MM, "tolerance_mm": TOLERANCE_MM,
                              "error": e1 or e2}
     if first is not None and second is not None:
@@ -509,7 +602,7 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
                       "fails_tolerance": measured_mm > TOLERANCE_MM})
     fitted = _fitted(rows)
     report: dict[str, Any] = {
-        "format": FORMAT, "machine": machine(), "seed": seed,
+        "format": FORMAT, "machine": {**machine(), "jobs": jobs}, "seed": seed,
         "poses": poses, "fitted": len(fitted), "goals": GOALS,
         "units": units or known, "eyes": eyes, "biometry": biometry,
         "model": ("the patient's biometry with measurement errors (MRI globe, keratometry, "

@@ -125,6 +125,9 @@ def add_parser(subparsers: Subparsers) -> None:
                       help="capture each fitted eye again, moved by up to 1 mm and turned by "
                       "up to 2° per axis, and score the move measured: what a check against "
                       "a reference captured at set-up sees (twice the renders)")
+    pose.add_argument("--jobs", type=_positive_int, default=1, metavar="N",
+                      help="worker processes sharing the poses (default 1; the figures are "
+                      "the same for any N: one per core halves a run on 2 cores)")
     pose.set_defaults(handler=_pose)
     tracking = commands.add_parser(
         "tracking", help="live tracking end to end through a daemon on loopback",
@@ -241,7 +244,7 @@ def _pose(args: argparse.Namespace) -> int:
     report = pose.run(load_room(args.room), poses=args.poses, seed=args.seed,
                       calibration=args.calibration, units=args.units,
                       eyes=args.eyes, biometry=args.biometry,
-                      displacement=args.displacement, progress=_progress)
+                      displacement=args.displacement, jobs=args.jobs, progress=_progress)
     print(json.dumps(report, indent=1) if args.json else pose.format_text(report))
     return 0
 
