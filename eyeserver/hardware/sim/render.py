@@ -82,25 +82,6 @@ class _StaticPart:
     """Per source, the raw values of those pixels with that body at its fullest."""
 
 
-def _joined(parts: Sequence[_Shading]) -> _Shading:
-    """The shading of consecutive chunks of rays, as one."""
-    glossy = None
-    if any(part.glossy is not None for part in parts):
-        glossy = np.concatenate([np.zeros(part.values.shape[0], dtype=bool)
-                                 if part.glossy is None else part.glossy for part in parts])
-    return _Shading(values=np.concatenate([part.values for part in parts]),
-                    albedo=np.concatenate([part.albedo for part in parts]),
-                    label=np.concatenate([part.label for part in parts]),
-                    lit=np.concatenate([part.lit for part in parts]),
-                    normals=np.concatenate([part.normals for part in parts]), glossy=glossy)
-
-
-RAYS_PER_CHUNK = 65536
-"""Rays shaded at once: a camera's 330,000 (640 × 512) to 1.3 million rays at once make
-float64 arrays of tens of megabytes, which leave the cache between the cast's many passes;
-in chunks they stay (measured: docs/notes/test-time.md)."""
-
-
 ALBEDO_STEP = 1e-3
 """Neighbouring pixels whose albedo differs by more than this are integrated over their area:
 every painted edge (steps of 0.02 and more), not the smooth reflectance of a soft limbus far
@@ -274,17 +255,7 @@ class Renderer:
 
     def _shade_sources(self, cam: CameraModel, scene: Scene, rays: F64,
                        sources: Sequence[str]) -> dict[str, _Shading]:
-        """:meth:`_shade` for several sources from one ray cast, in chunks of
-        :data:`RAYS_PER_CHUNK` rays (every ray is shaded on its own)."""
-        if rays.shape[0] <= RAYS_PER_CHUNK:
-            return self._shade_chunk(cam, scene, rays, sources)
-        chunks = [self._shade_chunk(cam, scene, rays[start:start + RAYS_PER_CHUNK], sources)
-                  for start in range(0, rays.shape[0], RAYS_PER_CHUNK)]
-        return {source: _joined([chunk[source] for chunk in chunks]) for source in sources}
-
-    def _shade_chunk(self, cam: CameraModel, scene: Scene, rays: F64,
-                     sources: Sequence[str]) -> dict[str, _Shading]:
-        """:meth:`_shade_sources` of one chunk of rays."""
+        """:meth:`_shade` for several sources from one ray cast."""
         hits = scene.cast(cam.centre, rays)
         hit = np.isfinite(hits.t)
         # Lambertian surfaces look equally bright from every side: only the side facing the
@@ -514,15 +485,10 @@ class Renderer:
             rel = centre - cam.centre
             along = rays @ rel
             view = np.flatnonzero((along > 0) & (float(rel @ rel) - along**2 < radius**2))
-            hit_idx, hit_points = [], []
-            for start in range(0, rays.shape[0], RAYS_PER_CHUNK):
-                hits = built.static.cast(cam.centre, rays[start:start + RAYS_PER_CHUNK])
-                hit = np.flatnonzero(np.isfinite(hits.t))
-                hit_idx.append(hit + start)
-                hit_points.append(hits.points[hit])
+            hits = built.static.cast(cam.centre, rays)
             part = _StaticPart(values={}, finished={}, view_idx=view, view_rays=rays[view],
-                               hit_idx=np.concatenate(hit_idx),
-                               hit_points=np.concatenate(hit_points))
+                               hit_idx=np.flatnonzero(np.isfinite(hits.t)),
+                               hit_points=hits.points[np.isfinite(hits.t)])
         missing = [src for src in sources if src not in part.values]
         if missing:
             shaded = self._shade_sources(cam, built.static, rays, missing)
@@ -579,8 +545,8 @@ class Renderer:
                      for source, shading in shadings.items()}
             rows, cols = np.nonzero(np.logical_or.reduce(list(edges.values())))
             offsets = pixel_samples(s * s)
-            # In chunks of whole pixels' rays (the pixels' means are taken per chunk).
-            chunk = max(1, RAYS_PER_CHUNK // (s * s))
+            # In chunks of ~64 k rays: arrays that stay in cache run several times faster.
+            chunk = max(1, 65536 // (s * s))
             for start in range(0, rows.size, chunk):
                 r, c = rows[start:start + chunk], cols[start:start + chunk]
                 subs = self._shade_sources(cam, scene, cam.rays_at_subpixels(r, c, offsets),
