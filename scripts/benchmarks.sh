@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
 # Regenerate docs/benchmarks.md: run the benches (the full accuracy protocol with the example
 # rooms' rigs, ≈ 15 minutes on 2 cores, the speed bench with live tracking, ≈ 8 minutes, and the
-# eye pose bench three times:
+# eye pose bench three times, one worker per core (--jobs; times on 2 cores):
 # 600 patient eyes with the radius fitted, each captured again moved (--displacement: what a
-# check against a reference captured at set-up sees), ≈ 2 hours (a patient eye takes two to
+# check against a reference captured at set-up sees), ≈ 45 minutes (a patient eye takes two to
 # three times the sharp eye's time to render), 200 with their biometry given (each patient's MRI
-# as good or as bad as drawn), captured again moved, ≈ 45 minutes, and the old sharp-limbus eye
-# on 600, ≈ 25 minutes), the reliability bench (kill -9, unplugged devices,
+# as good or as bad as drawn), captured again moved, ≈ 15 minutes, and the old sharp-limbus eye
+# on 600, ≈ 15 minutes), the reliability bench (kill -9, unplugged devices,
 # a full disk, load and fuzz through daemons on loopback, a few minutes; its full-disk part needs
 # root for its tmpfs and says skipped otherwise) and render their JSON.
 # Figures and PNGs are kept in build/benchmarks/.
@@ -14,7 +14,7 @@
 #                                   [--poses N]
 #   --accuracy, --speed, --reliability, --pose: only that bench (the full accuracy protocol, ≈ 15
 #   minutes, the speed bench, ≈ 8, the reliability bench, a few, or the eye pose bench's three
-#   runs, ≈ 3.5 hours), its part of the page made anew and the rest left as it is (the accuracy
+#   runs, ≈ 1.25 hours), its part of the page made anew and the rest left as it is (the accuracy
 #   run's part: the page's head and its Accuracy section, the daily QA's figures with it; its
 #   calibration in build/benchmarks/accuracy/ is the one later full runs, --speed and --pose
 #   use: run --accuracy first on a fresh clone).
