@@ -416,7 +416,6 @@ class _Setup:
     units: list[str] | None
     seed: int
     work: Path
-    displacement: bool
     min_confidence: float
 
 
@@ -586,7 +585,7 @@ def run(config: RoomConfig, *, poses: int = 200, seed: int = 0, calibration: Pat
         if caldir is None:
             progress("calibrating the simulated rig (≈ 1 minute)")
             caldir = calibrate_room(config, work, seed, progress)
-        setup = _Setup(config, caldir, units, seed, work, displacement, min_confidence)
+        setup = _Setup(config, caldir, units, seed, work, min_confidence)
         rows = _rows(setup, cases, jobs, progress)
         progress("1 mm shift between two captures")
         with SimSession.open(config, seed=case_seed(seed, poses)) as session:
