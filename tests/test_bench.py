@@ -491,6 +491,10 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
     assert moves["pairs"] == 3 and moves["fitted"] == 3
     assert moves["error_mm"]["max"] < 0.2 and moves["gaze_turn_error_deg"]["max"] < 0.5
     assert all(0.0 < c["displacement"]["true_move_mm"] <= math.sqrt(3) for c in sharp["cases"])
+    for case in sharp["cases"]:  # what a check on the move's own uncertainty would need
+        move = case["displacement"]
+        assert move["confidences"][0] == case["confidence"] and 0 < move["confidences"][1] <= 1
+        assert len(move["move_sd_mm"]) == 3 and all(0 < sd < 1 for sd in move["move_sd_mm"])
     assert "moves between two captures of an eye (up to 1 mm per axis" in section
     assert "stated uncertainties: centre errors within 1 and 2 sd on" in section
     # The poses' figures do not depend on the processes that share them (each pose drawn
