@@ -51,6 +51,7 @@ from eyeserver.bench.report import (
     uncertainty_coverage,
 )
 from eyeserver.bench.simcal import calibrate_room
+from eyeserver.core.memory import keep_freed_memory
 from eyeserver.core.types import Progress, quiet
 from eyeserver.errors import EyeserverError
 from eyeserver.eye import EyeModel, EyePose, fit_eye
@@ -500,13 +501,15 @@ def _score(setup: _Setup, case: _Case) -> dict[str, Any]:
         shutil.rmtree(work, ignore_errors=True)
 
 
-def _one_thread() -> None:
-    """A worker process's OpenCV and BLAS on one thread each: ``--jobs`` workers share the
-    cores, and each library's own threads would fight the other workers for them (as the
-    tracking workers found: docs/notes/tracking.md)."""
+def _worker_start() -> None:
+    """A worker process set up as a command's own (``eyeserver.cli.main`` keeps freed memory;
+    a spawned worker does not run it), with OpenCV and the BLAS on one thread each: ``--jobs``
+    workers share the cores, and each library's own threads would fight the other workers for
+    them (as the tracking workers found: docs/notes/tracking.md)."""
     import cv2
     from threadpoolctl import threadpool_limits
 
+    keep_freed_memory()
     threadpool_limits(limits=1, user_api="blas")
     cv2.setNumThreads(1)
 
@@ -525,7 +528,7 @@ def _rows(setup: _Setup, cases: list[_Case], jobs: int, progress: Progress,
         return rows
     found: dict[int, dict[str, Any]] = {}
     pool = ProcessPoolExecutor(min(jobs, total), mp_context=get_context("spawn"),
-                               initializer=_one_thread)
+                               initializer=_worker_start)
     try:
         futures = {pool.submit(_score, setup, case): case.n for case in cases}
         for future in as_completed(futures):

@@ -126,8 +126,8 @@ def add_parser(subparsers: Subparsers) -> None:
                       "up to 2° per axis, and score the move measured: what a check against "
                       "a reference captured at set-up sees (twice the renders)")
     pose.add_argument("--jobs", type=_positive_int, default=1, metavar="N",
-                      help="worker processes sharing the poses (default 1; the figures are "
-                      "the same for any N: one per core halves a run on 2 cores)")
+                      help="worker processes sharing the poses, one per core at most "
+                      "(default 1; the figures are the same for any N)")
     pose.set_defaults(handler=_pose)
     tracking = commands.add_parser(
         "tracking", help="live tracking end to end through a daemon on loopback",
