@@ -34,7 +34,7 @@ export function mount(container, ctx) {
   let lastImages = 0;
   let liveTimer = null;
   let liveUnit = null; // the unit whose live images are shown (null: not tracking)
-  let livePending = false;
+  let livePending = null; // the live images' fetch under way (a promise), or null
   const liveUrls = new Map(); // camera -> the blob: URL its <img> shows
   const timers = [];
 
@@ -237,7 +237,8 @@ export function mount(container, ctx) {
 
   async function stopTracking() {
     stopButton.disabled = true;
-    setLive(null); // no preview asked of a session that is ending
+    setLive(null); // no preview asked of a session that is ending,
+    await livePending; // nor one still on its way when the stop arrives (a 409 otherwise)
     try {
       await post("/tracking/stop");
       replace(trackingMessage);
@@ -371,15 +372,19 @@ export function mount(container, ctx) {
     liveUrls.clear();
   }
 
-  async function showLive() {
+  function showLive() {
     if (livePending || closed || !liveUnit) return;
+    livePending = fetchLive().finally(() => { livePending = null; });
+  }
+
+  async function fetchLive() {
     const units = (ctx.status?.units || []).filter((u) => liveUnit === "all" || u.id === liveUnit);
-    livePending = true;
     const fetched = [];
     try {
       let frame = null;
       for (const unit of units) {
         for (const camera of unit.cameras) {
+          if (closed || !liveTimer) return; // tracking stopped meanwhile: ask no more
           const response = await request("GET", `/tracking/preview/${encodeURIComponent(
             camera)}.jpg`, {raw: true});
           frame = response.headers.get("X-Frame");
@@ -411,7 +416,6 @@ export function mount(container, ctx) {
       if (error.status !== 409) replace(captureMessage, message("error", reasonOf(error)));
     } finally {
       fetched.forEach(([, , src]) => URL.revokeObjectURL(src));
-      livePending = false;
     }
   }
 
