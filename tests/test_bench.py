@@ -401,7 +401,8 @@ def _check_pose_report(report: dict[str, Any]) -> None:
         assert set(case["eye"]) == descriptors
         if case["error"] is None:
             assert case["confident_wrong"] == confident_wrong(
-                case["centre_error_mm"], case["confidence"], shape_sd_mm=case["shape_sd_mm"])
+                case["centre_error_mm"], case["confidence"], shape_sd_mm=case["shape_sd_mm"],
+                measured_sd_mm=case["measured_sd_mm"])
         else:
             assert case["confident_wrong"] is False  # a refusal is never wrong
     wrong = report["confident_wrong"]
@@ -416,7 +417,7 @@ def _check_pose_report(report: dict[str, Any]) -> None:
     text = format_pose_text(report)
     for expected in ("confident wrong poses (off by > 0.2 mm, yet passing the check against "
                      "a planned pose: confidence ≥ min_confidence 0.5, the globe's shape "
-                     "known)",
+                     "known, the pose's own sd within the tolerance)",
                      "confidence separation:", "refusals (no pose given):", "per bin",
                      "limbus width (mm)", "limbus contrast", "lid cover", "anatomy mismatch",
                      "95 % bootstrap intervals"):
@@ -491,10 +492,11 @@ def test_pose_bench_scores_random_eyes(calibrated_rooms: Any,
     assert moves["pairs"] == 3 and moves["fitted"] == 3
     assert moves["error_mm"]["max"] < 0.2 and moves["gaze_turn_error_deg"]["max"] < 0.5
     assert all(0.0 < c["displacement"]["true_move_mm"] <= math.sqrt(3) for c in sharp["cases"])
-    for case in sharp["cases"]:  # what a check on the move's own uncertainty would need
-        move = case["displacement"]
+    for case in sharp["cases"]:  # the check weighs the move's own uncertainty: a sharp
+        move = case["displacement"]  # eye's is small enough to pass it
         assert move["confidences"][0] == case["confidence"] and 0 < move["confidences"][1] <= 1
-        assert len(move["move_sd_mm"]) == 3 and all(0 < sd < 1 for sd in move["move_sd_mm"])
+        assert len(move["move_sd_mm"]) == 3
+        assert passes(move["confidences"][1], measured_sd_mm=move["move_sd_mm"])
     assert "moves between two captures of an eye (up to 1 mm per axis" in section
     assert "stated uncertainties: centre errors within 1 and 2 sd on" in section
     # The poses' figures do not depend on the processes that share them (each pose drawn
@@ -533,6 +535,11 @@ def test_a_pose_whose_globe_shape_is_unknown_is_refused_not_confident_wrong() ->
     rows = [{**_row(0.86, 0.9), **shape}, {**_row(0.03, 0.9), **shape}, _row(0.86, 0.9)]
     assert not passes(0.9, SHAPE_SD_MM) and passes(0.9, 0.05) and not passes(0.9, 0.051)
     assert not confident_wrong(0.86, 0.9, shape_sd_mm=SHAPE_SD_MM)
+    # Nor is a pose whose own measurement is stated too uncertain (1 sd beyond the tolerance).
+    assert passes(0.9, measured_sd_mm=(0.2, 0.2, 0.2))
+    assert not passes(0.9, measured_sd_mm=(0.01, 0.01, 0.201))
+    vague = {**_row(0.86, 0.9), "measured_sd_mm": [0.01, 0.01, 0.3]}
+    assert confident_wrong_summary([*rows, vague])["count"] == 1
     assert confident_wrong_summary(rows)["count"] == 1  # only the pose of a given shape
     separation = confidence_separation(rows)
     assert separation["good"] == 1 and separation["good_refused"] == 1

@@ -40,6 +40,7 @@ from eyeserver.service.verification import (
     deviation,
     gaze_angle_deg,
     judge,
+    measured_sd_mm,
     model_sd_mm,
     unit_contributions,
     unit_shortfalls,
@@ -109,6 +110,44 @@ def test_a_globe_shape_the_model_does_not_give_fails_against_a_planned_pose() ->
     assert judge(replace(found, model_sd_mm=0.05), Tolerances(), 0.9).passed
 
 
+def test_a_deviation_measured_too_uncertainly_fails_within_the_tolerance() -> None:
+    # A move within the tolerance whose own stated sd (the pose's with the reference's) along
+    # one axis exceeds the tolerance says nothing: the fit could not tell in from out (a
+    # patient eye 0.5 mm off passed at sd 0.24 mm before; docs/notes/patient-eye.md).
+    found = replace(deviation((0.05, 0.0, 0.0), (0, 0, 1), (0, 0, 0), (0, 0, 1)),
+                    measured_sd_mm=(0.01, 0.02, 0.24))
+
+    verdict = judge(found, Tolerances(), 0.9)
+
+    assert not verdict.passed and verdict.in_tolerance
+    assert verdict.reasons == (
+        "the measurement states the centre's deviation only to ±0.48 mm (2 sd, with the "
+        "reference's), more than 2 × the 0.2 mm tolerance: the eye was seen too poorly to tell "
+        "(the limbus or the sclera barely visible); measure again with the eye open, still and "
+        "looking at the fixation light",)
+    assert found.to_dict()["measured_sd_mm"] == [0.01, 0.02, 0.24]
+    # On the limit (1 sd = the tolerance) it passes; a tolerance of 0.5 mm takes 0.24 mm.
+    assert judge(replace(found, measured_sd_mm=(0.2, 0.2, 0.2)), Tolerances(), 0.9).passed
+    assert judge(found, Tolerances(translation_mm=0.5), 0.9).passed
+    assert not judge(replace(found, measured_sd_mm=(0.0, math.nan, 0.0)), Tolerances(),
+                     0.9).passed
+
+
+def test_the_measured_sd_counts_a_captured_references_own() -> None:
+    pose = EyePose(centre_mm=(0.0, 0.0, -10.0), centre_sd_mm=(0.03, 0.04, 0.12),
+                   globe_radius_mm=12.0, limbus_centre_mm=None, limbus_sd_mm=None,
+                   gaze=(0.0, 0.0, 1.0), gaze_sd_deg=0.1, torsion_deg=None,
+                   surface_mad_mm=0.05, sclera_points=1000, confidence=0.9)
+    stored = {"centre_mm": [0.0, 0.0, -10.0], "gaze": [0.0, 0.0, 1.0]}
+    planned = ReferencePose("P", 1, 1, "now", "someone", "plan", stored, None, None)
+    captured = ReferencePose("P", 1, 2, "now", "someone", "capture", stored, None,
+                             {"eye_model_version": None,
+                              "fit": {"centre_sd_mm": [0.04, 0.03, 0.16]}})
+
+    assert measured_sd_mm(pose, planned) == (0.03, 0.04, 0.12)  # a plan is exact
+    assert measured_sd_mm(pose, captured) == pytest.approx((0.05, 0.05, 0.2))
+
+
 def test_the_shape_cancels_against_a_reference_captured_with_the_same_model() -> None:
     tilt = math.radians(2.0)
     pose = EyePose(centre_mm=(0.0, 0.0, -10.0), centre_sd_mm=(0.01, 0.01, 0.01),
@@ -141,6 +180,7 @@ class FakeFit:
         self.centre = (0.0, 0.0, -10.0)
         self.gaze = (0.0, 0.0, 1.0)
         self.confidence = 0.9
+        self.sd = 0.01
         self.error: str | None = None
         self.calls: list[tuple[int, EyeModel]] = []
         self.views: list[LimbusView] = []
@@ -151,7 +191,7 @@ class FakeFit:
         self.views = list(views)
         if self.error is not None:
             raise PoseError(self.error)
-        return EyePose(centre_mm=self.centre, centre_sd_mm=(0.01, 0.01, 0.01),
+        return EyePose(centre_mm=self.centre, centre_sd_mm=(self.sd, self.sd, self.sd),
                        globe_radius_mm=12.0, limbus_centre_mm=None, limbus_sd_mm=None,
                        gaze=self.gaze, gaze_sd_deg=0.1, torsion_deg=None, surface_mad_mm=0.05,
                        sclera_points=1000, confidence=self.confidence)
@@ -229,6 +269,7 @@ def test_a_pose_at_the_reference_passes_with_its_evidence(
     assert body["deviation"]["delta_mm"] == pytest.approx([0.05, -0.05, 0.05])
     assert body["deviation"]["length_mm"] == pytest.approx(math.sqrt(3) * 0.05)
     assert body["deviation"]["gaze_deg"] == 0.0
+    assert body["deviation"]["measured_sd_mm"] == [0.01, 0.01, 0.01]  # the plan's exact
     assert body["tolerances"] == {"translation_mm": 0.2, "gaze_deg": 1.0, "min_confidence": 0.5}
     assert (body["patient_id"], body["fraction"], body["eye"]) == ("P-100", 1, "right")
     assert body["pose"]["centre_mm"] == [0.05, -0.05, -9.95]
@@ -266,6 +307,9 @@ def test_a_1_mm_shift_gaze_shift_or_poor_fit_fails(
     fake_fit.confidence = 0.3
     tilted = _measure(client, patient)
     fake_fit.gaze, fake_fit.confidence = (0.0, 0.0, 1.0), 0.9
+    fake_fit.sd = 0.25  # in the tolerance, but the fit says it cannot tell
+    vague = _measure(client, patient)
+    fake_fit.sd = 0.01
 
     assert shifted["passed"] is False
     assert shifted["deviation"]["delta_mm"] == pytest.approx([1.0, 0.0, 0.0])
@@ -277,6 +321,10 @@ def test_a_1_mm_shift_gaze_shift_or_poor_fit_fails(
     assert tilted["deviation"]["gaze_deg"] == pytest.approx(2.0)
     assert tilted["reasons"] == ["gaze deviation 2.00° exceeds 1°",
                                  "fit confidence 0.30 is below 0.5"]
+    assert vague["passed"] is False and vague["in_tolerance"] is True
+    assert vague["deviation"]["measured_sd_mm"] == [0.25, 0.25, 0.25]
+    assert [r[:56] for r in vague["reasons"]] == [
+        "the measurement states the centre's deviation only to ±0"]
 
 
 def test_a_failed_fit_is_422_with_its_reason_and_audited(
@@ -373,8 +421,8 @@ def test_measurements_are_found_by_patient_fraction_and_id(
     unknown = client.get(f"{API}/pose/measurements/pose-20260101T000000000Z-0000")
     nobody = client.get(f"{API}/pose/measurements", params={"patient_id": "P-nobody"})
 
-    assert listed["total"] == 3  # the failed fit stored nothing
-    assert [m["passed"] for m in listed["items"]] == [False, False, True]  # newest first
+    assert listed["total"] == 4  # the failed fit stored nothing
+    assert [m["passed"] for m in listed["items"]] == [False, False, False, True]  # newest 1st
     assert by_fraction["total"] == 0
     assert again.status_code == 200 and again.json() == newest
     assert unknown.status_code == 404

@@ -13,10 +13,11 @@ centre and gaze are compared with the scene's truth, overall and per bin of what
 hard to find (:data:`BINS`); beside them how well the poses' stated uncertainties cover their
 errors and how often a wrong pose wears a confident face (:func:`confident_wrong`: off by more
 than the clinic's tolerance while the daemon's check against a planned pose lets it through:
-its confidence passes the default ``min_confidence`` and the eye model leaves little of the
-globe's shape unknown). A fit that raises is a refusal, not a wrong pose. A 1 mm shift between two
-captures of the same eye must be measured as ≈ 1 mm (a clear fail of the 0.2 mm clinical
-tolerance). Ground truth is only read here, after the fit.
+its confidence passes the default ``min_confidence``, the eye model leaves little of the
+globe's shape unknown and the pose's own stated sd is within the tolerance). A fit that raises
+is a refusal, not a wrong pose. A 1 mm shift between two captures of the same eye must be
+measured as ≈ 1 mm (a clear fail of the 0.2 mm clinical tolerance). Ground truth is only read
+here, after the fit.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import shutil
 import tempfile
 import time
 from collections import Counter
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from multiprocessing import get_context
@@ -69,6 +70,7 @@ from eyeserver.service.patients import (
 )
 from eyeserver.service.verification import (
     gaze_angle_deg,
+    measurement_reason,
     shape_reason,
     turned_shape_sd_mm,
 )
@@ -133,20 +135,21 @@ def displacement_error(first: EyePose, second: EyePose, first_truth: dict[str, A
     confidence, though the daemon refuses a reference below ``min_confidence``). Beside them
     both captures' confidences and the move's own stated sd per axis (mm: the two poses'
     :attr:`~eyeserver.eye.fit.EyePose.centre_sd_mm` together, the shape's left out), which
-    the check does not use yet (docs/notes/patient-eye.md, fourteenth session)."""
+    the check weighs as :func:`~eyeserver.service.verification.measured_sd_mm` does."""
     moved_by = np.subtract(second.centre_mm, first.centre_mm)
     true_move = np.subtract(second_truth["centre_mm"], first_truth["centre_mm"])
     turn = np.subtract(second.gaze, first.gaze)
     true_turn = np.subtract(second_truth["gaze"], first_truth["gaze"])
     error = float(np.linalg.norm(moved_by - true_move))
     shape = turned_shape_sd_mm(second.shape_sd_mm, second.gaze, first.gaze)
+    move_sd = [float(sd) for sd in np.hypot(first.centre_sd_mm, second.centre_sd_mm)]
     return {"error_mm": error,
             "gaze_turn_error_deg": math.degrees(float(np.linalg.norm(turn - true_turn))),
             "true_move_mm": float(np.linalg.norm(true_move)),
             "confidences": [first.confidence, second.confidence],
-            "move_sd_mm": [float(sd) for sd in np.hypot(first.centre_sd_mm,
-                                                         second.centre_sd_mm)],
-            "confident_wrong": error > TOLERANCE_MM and passes(second.confidence, shape)}
+            "move_sd_mm": move_sd,
+            "confident_wrong": error > TOLERANCE_MM and passes(second.confidence, shape,
+                                                               measured_sd_mm=move_sd)}
 
 
 @dataclass
@@ -258,25 +261,40 @@ def _stats(values: list[float], interval: bool = False) -> dict[str, Any]:
     return stats
 
 
+EXACT = (0.0, 0.0, 0.0)
+"""A measured sd per axis of nothing (mm): a made-up row's, or an old run's without it."""
+
+
 def passes(confidence: float, shape_sd_mm: float = 0.0,
-           min_confidence: float = DEFAULT_MIN_CONFIDENCE) -> bool:
+           min_confidence: float = DEFAULT_MIN_CONFIDENCE,
+           measured_sd_mm: Sequence[float] = EXACT) -> bool:
     """Whether the daemon's check of a pose against a planned (absolute) pose lets it through:
     its confidence passes ``min_confidence`` (``confidence >= min_confidence``; default the
-    daemon's) and what the eye model leaves unknown of the globe's shape
-    (:attr:`~eyeserver.eye.fit.EyePose.shape_sd_mm`) leaves no reason to refuse
-    (:func:`~eyeserver.service.verification.shape_reason`, as
+    daemon's), and neither what the eye model leaves unknown of the globe's shape
+    (:attr:`~eyeserver.eye.fit.EyePose.shape_sd_mm`) nor the measurement's own sd per axis
+    (the pose's :attr:`~eyeserver.eye.fit.EyePose.centre_sd_mm`, a move's with its
+    reference's) leaves a reason to refuse (:func:`~eyeserver.service.verification.
+    shape_reason` and :func:`~eyeserver.service.verification.measurement_reason`, as
     :func:`~eyeserver.service.verification.judge` asks). The bench scores absolute poses."""
-    return (confidence >= min_confidence
-            and shape_reason(shape_sd_mm, Tolerances(translation_mm=TOLERANCE_MM)) is None)
+    tolerances = Tolerances(translation_mm=TOLERANCE_MM)
+    return (confidence >= min_confidence and shape_reason(shape_sd_mm, tolerances) is None
+            and measurement_reason(measured_sd_mm, tolerances) is None)
 
 
 def confident_wrong(centre_error_mm: float, confidence: float,
                     min_confidence: float = DEFAULT_MIN_CONFIDENCE,
-                    shape_sd_mm: float = 0.0) -> bool:
+                    shape_sd_mm: float = 0.0, measured_sd_mm: Sequence[float] = EXACT) -> bool:
     """Whether a pose is wrong with a confident face: its centre off by more than the clinic's
     tolerance (:data:`TOLERANCE_MM`) while the daemon's check lets it through
     (:func:`passes`)."""
-    return centre_error_mm > TOLERANCE_MM and passes(confidence, shape_sd_mm, min_confidence)
+    return centre_error_mm > TOLERANCE_MM and passes(confidence, shape_sd_mm, min_confidence,
+                                                     measured_sd_mm)
+
+
+def _passes_row(row: dict[str, Any], min_confidence: float) -> bool:
+    """:func:`passes` for a fitted row of the bench."""
+    return passes(row["confidence"], row.get("shape_sd_mm", 0.0), min_confidence,
+                  row.get("measured_sd_mm", EXACT))
 
 
 def _fitted(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -297,9 +315,7 @@ def confident_wrong_summary(rows: list[dict[str, Any]],
     wrong."""
     fitted = _fitted(rows)
     wrong = [r for r in fitted if r["centre_error_mm"] > TOLERANCE_MM]
-    count = sum(1 for r in wrong
-                if confident_wrong(r["centre_error_mm"], r["confidence"], min_confidence,
-                                   r.get("shape_sd_mm", 0.0)))
+    count = sum(1 for r in wrong if _passes_row(r, min_confidence))
     return {"count": count, "share_of_poses": _share(count, len(rows)), "wrong": len(wrong),
             "share_of_wrong": _share(count, len(wrong)), "wrong_above_mm": TOLERANCE_MM,
             "min_confidence": min_confidence}
@@ -316,8 +332,7 @@ def confidence_separation(rows: list[dict[str, Any]],
     wrong = [r["confidence"] for r in fitted if r["centre_error_mm"] > TOLERANCE_MM]
     good_rows = [r for r in fitted if r["centre_error_mm"] <= GOOD_MM]
     good = [r["confidence"] for r in good_rows]
-    refused = sum(1 for r in good_rows
-                  if not passes(r["confidence"], r.get("shape_sd_mm", 0.0), min_confidence))
+    refused = sum(1 for r in good_rows if not _passes_row(r, min_confidence))
     return {"min_confidence": min_confidence, "wrong_above_mm": TOLERANCE_MM,
             "wrong": len(wrong), "max_confidence_when_wrong": max(wrong) if wrong else None,
             "median_confidence_when_wrong": float(np.median(wrong)) if wrong else None,
@@ -486,8 +501,10 @@ def _score(setup: _Setup, case: _Case) -> dict[str, Any]:
                 "surface_mad_mm": pose.surface_mad_mm,
                 "sclera_points": pose.sclera_points, "confidence": pose.confidence,
                 "shape_sd_mm": pose.shape_sd_mm,
+                "measured_sd_mm": [float(sd) for sd in pose.centre_sd_mm],
                 "confident_wrong": confident_wrong(centre_error, pose.confidence,
-                                                   setup.min_confidence, pose.shape_sd_mm),
+                                                   setup.min_confidence, pose.shape_sd_mm,
+                                                   pose.centre_sd_mm),
                 "fit_ms": 1000.0 * seconds})
             if case.again is not None:
                 second, second_truth, _, why = _measure(session, case.again,

@@ -413,7 +413,8 @@ def confident_wrong_text(pose: dict[str, Any]) -> str:
     wrong = pose["confident_wrong"]
     return (f"confident wrong poses (off by > {wrong['wrong_above_mm']:g} mm, yet passing the "
             f"check against a planned pose: confidence ≥ min_confidence "
-            f"{wrong['min_confidence']:g}, the globe's shape known): {wrong['count']} of "
+            f"{wrong['min_confidence']:g}, the globe's shape known, the pose's own sd within "
+            f"the tolerance): {wrong['count']} of "
             f"{pose['poses']} poses ({_share_text(wrong['share_of_poses'])}), of the "
             f"{wrong['wrong']} off by > {wrong['wrong_above_mm']:g} mm "
             f"{_share_text(wrong['share_of_wrong'])} (goal 0)")
@@ -429,7 +430,8 @@ def separation_text(pose: dict[str, Any]) -> str:
             f"{sep['good_within_mm']:g} mm ({sep['good']} poses), "
             f"{_figure_text(sep['median_confidence_when_good'])} median, "
             f"{sep['good_refused']} ({_share_text(sep['good_refused_share'])}) refused by "
-            f"the check (min_confidence {sep['min_confidence']:g}, the globe's shape; beam "
+            f"the check (min_confidence {sep['min_confidence']:g}, the globe's shape, the "
+            "pose's own sd; beam "
             "holds for nothing)")
 
 

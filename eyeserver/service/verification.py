@@ -52,8 +52,9 @@ from eyeserver.service.patients import (
 )
 from eyeserver.service.storage import UnknownIdError
 
-__all__ = ["MIN_UNIT_POINTS", "MODEL_SD_SHARE", "Deviation", "FitFunction", "PoseVerification",
-           "Verdict", "deviation", "gaze_angle_deg", "judge", "measurement_model", "model_sd_mm",
+__all__ = ["MEASURED_SD_SHARE", "MIN_UNIT_POINTS", "MODEL_SD_SHARE", "Deviation", "FitFunction",
+           "PoseVerification", "Verdict", "deviation", "gaze_angle_deg", "judge",
+           "measured_sd_mm", "measurement_model", "measurement_reason", "model_sd_mm",
            "shape_cancels", "shape_reason", "turned_shape_sd_mm", "unit_contributions",
            "unit_shortfalls"]
 
@@ -105,6 +106,9 @@ class Deviation:
     model_sd_mm : float
         The deviation's sd along the gaze from what the eye model does not say about the
         globe's shape (:func:`model_sd_mm`), mm.
+    measured_sd_mm : (sdX, sdY, sdZ)
+        The deviation's sd per WCS axis from the measurements themselves, mm: the pose's
+        stated centre sd and a captured reference's (:func:`measured_sd_mm`).
     """
 
     delta_mm: tuple[float, float, float]
@@ -112,13 +116,15 @@ class Deviation:
     gaze_deg: float
     limbus_delta_mm: tuple[float, float, float] | None = None
     model_sd_mm: float = 0.0
+    measured_sd_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def to_dict(self) -> dict[str, Any]:
         """As stored and answered."""
         return {"delta_mm": list(self.delta_mm), "length_mm": self.length_mm,
                 "gaze_deg": self.gaze_deg,
                 "limbus_delta_mm": None if self.limbus_delta_mm is None
-                else list(self.limbus_delta_mm), "model_sd_mm": self.model_sd_mm}
+                else list(self.limbus_delta_mm), "model_sd_mm": self.model_sd_mm,
+                "measured_sd_mm": list(self.measured_sd_mm)}
 
 
 def _difference(a: Vector, b: Vector) -> tuple[float, float, float]:
@@ -157,6 +163,19 @@ def model_sd_mm(pose: EyePose, reference: ReferencePose, eye_model_version: int 
     return float(pose.shape_sd_mm)
 
 
+def measured_sd_mm(pose: EyePose, reference: ReferencePose) -> tuple[float, float, float]:
+    """The sd per WCS axis (mm) the measurements leave in the deviation of ``pose`` from
+    ``reference``: the pose's stated :attr:`~eyeserver.eye.fit.EyePose.centre_sd_mm` and, for a
+    reference captured at set-up, its own fit's (the two independent); a planned pose is exact
+    by definition."""
+    fit = (reference.evidence or {}).get("fit") if reference.source == "capture" else None
+    ref_sd = fit.get("centre_sd_mm") if isinstance(fit, dict) else None
+    ref = (0.0, 0.0, 0.0) if ref_sd is None else ref_sd
+    x, y, z = (math.hypot(float(a), float(b)) for a, b in zip(pose.centre_sd_mm, ref,
+                                                              strict=True))
+    return x, y, z
+
+
 def turned_shape_sd_mm(shape_sd_mm: float, gaze: Vector, reference_gaze: Vector) -> float:
     """What an unknown globe shape of sd ``shape_sd_mm`` (along the gaze, mm) leaves in the
     move between two fits of one eye with one model: its share of the gaze's turn,
@@ -178,6 +197,15 @@ MODEL_SD_SHARE = 0.5
 """Share of the translation tolerance the model's own uncertainty (2 sd, :func:`model_sd_mm`)
 may take: beyond it a deviation within the tolerance says nothing (with population defaults
 against a planned pose, 2 × 0.65 mm against 0.2 mm)."""
+
+
+MEASURED_SD_SHARE = 1.0
+"""Largest share of the translation tolerance the deviation's own measured sd
+(:func:`measured_sd_mm`, its worst axis) may take: beyond it the measurement cannot tell a
+deviation within the tolerance from one outside. One sd at most the tolerance, set on the pose
+bench's moves (``move_sd_mm``): it lets through every move of the sharp eyes and refuses the
+poorly seen patient eyes' moves that passed off by more than the tolerance
+(docs/notes/patient-eye.md, fifteenth session)."""
 
 
 @dataclass(frozen=True)
@@ -205,6 +233,9 @@ def judge(found: Deviation, tolerances: Tolerances, confidence: float) -> Verdic
     unknown_shape = shape_reason(found.model_sd_mm, tolerances)
     if unknown_shape is not None:
         reasons.append(unknown_shape)
+    vague = measurement_reason(found.measured_sd_mm, tolerances)
+    if vague is not None:
+        reasons.append(vague)
     return Verdict(not reasons, in_tolerance, tuple(reasons))
 
 
@@ -219,6 +250,21 @@ def shape_reason(model_sd_mm: float, tolerances: Tolerances) -> str | None:
             f"±{2.0 * model_sd_mm:.2f} mm (2 sd) along the gaze, more than {MODEL_SD_SHARE:g} "
             f"of the {tolerances.translation_mm:g} mm tolerance; enter the MRI's ellipsoid with "
             "its error (globe_sd_mm) in the eye model or capture a reference at set-up")
+
+
+def measurement_reason(measured_sd: Sequence[float], tolerances: Tolerances) -> str | None:
+    """Why a deviation measured this uncertainly (sd per axis, mm: :func:`measured_sd_mm`) says
+    nothing against ``tolerances``, or None where its worst axis's sd is at most
+    :data:`MEASURED_SD_SHARE` of the translation tolerance. Without it the check passed a
+    deviation within the tolerance whatever the fit said of its own error."""
+    worst = max(math.inf if math.isnan(sd) else float(sd) for sd in measured_sd)
+    if worst <= MEASURED_SD_SHARE * tolerances.translation_mm:
+        return None
+    return (f"the measurement states the centre's deviation only to ±{2.0 * worst:.2f} mm "
+            f"(2 sd, with the reference's), more than {MEASURED_SD_SHARE * 2.0:g} × the "
+            f"{tolerances.translation_mm:g} mm tolerance: the eye was seen too poorly to tell "
+            "(the limbus or the sclera barely visible); measure again with the eye open, still "
+            "and looking at the fixation light")
 
 
 MIN_UNIT_POINTS = 500
@@ -394,7 +440,8 @@ class PoseVerification:
         ref = reference.pose
         found = replace(deviation(pose.centre_mm, pose.gaze, ref["centre_mm"], ref["gaze"],
                                   pose.limbus_centre_mm, ref.get("limbus_centre_mm")),
-                        model_sd_mm=model_sd_mm(pose, reference, seen.eye_model_version))
+                        model_sd_mm=model_sd_mm(pose, reference, seen.eye_model_version),
+                        measured_sd_mm=measured_sd_mm(pose, reference))
         verdict = judge(found, patient.tolerances, pose.confidence)
         missing = unit_shortfalls(seen.units)
         if missing:  # a unit of the set-up saw nothing: the pose is not the whole set-up's

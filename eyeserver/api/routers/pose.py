@@ -58,7 +58,9 @@ class Measurement(BaseModel):
     reasons: list[str] = Field(description="Why it failed (empty when it passed).")
     deviation: dict[str, Any] = Field(description="delta_mm [ΔX, ΔY, ΔZ] (measured − "
                                       "reference globe centre, WCS, mm), length_mm, gaze_deg, "
-                                      "limbus_delta_mm (or null).")
+                                      "limbus_delta_mm (or null), model_sd_mm (the globe "
+                                      "shape's sd along the gaze, mm), measured_sd_mm (the "
+                                      "measurements' own sd per axis, mm).")
     tolerances: dict[str, float] = Field(description="translation_mm, gaze_deg, "
                                          "min_confidence.")
     pose: dict[str, Any] = Field(description="The fit: centre_mm, centre_sd_mm, "

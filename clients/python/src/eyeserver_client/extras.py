@@ -63,6 +63,9 @@ class Deviation(_Answer):
     """The limbus centre's shift, mm, when the reference has a limbus centre."""
     model_sd_mm: float | None = None
     """The share of the deviation the eye model's unknown globe shape may explain (1 sd, mm)."""
+    measured_sd_mm: Vector | None = None
+    """The deviation's sd per WCS axis from the measurements themselves (the pose's and a
+    captured reference's, mm): beyond the tolerance on any axis the measurement fails."""
 
 
 class FittedPose(_Answer):
