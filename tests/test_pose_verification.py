@@ -121,10 +121,10 @@ def test_a_deviation_measured_too_uncertainly_fails_within_the_tolerance() -> No
 
     assert not verdict.passed and verdict.in_tolerance
     assert verdict.reasons == (
-        "the measurement states the centre's deviation only to ±0.48 mm (2 sd, with the "
-        "reference's), more than 2 × the 0.2 mm tolerance: the eye was seen too poorly to tell "
-        "(the limbus or the sclera barely visible); measure again with the eye open, still and "
-        "looking at the fixation light",)
+        "the measurement states the centre's deviation (with the reference's sd) only to "
+        "±0.48 mm (2 sd), more than 2 × the 0.2 mm tolerance: the eye was seen too poorly to "
+        "tell (the limbus or the sclera barely visible); measure again with the eye open, "
+        "still and looking at the fixation light",)
     assert found.to_dict()["measured_sd_mm"] == [0.01, 0.02, 0.24]
     # On the limit (1 sd = the tolerance) it passes; a tolerance of 0.5 mm takes 0.24 mm.
     assert judge(replace(found, measured_sd_mm=(0.2, 0.2, 0.2)), Tolerances(), 0.9).passed
@@ -323,8 +323,8 @@ def test_a_1_mm_shift_gaze_shift_or_poor_fit_fails(
                                  "fit confidence 0.30 is below 0.5"]
     assert vague["passed"] is False and vague["in_tolerance"] is True
     assert vague["deviation"]["measured_sd_mm"] == [0.25, 0.25, 0.25]
-    assert [r[:56] for r in vague["reasons"]] == [
-        "the measurement states the centre's deviation only to ±0"]
+    assert [r[:57] for r in vague["reasons"]] == [
+        "the measurement states the centre's deviation (with the r"]
 
 
 def test_a_failed_fit_is_422_with_its_reason_and_audited(
@@ -348,20 +348,30 @@ def test_a_weak_pose_is_not_taken_as_the_reference(
         client: Client, patient: str, fake_fit: FakeFit, calibration_id: str,
         data_dir: Path) -> None:
     """Every later check compares with the reference: a pose below the patient's
-    min_confidence is refused with the reason (422), audited, and the reference stays."""
+    min_confidence, or stating its centre less well than the tolerance, is refused with the
+    reason (422), audited, and the reference stays."""
     before = client.get(f"{API}/patients/{patient}/fractions/1/reference").json()
     fake_fit.confidence = 0.18
     try:
         refused = client.post(f"{API}/patients/{patient}/fractions/1/reference/capture",
                               headers=OPERATOR)
+        fake_fit.confidence, fake_fit.sd = 0.9, 0.21
+        vague = client.post(f"{API}/patients/{patient}/fractions/1/reference/capture",
+                            headers=OPERATOR)
     finally:
-        fake_fit.confidence = 0.9
+        fake_fit.confidence, fake_fit.sd = 0.9, 0.01
 
     assert refused.status_code == 422, refused.text
     assert refused.json()["detail"] == (
         "cannot take this capture as the reference: the eye was fitted at confidence 0.18, "
         "below the patient's min_confidence 0.5 (the limbus not seen well: capture again "
         "with the eye open, still and looking at the fixation light)")
+    assert vague.status_code == 422, vague.text
+    assert vague.json()["detail"] == (
+        "cannot take this capture as the reference: the measurement states the centre only to "
+        "±0.42 mm (2 sd), more than 2 × the 0.2 mm tolerance: the eye was seen too poorly to "
+        "tell (the limbus or the sclera barely visible); measure again with the eye open, "
+        "still and looking at the fixation light")
     assert client.get(f"{API}/patients/{patient}/fractions/1/reference").json() == before
     last = json.loads((data_dir / "audit.jsonl").read_text().splitlines()[-1])
     assert (last["action"], last["outcome"]) == ("set_reference_pose", "error")

@@ -201,11 +201,11 @@ against a planned pose, 2 × 0.65 mm against 0.2 mm)."""
 
 MEASURED_SD_SHARE = 1.0
 """Largest share of the translation tolerance the deviation's own measured sd
-(:func:`measured_sd_mm`, its worst axis) may take: beyond it the measurement cannot tell a
-deviation within the tolerance from one outside. One sd at most the tolerance, set on the pose
-bench's moves (``move_sd_mm``): it lets through every move of the sharp eyes and refuses the
-poorly seen patient eyes' moves that passed off by more than the tolerance
-(docs/notes/patient-eye.md, fifteenth session)."""
+(:func:`measured_sd_mm`, its worst axis) may take. At one sd equal to the tolerance a pose
+exactly at the reference is already measured out of tolerance a third of the time along that
+axis: beyond it the measurement cannot tell a deviation within the tolerance from one outside.
+The pose bench's moves of sharp eyes pass it and the poorly seen patient eyes' that passed off
+by more than the tolerance do not (docs/notes/patient-eye.md, fifteenth session)."""
 
 
 @dataclass(frozen=True)
@@ -252,19 +252,21 @@ def shape_reason(model_sd_mm: float, tolerances: Tolerances) -> str | None:
             "its error (globe_sd_mm) in the eye model or capture a reference at set-up")
 
 
-def measurement_reason(measured_sd: Sequence[float], tolerances: Tolerances) -> str | None:
-    """Why a deviation measured this uncertainly (sd per axis, mm: :func:`measured_sd_mm`) says
-    nothing against ``tolerances``, or None where its worst axis's sd is at most
+def measurement_reason(measured_sd: Sequence[float], tolerances: Tolerances,
+                       subject: str = "the centre's deviation (with the reference's sd)"
+                       ) -> str | None:
+    """Why a ``subject`` measured this uncertainly (sd per axis, mm: :func:`measured_sd_mm`)
+    says nothing against ``tolerances``, or None where its worst axis's sd is at most
     :data:`MEASURED_SD_SHARE` of the translation tolerance. Without it the check passed a
     deviation within the tolerance whatever the fit said of its own error."""
     worst = max(math.inf if math.isnan(sd) else float(sd) for sd in measured_sd)
     if worst <= MEASURED_SD_SHARE * tolerances.translation_mm:
         return None
-    return (f"the measurement states the centre's deviation only to ±{2.0 * worst:.2f} mm "
-            f"(2 sd, with the reference's), more than {MEASURED_SD_SHARE * 2.0:g} × the "
-            f"{tolerances.translation_mm:g} mm tolerance: the eye was seen too poorly to tell "
-            "(the limbus or the sclera barely visible); measure again with the eye open, still "
-            "and looking at the fixation light")
+    return (f"the measurement states {subject} only to ±{2.0 * worst:.2f} mm (2 sd), more "
+            f"than {MEASURED_SD_SHARE * 2.0:g} × the {tolerances.translation_mm:g} mm "
+            "tolerance: the eye was seen too poorly to tell (the limbus or the sclera barely "
+            "visible); measure again with the eye open, still and looking at the fixation "
+            "light")
 
 
 MIN_UNIT_POINTS = 500
@@ -487,9 +489,11 @@ class PoseVerification:
 
         Raises as :meth:`measure`, except that no reference is needed; and
         :class:`~eyeserver.eye.PoseError` for a pose less confident than the patient's
-        ``min_confidence``: every later measurement and tracked frame is compared with the
-        reference, so a weak one would make every check fail for the wrong reason and tracking
-        take the open eye for shut lids (docs/notes/patient-eye.md, "Eighth session"); and for
+        ``min_confidence`` or whose stated centre sd exceeds the tolerance
+        (:func:`measurement_reason`): every later measurement and tracked frame is compared
+        with the reference, so a weak one would make every check fail for the wrong reason and
+        tracking take the open eye for shut lids (docs/notes/patient-eye.md, "Eighth
+        session"); and for
         a pose whose own capture live tracking's blink test would take for shut lids (the
         open eye's pose off, whatever its confidence).
         """
@@ -511,6 +515,9 @@ class PoseVerification:
                            "pose places on the open eye (its gaze or globe is off, or the lids "
                            "were closing): capture again with the eye open, still and looking "
                            "at the fixation light")
+        vague = measurement_reason(pose.centre_sd_mm, patient.tolerances, "the centre")
+        if vague is not None:  # every measurement against it would fail for its sake
+            reasons.append(vague)
         if reasons:
             reason = "cannot take this capture as the reference: " + "; ".join(reasons)
             self._audit_failure(actor, "set_reference_pose", patient, fraction,
