@@ -533,7 +533,8 @@ class Measurement(_Answer):
     """Why it failed (empty when it passed)."""
     deviation: Deviation
     """delta_mm [ΔX, ΔY, ΔZ] (measured − reference globe centre, WCS, mm), length_mm, gaze_deg,
-    limbus_delta_mm (or null)."""
+    limbus_delta_mm (or null), model_sd_mm (the globe shape's sd along the gaze, mm),
+    measured_sd_mm (the measurements' own sd per axis, mm)."""
     tolerances: dict[str, float]
     """translation_mm, gaze_deg, min_confidence."""
     pose: FittedPose
