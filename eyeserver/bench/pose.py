@@ -148,8 +148,8 @@ def displacement_error(first: EyePose, second: EyePose, first_truth: dict[str, A
             "true_move_mm": float(np.linalg.norm(true_move)),
             "confidences": [first.confidence, second.confidence],
             "move_sd_mm": move_sd,
-            "confident_wrong": error > TOLERANCE_MM and passes(second.confidence, shape,
-                                                               measured_sd_mm=move_sd)}
+            "confident_wrong": confident_wrong(error, second.confidence, shape_sd_mm=shape,
+                                               measured_sd_mm=move_sd)}
 
 
 @dataclass
