@@ -7,8 +7,9 @@ Usage::
 
 Each mode runs in a child process of its own (the allocator's settings are per process), the
 modes alternated ``--runs`` times (this virtual machine's speed drifts within minutes); each
-child prints the medians of ``demodulate`` without and with its bend correction, of the plain
-FFT peer (``eyeserver.bench.speed.fft_ftm``) and of a 2- and a 4-camera multi-view frame-set.
+child prints the medians of ``demodulate`` without and with its bend correction, of the bend
+correction alone summed over the frame-set's cameras, of the plain FFT peer
+(``eyeserver.bench.speed.fft_ftm``) and of a 2- and a 4-camera multi-view frame-set.
 
 The old path: run this script against an older checkout's code, e.g.
 ``git worktree add /tmp/old a04b128~1`` then ``PYTHONPATH=/tmp/old .venv/bin/python
@@ -29,6 +30,7 @@ import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 
 def _median_ms(call: Callable[[], object], runs: int) -> float:
@@ -40,6 +42,14 @@ def _median_ms(call: Callable[[], object], runs: int) -> float:
         call()
         samples.append(time.perf_counter() - started)
     return statistics.median(samples) * 1e3
+
+
+def _bend_ms(camera: Any, image: Any) -> float:
+    """The median ms of the bend correction alone on one camera's image."""
+    from eyeserver.pipeline.demodulate import demodulate, with_bend_bias
+
+    found = demodulate(image, camera.carrier, measure_bends=False)
+    return _median_ms(lambda: with_bend_bias(found, camera.carrier), 100)
 
 
 def child(frameset_path: str, kept: bool) -> None:
@@ -62,6 +72,11 @@ def child(frameset_path: str, kept: bool) -> None:
         "demodulate_ms": _median_ms(lambda: demodulate(image, carrier, measure_bends=False), 100),
         "demodulate_bent_ms": _median_ms(lambda: demodulate(image, carrier), 100),
         "fft_ftm_ms": _median_ms(lambda: fft_ftm(image, carrier), 100),
+        # The bend correction alone, summed over every camera of the frame-set (their carriers'
+        # periods differ, and with them the correction's coarse grid).
+        "bend_correction_all_cameras_ms": sum(_bend_ms(camera, image) for one in frameset.units
+                                              for camera, image in ((one.cam_a, one.image_a),
+                                                                    (one.cam_b, one.image_b))),
     }
     for label, used in frameset.sizes().items():
         figures[f"frameset_{label}_ms"] = _median_ms(

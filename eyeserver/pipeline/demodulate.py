@@ -600,8 +600,10 @@ def _pass_band(fy: npt.NDArray[np.floating[Any]], fx: npt.NDArray[np.floating[An
     0 at ``outer``, along the carrier's unit ``direction``; ``elongation`` times wider across it
     (an ellipse; 1 is a disc). Computed in the offsets' precision."""
     along = fy * direction[0] + fx * direction[1]
-    across = fx * direction[0] - fy * direction[1]
-    radius = np.hypot(along, across / elongation)
+    across = (fx * direction[0] - fy * direction[1]) / elongation
+    # √(a² + b²), not np.hypot: NumPy's hypot is not vectorised on this machine (AVX2), five
+    # times slower on the bend bias's points (docs/notes/speed.md).
+    radius = np.sqrt(along * along + across * across)
     if outer > flat:
         edge = np.clip((radius - flat) / (outer - flat), 0.0, 1.0)
         gain = 0.5 * (1.0 + np.cos(np.pi * edge))
@@ -838,10 +840,17 @@ def _wrapped(phase: F32) -> F32:
     return phase
 
 
-def _gradient(values: F64, spacing: int, where: npt.NDArray[np.bool_]) -> tuple[F64, F64]:
-    """``values``' derivatives along the rows and the columns at ``where`` (grid ``spacing``)."""
-    along_rows, along_columns = np.gradient(values, spacing)
-    return np.asarray(along_rows)[where], np.asarray(along_columns)[where]
+def _gradient_at(values: F64, spacing: int, rows: npt.NDArray[np.intp],
+                 columns: npt.NDArray[np.intp]) -> tuple[F64, F64]:
+    """``values``' derivatives along the rows and the columns at the points ``(rows, columns)``
+    (grid ``spacing``): :func:`numpy.gradient`'s (central inside, one-sided at the borders),
+    taken at those points only rather than over the whole grid."""
+    height, width = values.shape
+    up, down = np.minimum(rows + 1, height - 1), np.maximum(rows - 1, 0)
+    right, left = np.minimum(columns + 1, width - 1), np.maximum(columns - 1, 0)
+    along_rows = (values[up, columns] - values[down, columns]) / ((up - down) * spacing)
+    along_columns = (values[rows, right] - values[rows, left]) / ((right - left) * spacing)
+    return along_rows, along_columns
 
 
 def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: float, flat: float,
@@ -854,8 +863,12 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     sigma = BEND_SMOOTHING_PERIODS * carrier.period_px
     # The bend varies over periods, not pixels: it is measured on a grid ``factor`` times
     # coarser (area averages) and the bias interpolated back — 16 times fewer pixels to smooth.
-    factor = max(1, int(sigma // 3))
-    coarse = (max(3, round(width / factor)), max(3, round(height / factor)))
+    # The grid's cells are whole ``factor × factor`` blocks (the few pixels beyond the last
+    # whole block take its bias): OpenCV's area average of a whole-number ratio took 0.1 ms on a
+    # 640 × 512 image, of any other 0.6 ms (docs/notes/speed.md).
+    factor = max(1, min(int(sigma // 3), width // 3, height // 3))
+    coarse = (width // factor, height // factor)
+    whole = (slice(0, coarse[1] * factor), slice(0, coarse[0] * factor))
     # The local fringe frequency (rad/px, carrier included) from wrapped central differences,
     # and the modulation's log, averaged over part of a period. (Weighting the average by the
     # modulation, so as not to take a bend from the noise beyond an outline, corrected the
@@ -863,16 +876,18 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     # radius 0.08 and 0.10 mm too small on 12- and 13-mm globes, against 0.02 and 0.04.)
     slope_y = np.empty_like(wrapped_phase)
     slope_x = np.empty_like(wrapped_phase)
-    np.subtract(wrapped_phase[2:], wrapped_phase[:-2], out=slope_y[1:-1])
+    # (cv2.subtract into the views: NumPy's subtraction of the column-shifted views took four
+    # times as long.)
+    cv2.subtract(wrapped_phase[2:], wrapped_phase[:-2], dst=slope_y[1:-1])
     slope_y[0], slope_y[-1] = slope_y[1], slope_y[-2]
-    np.subtract(wrapped_phase[:, 2:], wrapped_phase[:, :-2], out=slope_x[:, 1:-1])
+    cv2.subtract(wrapped_phase[:, 2:], wrapped_phase[:, :-2], dst=slope_x[:, 1:-1])
     slope_x[:, 0], slope_x[:, -1] = slope_x[:, 1], slope_x[:, -2]
-    for slope in (slope_y, slope_x):
-        _wrapped(slope)
-        slope *= np.float32(0.5)
 
     def smoothed(values: F32) -> F64:
-        small = cv2.resize(values, coarse, interpolation=cv2.INTER_AREA)
+        # (Halved for the central difference's step of two pixels after the average: the
+        # same, on 16 times fewer pixels.)
+        small = 0.5 * np.asarray(cv2.resize(_wrapped(values)[whole], coarse,
+                                            interpolation=cv2.INTER_AREA), dtype=np.float32)
         return np.asarray(cv2.GaussianBlur(small, (0, 0), sigma / factor), dtype=np.float64)
 
     slope_y64, slope_x64 = smoothed(slope_y), smoothed(slope_x)
@@ -883,53 +898,65 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     offset_x = slope_x64 / _TWO_PI - fx0
     step = 0.05 * outer
     along = offset_y * direction[0] + offset_x * direction[1]
-    across = offset_x * direction[0] - offset_y * direction[1]
-    off_top = np.hypot(along, across / elongation) > flat - 2.0 * step
+    across = (offset_x * direction[0] - offset_y * direction[1]) / elongation
+    limit = flat - 2.0 * step
+    off_top = (along * along + across * across > limit * limit if limit > 0
+               else np.ones(along.shape, bool))
     if not off_top.any():
         return None
-    centre = _pass_band(offset_y.astype(np.float32), offset_x.astype(np.float32), outer, flat,
-                        direction, elongation)
-    # The band's derivatives by finite differences over ``step``, not in closed form: the raised
-    # cosine's curvature jumps at the flat top's edge, and the differences average the jump as
-    # the fringes' own spread of frequencies does (the closed form corrected bent fringes less
-    # well, docs/notes/speed.md). All nine evaluations in one float32 pass.
-    shifts = np.array([(0.0, 0.0), (step, 0.0), (-step, 0.0), (0.0, step), (0.0, -step),
-                       (step, step), (step, -step), (-step, step), (-step, -step)])
-    gains = _pass_band((offset_y[off_top][None, :] + shifts[:, :1]).astype(np.float32),
-                       (offset_x[off_top][None, :] + shifts[:, 1:]).astype(np.float32),
-                       outer, flat, direction, elongation).astype(np.float64)
-    here, up, down, right, left = gains[:5]
-    gain_y, gain_x = (up - down) / (2.0 * step), (right - left) / (2.0 * step)
-    gain_yy = (up - 2.0 * here + down) / step**2
-    gain_xx = (right - 2.0 * here + left) / step**2
-    gain_xy = (gains[5] - gains[6] - gains[7] + gains[8]) / (4.0 * step**2)
-    # The phase's second derivatives (rad/px²) from the smoothed local frequency, and the
-    # fringe amplitude's relative gradient (1/px): the modulation's, less the band's own
-    # fading of it (the modulation is the amplitude times the gain).
-    curve_yy, curve_yx = _gradient(slope_y64, factor, off_top)
-    curve_xy, curve_xx = _gradient(slope_x64, factor, off_top)
-    # (The log of the block averages, not the average of the logs: the same where the fringe
-    # is smooth, and the edge rule below drops the rest; a log of the full image costs more.)
-    fringe = np.asarray(cv2.resize(modulation, coarse, interpolation=cv2.INTER_AREA))
-    log_fringe = np.log(np.maximum(fringe, np.float32(1e-3)))
-    fading_y, fading_x = _gradient(np.asarray(cv2.GaussianBlur(log_fringe, (0, 0), sigma / factor),
-                                              dtype=np.float64)
-                                   - np.log(np.maximum(centre, _MIN_GAIN)), factor, off_top)
-    bend = curve_yy * gain_yy + (curve_yx + curve_xy) * gain_xy + curve_xx * gain_xx
-    values = -((fading_y * gain_y + fading_x * gain_x) / _TWO_PI
-               + bend / (8.0 * math.pi**2)) / np.maximum(here, _MIN_GAIN)
-    values[here < _MIN_GAIN] = 0.0
-    bias = np.zeros(offset_y.shape)
-    bias[off_top] = values
     # Near where the fringe ends (an outline, the dark cornea, a shadow) neither bend nor fading
-    # is a smooth surface's: no bias is taken there (BEND_EDGE_PERIODS).
+    # is a smooth surface's: no bias is taken there (BEND_EDGE_PERIODS), so it is computed only
+    # off the flat top and inside the fringe field.
+    fringe = np.asarray(cv2.resize(modulation[whole], coarse, interpolation=cv2.INTER_AREA))
     present = (fringe > _WEAK_FRINGE * np.percentile(fringe, 95)).astype(np.uint8)
     reach = max(1, round(BEND_EDGE_PERIODS * carrier.period_px / factor))
     inside = cv2.erode(present, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8),
                        borderType=cv2.BORDER_REPLICATE)
-    bias[inside == 0] = 0.0
-    return np.asarray(cv2.resize(bias.astype(np.float32), (width, height),
-                                 interpolation=cv2.INTER_LINEAR), dtype=np.float32)
+    # The band's gain: 1 on the flat top, so evaluated off it only.
+    centre = np.ones(offset_y.shape)
+    centre[off_top] = _pass_band(offset_y[off_top].astype(np.float32),
+                                 offset_x[off_top].astype(np.float32), outer, flat, direction,
+                                 elongation)
+    rows, columns = np.nonzero(off_top & (inside != 0))
+    # The band's derivatives by finite differences over ``step``, not in closed form: the raised
+    # cosine's curvature jumps at the flat top's edge, and the differences average the jump as
+    # the fringes' own spread of frequencies does (the closed form corrected bent fringes less
+    # well, docs/notes/speed.md). All eight shifted evaluations in one float32 pass.
+    shifts = np.array([(step, 0.0), (-step, 0.0), (0.0, step), (0.0, -step),
+                       (step, step), (step, -step), (-step, step), (-step, -step)])
+    gains = _pass_band((offset_y[rows, columns][None, :] + shifts[:, :1]).astype(np.float32),
+                       (offset_x[rows, columns][None, :] + shifts[:, 1:]).astype(np.float32),
+                       outer, flat, direction, elongation).astype(np.float64)
+    here = centre[rows, columns]
+    up, down, right, left = gains[:4]
+    gain_y, gain_x = (up - down) / (2.0 * step), (right - left) / (2.0 * step)
+    gain_yy = (up - 2.0 * here + down) / step**2
+    gain_xx = (right - 2.0 * here + left) / step**2
+    gain_xy = (gains[4] - gains[5] - gains[6] + gains[7]) / (4.0 * step**2)
+    # The phase's second derivatives (rad/px²) from the smoothed local frequency, and the
+    # fringe amplitude's relative gradient (1/px): the modulation's, less the band's own
+    # fading of it (the modulation is the amplitude times the gain).
+    curve_yy, curve_yx = _gradient_at(slope_y64, factor, rows, columns)
+    curve_xy, curve_xx = _gradient_at(slope_x64, factor, rows, columns)
+    # (The log of the block averages, not the average of the logs: the same where the fringe
+    # is smooth, and the edge rule above drops the rest; a log of the full image costs more.)
+    log_fringe = np.log(np.maximum(fringe, np.float32(1e-3)))
+    fading_y, fading_x = _gradient_at(
+        np.asarray(cv2.GaussianBlur(log_fringe, (0, 0), sigma / factor), dtype=np.float64)
+        - np.log(np.maximum(centre, _MIN_GAIN)), factor, rows, columns)
+    bend = curve_yy * gain_yy + (curve_yx + curve_xy) * gain_xy + curve_xx * gain_xx
+    values = -((fading_y * gain_y + fading_x * gain_x) / _TWO_PI
+               + bend / (8.0 * math.pi**2)) / np.maximum(here, _MIN_GAIN)
+    values[here < _MIN_GAIN] = 0.0
+    bias = np.zeros(offset_y.shape, np.float32)
+    bias[rows, columns] = values
+    full = np.empty((height, width), np.float32)
+    blocks_h, blocks_w = coarse[1] * factor, coarse[0] * factor
+    full[:blocks_h, :blocks_w] = cv2.resize(bias, (blocks_w, blocks_h),
+                                            interpolation=cv2.INTER_LINEAR)
+    full[blocks_h:, :blocks_w] = full[blocks_h - 1, :blocks_w]
+    full[:, blocks_w:] = full[:, blocks_w - 1:blocks_w]
+    return full
 
 
 def phase_difference(wrapped_object: npt.ArrayLike, wrapped_reference: npt.ArrayLike) -> F32:
