@@ -26,6 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from eyeserver.calibration.stereo import CalibrationError
+from eyeserver.core.arrays import wrap
 from eyeserver.core.types import F64, Progress, quiet
 from eyeserver.io import Bundle, RigSpec, read_bundle, rig_from_dict
 from eyeserver.pipeline.demodulate import (
@@ -74,7 +75,7 @@ def _unwrap_along_z(z_values: list[float], wrapped: list[npt.NDArray[np.float32]
         while 0 <= k < len(z_values):
             previous = unwrapped[k - direction]
             assert previous is not None
-            step = np.angle(np.exp(1j * (wrapped[k] - previous)))
+            step = wrap(wrapped[k] - previous)
             unwrapped[k] = previous + step
             # A pixel stays trustworthy only while every plane between it and the reference was.
             prior = chain[k - direction]

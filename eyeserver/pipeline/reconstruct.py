@@ -56,7 +56,7 @@ import numpy.typing as npt
 from scipy import ndimage
 from skimage.restoration import unwrap_phase
 
-from eyeserver.core.arrays import angle
+from eyeserver.core.arrays import angle, wrap
 from eyeserver.core.types import F32, F64, Bool
 from eyeserver.pipeline.demodulate import (
     Carrier,
@@ -656,17 +656,10 @@ def _mismatch(cam_a: CalibratedCamera, cam_b: CalibratedCamera, view_b: F32,
     # (docs/notes/speed.md); wrapped below, so the angle's own range does not matter.
     mismatch = angle(sin_b, cos_b, centred=False).astype(np.float64) - predicted
     with np.errstate(invalid="ignore"):  # an infinite prediction: not judged, below
-        _wrap(mismatch)
+        wrap(mismatch)
     np.abs(mismatch, out=mismatch)
     judged = (valid_b > 0.99) & (local[2] > 0) & np.isfinite(predicted)
     return np.asarray(np.where(judged, mismatch, np.pi))
-
-
-def _wrap(phase: F64) -> F64:
-    """``phase`` (radians) wrapped into ``[−π, π]`` in place by taking whole turns off (the
-    angle of a complex exponential took 70 times as long), and returned."""
-    phase -= TWO_PI * np.rint(phase / TWO_PI)
-    return phase
 
 
 def _candidate_orders(camera: CalibratedCamera, x: F64, y: F64,
@@ -1175,8 +1168,8 @@ def _unbiased(cam: CalibratedCamera, phase: Phase, pixels: npt.NDArray[np.intp])
     right, left = np.minimum(cols + 1, w - 1), np.maximum(cols - 1, 0)
     dphi = phase.dphi.astype(np.float64)
     step = 2.0 * cam.spacing_px * TWO_PI  # two samples, radians to cycles
-    fy = _wrap(dphi[up, cols] - dphi[down, cols]) / step
-    fx = _wrap(dphi[rows, right] - dphi[rows, left]) / step
+    fy = wrap(dphi[up, cols] - dphi[down, cols]) / step
+    fx = wrap(dphi[rows, right] - dphi[rows, left]) / step
     return np.asarray(band_gain(cam.carrier, fy, fx) >= EXTENSION_MIN_GAIN)
 
 
