@@ -863,12 +863,11 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     sigma = BEND_SMOOTHING_PERIODS * carrier.period_px
     # The bend varies over periods, not pixels: it is measured on a grid ``factor`` times
     # coarser (area averages) and the bias interpolated back — 16 times fewer pixels to smooth.
-    # The grid's cells are whole ``factor × factor`` blocks (the few pixels beyond the last
-    # whole block take its bias): OpenCV's area average of a whole-number ratio took 0.1 ms on a
-    # 640 × 512 image, of any other 0.6 ms (docs/notes/speed.md).
-    factor = max(1, min(int(sigma // 3), width // 3, height // 3))
-    coarse = (width // factor, height // factor)
-    whole = (slice(0, coarse[1] * factor), slice(0, coarse[0] * factor))
+    # (A grid of whole blocks, which OpenCV averages six times as fast where the image's size
+    # is no multiple of ``factor``, moved a window's bias away from the whole image's:
+    # docs/notes/speed.md.)
+    factor = max(1, int(sigma // 3))
+    coarse = (max(3, round(width / factor)), max(3, round(height / factor)))
     # The local fringe frequency (rad/px, carrier included) from wrapped central differences,
     # and the modulation's log, averaged over part of a period. (Weighting the average by the
     # modulation, so as not to take a bend from the noise beyond an outline, corrected the
@@ -886,7 +885,7 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     def smoothed(values: F32) -> F64:
         # (Halved for the central difference's step of two pixels after the average: the
         # same, on 16 times fewer pixels.)
-        small = 0.5 * np.asarray(cv2.resize(_wrapped(values)[whole], coarse,
+        small = 0.5 * np.asarray(cv2.resize(_wrapped(values), coarse,
                                             interpolation=cv2.INTER_AREA), dtype=np.float32)
         return np.asarray(cv2.GaussianBlur(small, (0, 0), sigma / factor), dtype=np.float64)
 
@@ -907,7 +906,7 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     # Near where the fringe ends (an outline, the dark cornea, a shadow) neither bend nor fading
     # is a smooth surface's: no bias is taken there (BEND_EDGE_PERIODS), so it is computed only
     # off the flat top and inside the fringe field.
-    fringe = np.asarray(cv2.resize(modulation[whole], coarse, interpolation=cv2.INTER_AREA))
+    fringe = np.asarray(cv2.resize(modulation, coarse, interpolation=cv2.INTER_AREA))
     present = (fringe > _WEAK_FRINGE * np.percentile(fringe, 95)).astype(np.uint8)
     reach = max(1, round(BEND_EDGE_PERIODS * carrier.period_px / factor))
     inside = cv2.erode(present, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8),
@@ -950,13 +949,8 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     values[here < _MIN_GAIN] = 0.0
     bias = np.zeros(offset_y.shape, np.float32)
     bias[rows, columns] = values
-    full = np.empty((height, width), np.float32)
-    blocks_h, blocks_w = coarse[1] * factor, coarse[0] * factor
-    full[:blocks_h, :blocks_w] = cv2.resize(bias, (blocks_w, blocks_h),
-                                            interpolation=cv2.INTER_LINEAR)
-    full[blocks_h:, :blocks_w] = full[blocks_h - 1, :blocks_w]
-    full[:, blocks_w:] = full[:, blocks_w - 1:blocks_w]
-    return full
+    return np.asarray(cv2.resize(bias, (width, height), interpolation=cv2.INTER_LINEAR),
+                      dtype=np.float32)
 
 
 def phase_difference(wrapped_object: npt.ArrayLike, wrapped_reference: npt.ArrayLike) -> F32:
