@@ -15,7 +15,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from eyeserver.core.arrays import ANGLE_ERROR_RAD, angle, wrap
+from eyeserver.core.arrays import ANGLE_ERROR_RAD, angle
 from eyeserver.core.types import F64
 from eyeserver.pipeline import demodulate as demodulate_module
 from eyeserver.pipeline.demodulate import (
@@ -551,19 +551,3 @@ def test_the_fast_angle_is_arctan2_within_its_stated_error() -> None:
     with pytest.raises(ValueError, match="same shape"):
         angle(np.zeros(3), np.zeros(4))
 
-
-def test_whole_turns_wrap_as_the_complex_exponentials_angle() -> None:
-    """``core.arrays.wrap`` (the order checks and the phase-to-height calibration's walk along
-    Z) gives the angle of exp(i·φ) in place, float32 and float64 alike, over many turns."""
-    rng = np.random.default_rng(3)
-    phase = rng.uniform(-200.0, 200.0, 100_000)
-    exact = np.angle(np.exp(1j * phase))
-    away = np.abs(np.abs(exact) - math.pi) > 1e-9  # ±π itself may come out either way
-    same = phase.copy()
-    assert wrap(same) is same
-    assert np.abs(same - exact)[away].max() < 1e-12
-    assert np.abs(same).max() <= math.pi
-    single = phase.astype(np.float32)
-    wrap(single)
-    assert single.dtype == np.float32
-    assert np.abs(np.angle(np.exp(1j * (single.astype(np.float64) - exact)))).max() < 1e-4

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["ANGLE_ERROR_RAD", "angle", "column_range", "wrap"]
+__all__ = ["ANGLE_ERROR_RAD", "angle", "column_range", "distances", "rows_where", "wrap"]
 
 ScalarT = TypeVar("ScalarT", bound=np.generic)
 FloatArrayT = TypeVar("FloatArrayT", bound=npt.NDArray[np.floating])
@@ -26,6 +26,25 @@ def column_range(array: npt.NDArray[ScalarT]) -> tuple[npt.NDArray[ScalarT],
     low: npt.NDArray[ScalarT] = np.array([array[:, c].min() for c in columns], array.dtype)
     high: npt.NDArray[ScalarT] = np.array([array[:, c].max() for c in columns], array.dtype)
     return low, high
+
+
+def distances(points: npt.NDArray[np.floating], centre: npt.ArrayLike | None = None,
+              ) -> npt.NDArray[np.float64]:
+    """Each row's Euclidean length of the ``(N, C)`` ``points`` less ``centre`` (or of the rows
+    themselves): ``np.linalg.norm(points − centre, axis=1)``, to the bit.
+
+    Column by column: NumPy's norm along the short axis took 0.9 ms for 20,000 points of three
+    coordinates on this machine, this 0.07 (docs/notes/speed.md).
+    """
+    total = np.zeros(len(points))
+    offsets = None if centre is None else np.asarray(centre, dtype=np.float64)
+    for column in range(points.shape[1]):
+        part = points[:, column] * points[:, column] if offsets is None else \
+            points[:, column] - offsets[column]
+        if offsets is not None:
+            part *= part
+        total += part
+    return np.sqrt(total, out=total)
 
 
 ANGLE_ERROR_RAD = 2e-4
@@ -66,3 +85,14 @@ def wrap(phase: FloatArrayT) -> FloatArrayT:
     turn = 2.0 * math.pi
     phase -= turn * np.rint(phase / turn)
     return phase
+
+
+def rows_where(array: npt.NDArray[ScalarT], keep: npt.NDArray[np.bool_]) -> npt.NDArray[ScalarT]:
+    """The rows of ``array`` where the boolean ``keep`` (one per row) holds: ``array[keep]``.
+
+    By ``np.compress``: NumPy's boolean indexing of a tall, narrow array took 2.8 ms for
+    155,000 rows of three float64 on this machine, ``np.compress`` 0.45 (docs/notes/speed.md).
+    """
+    if keep.shape != array.shape[:1]:
+        raise ValueError(f"keep must hold one flag per row: {keep.shape} for {array.shape}")
+    return np.compress(keep, array, axis=0)

@@ -54,7 +54,7 @@ import numpy.typing as npt
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
-from eyeserver.core.arrays import column_range
+from eyeserver.core.arrays import column_range, distances
 from eyeserver.core.types import F64
 from eyeserver.errors import EyeserverError
 from eyeserver.eye.limbus import LimbusNotFoundError, LimbusView, find_limbus, globe_on_limbus
@@ -404,7 +404,7 @@ def _hough_centre(voxels: F64, counts: F64, normals: F64, r_lo: float, r_hi: flo
     acc = np.bincount(inverse.ravel(), weights)
     centre = np.asarray(cells[int(np.argmax(acc))] + 0.5, dtype=np.float64)
     for reach in (1.5, 1.0, 0.75, 0.5):  # mean shift: the 1 mm cell alone leaves ±0.5 mm
-        close = np.linalg.norm(votes - centre, axis=1) < reach
+        close = distances(votes, centre) < reach
         if not close.any():
             break
         centre = np.average(votes[close], axis=0, weights=weights[close])
@@ -414,7 +414,7 @@ def _hough_centre(voxels: F64, counts: F64, normals: F64, r_lo: float, r_hi: flo
 def _radial_shells(voxels: F64, counts: F64, centre: F64, r_bounds: tuple[float, float],
                    ) -> list[tuple[float, float]]:
     """``(radius, support)`` of the shells around ``centre``: peaks of the radial histogram."""
-    dist = np.linalg.norm(voxels - centre, axis=1)
+    dist = distances(voxels, centre)
     edges = np.arange(r_bounds[0] - 1.0, r_bounds[1] + 4.0, 0.1)
     hist, _ = np.histogram(dist, bins=edges, weights=counts)
     smooth = np.convolve(hist, np.ones(5), mode="same")  # 0.5 mm: a shell's noisy thickness
@@ -472,7 +472,7 @@ def _without_planes(points: F64) -> tuple[F64, F64, npt.NDArray[np.bool_]]:
             break
         trip = voxels[idx[rng.integers(0, len(idx), size=(200, 3))]]
         normal = np.cross(trip[:, 1] - trip[:, 0], trip[:, 2] - trip[:, 0])
-        norm = np.linalg.norm(normal, axis=1)
+        norm = distances(normal)
         good = norm > 1e-6
         normal = normal[good] / norm[good, None]
         offset = np.einsum("ij,ij->i", normal, trip[good, 0])
@@ -518,13 +518,13 @@ def _shell_search(voxels: F64, counts: F64, r_bounds: tuple[float, float], fixed
         for h in np.argsort(score)[::-1][:5]:
             centre, radius = centres[h], float(radii[h])
             for band in (0.6, 0.4, SHELL_BAND_MM):  # local optimisation on the hypothesis' inliers
-                inl = np.abs(np.linalg.norm(sub - centre, axis=1) - radius) < band
+                inl = np.abs(distances(sub, centre) - radius) < band
                 if inl.sum() < 4:
                     break
                 centre, radius = fit_sphere(sub[inl])
                 if fixed is not None:
                     radius = fixed
-            inl = np.abs(np.linalg.norm(sub - centre, axis=1) - radius) < SHELL_BAND_MM
+            inl = np.abs(distances(sub, centre) - radius) < SHELL_BAND_MM
             support = float(counts[idx][inl].sum())
             if (r_bounds[0] <= radius <= r_bounds[1] and support >= MIN_SCLERA_POINTS
                     and np.median(sub[inl, 2]) > centre[2] + 0.2 * radius
@@ -533,9 +533,9 @@ def _shell_search(voxels: F64, counts: F64, r_bounds: tuple[float, float], fixed
         if found is None:
             break
         shells.append(found)
-        dist = np.abs(np.linalg.norm(voxels - found[0], axis=1) - found[1])
+        dist = np.abs(distances(voxels, found[0]) - found[1])
         keep &= dist > 2 * SHELL_BAND_MM
-        keep &= np.linalg.norm(voxels - found[0], axis=1) < found[1] + 8.0
+        keep &= distances(voxels, found[0]) < found[1] + 8.0
     if not shells:
         return []
     same = [s for s in shells if np.linalg.norm(s[0] - shells[0][0]) < 4.0]
@@ -563,10 +563,10 @@ def _refine_globe(points: F64, weights: F64, centre: F64, radius: float,
 
     def residuals(x: F64) -> F64:
         r = fixed_radius if fixed_radius is not None else x[3]
-        sclera = sw * (np.linalg.norm(points - x[:3], axis=1) - r)
+        sclera = sw * (distances(points, x[:3]) - r)
         if not use_lids:
             return np.asarray(sclera, dtype=np.float64)
-        lids = lw * (np.linalg.norm(lid_points - x[:3], axis=1) - x[n_free])
+        lids = lw * (distances(lid_points, x[:3]) - x[n_free])
         return np.asarray(np.concatenate([sclera, lids]), dtype=np.float64)
 
     def jacobian(x: F64) -> F64:
@@ -575,7 +575,7 @@ def _refine_globe(points: F64, weights: F64, centre: F64, radius: float,
         rows = []
         for shell, root_w, column in blocks:
             rel = shell - x[:3]
-            unit = rel / np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-12)
+            unit = rel / np.maximum(distances(rel), 1e-12)[:, None]
             block = np.zeros((len(shell), len(x)))
             block[:, :3] = -root_w[:, None] * unit
             if column:
@@ -592,7 +592,7 @@ def _refine_globe(points: F64, weights: F64, centre: F64, radius: float,
     x = fit.x
     r_fit = float(fixed_radius if fixed_radius is not None else x[3])
     lid_fit = float(x[n_free]) if use_lids else lid_radius
-    resid = np.linalg.norm(points - x[:3], axis=1) - r_fit
+    resid = distances(points, x[:3]) - r_fit
     sigma = max(1.4826 * float(np.median(np.abs(resid))), 1e-4)
     inliers = np.abs(resid) < max(3.0 * sigma, 0.1)
     all_weights = np.concatenate([weights, lid_weights]) if use_lids else weights
@@ -698,7 +698,7 @@ def _cornea(points: F64, centre: F64, radius: float, gaze: F64, cos_beta: float,
             ) -> tuple[F64, int, float] | None:
     """Centre of a corneal cap in front of the hole, its point count and centre SD, if seen."""
     rel = points - centre
-    dist = np.linalg.norm(rel, axis=1)
+    dist = distances(rel)
     inside = (rel @ gaze) > dist * (cos_beta - 0.05)
     candidates = points[inside & (dist > radius + 0.15) & (dist < radius + 3.5)]
     if len(candidates) < 60:
@@ -708,7 +708,7 @@ def _cornea(points: F64, centre: F64, radius: float, gaze: F64, cos_beta: float,
         return None
 
     def residuals(x: F64) -> F64:
-        return np.asarray(np.linalg.norm(candidates - x[:3], axis=1) - x[3], dtype=np.float64)
+        return np.asarray(distances(candidates, x[:3]) - x[3], dtype=np.float64)
 
     fit = least_squares(residuals, np.append(c0, r0), loss="soft_l1", f_scale=0.05)
     resid = fit.fun
@@ -837,7 +837,7 @@ def _fit(cloud: CloudLike, model: EyeModel, views: Sequence[LimbusView]) -> EyeP
     # The seed centre is good to ≈ 0.5 mm and the lids lie ≈ 1 mm outside: a band half that.
     band = 0.45
     for next_band in (0.3, SHELL_BAND_MM, 0.2):
-        dist = np.linalg.norm(points - centre, axis=1)
+        dist = distances(points, centre)
         near = np.abs(dist - radius) < band
         on_lids = (np.abs(dist - lid_radius) < band if math.isfinite(lid_radius)
                    else np.zeros(len(points), dtype=bool))
@@ -887,10 +887,10 @@ def cloud_gaze(points: F64, sclera: F64, centre: F64, radius: float, centre_sd: 
     ``fallback`` starts the search where nothing lies around the globe (None: no gaze then).
     """
     directions = sclera - centre
-    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    directions /= distances(directions)[:, None]
     # The opening (sclera and the lids' inner rim together) is centred near the cornea; the
     # sclera alone, often more on one side, is not.
-    dist_all = np.linalg.norm(points - centre, axis=1)
+    dist_all = distances(points, centre)
     around = np.abs(dist_all - radius) < 3.0
     start = (points[around] - centre).mean(axis=0) if around.any() else fallback
     limbus = _limbus(directions, start)
@@ -1019,7 +1019,7 @@ def _surface_distance(points: F64, centre: F64, radius: float, gaze: F64, model:
     ellipticity)."""
     rel = points - centre
     if model.globe_semi_axes_mm is None:
-        return np.asarray(np.linalg.norm(rel, axis=1) - radius, dtype=np.float64)
+        return np.asarray(distances(rel) - radius, dtype=np.float64)
     axes = np.asarray(model.globe_semi_axes_mm, dtype=np.float64)
     frame, axial = model.ellipsoid_frame()
     planned = frame[:, axial] * math.copysign(1.0, frame[2, axial])
@@ -1032,8 +1032,8 @@ def _surface_distance(points: F64, centre: F64, radius: float, gaze: F64, model:
         cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
         turn = np.eye(3) + sin * cross + (1.0 - cos) * cross @ cross
     local = rel @ (turn @ frame)
-    length = np.linalg.norm(local, axis=1)
-    scaled = np.linalg.norm(local / axes, axis=1)
+    length = distances(local)
+    scaled = distances(local / axes)
     return np.asarray(length * (1.0 - 1.0 / np.maximum(scaled, 1e-12)), dtype=np.float64)
 
 

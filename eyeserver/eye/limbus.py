@@ -55,6 +55,7 @@ import numpy.typing as npt
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from eyeserver.core.arrays import distances
 from eyeserver.core.types import F32, F64
 from eyeserver.eye.tunables import (
     CIRCLE_ITERATIONS,
@@ -835,12 +836,12 @@ def _fitted_depth(sclera: F64, limbus: Limbus, start: float) -> tuple[float, flo
     L, g, r = limbus.centre, limbus.normal, limbus.radius
 
     def residuals(x: F64) -> F64:
-        return np.asarray(np.linalg.norm(sclera - (L - x[0] * g), axis=1) - math.hypot(x[0], r),
+        return np.asarray(distances(sclera, L - x[0] * g) - math.hypot(x[0], r),
                           dtype=np.float64)
 
     def jacobian(x: F64) -> F64:
         rel = sclera - (L - x[0] * g)
-        return np.asarray((rel @ g / np.linalg.norm(rel, axis=1)
+        return np.asarray((rel @ g / distances(rel)
                            - x[0] / math.hypot(x[0], r))[:, None], dtype=np.float64)
 
     fit = least_squares(residuals, [start], jac=jacobian, loss="soft_l1", f_scale=0.05)
@@ -890,7 +891,7 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
     cloud = np.asarray(points, dtype=np.float64)
     L, g, r = limbus.centre, limbus.normal, limbus.radius
     along = (cloud - L) @ g
-    across = np.linalg.norm((cloud - L) - along[:, None] * g, axis=1)
+    across = distances((cloud - L) - along[:, None] * g)
     behind = (along < -0.5) & (np.hypot(along, across - r) > LIMBUS_CLEARANCE_MM)
     votes, weights = _votes(cloud, limbus, behind)
     clear = np.ones(len(cloud), dtype=bool)
@@ -898,7 +899,7 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
         depth = math.sqrt(max(fixed_radius**2 - r**2, 1.0))
     else:
         depth = _mean_shift(votes, weights, _innermost_depth(votes), (0.4, 0.25, 0.15, 0.1))
-    offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
+    offset = distances(cloud, L - depth * g) - math.hypot(depth, r)
     gap = _lid_gap(offset[behind])
     band = min(gap, 0.3)  # the sclera's points: within this (mm) of the sphere
     # Only points that can be sclera are looked up (an eighth of the cloud or less), among the
@@ -915,12 +916,12 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
             if fixed_radius is None:
                 votes, weights = _votes(cloud, limbus, behind & clear)
                 depth = _mean_shift(votes, weights, depth, (0.25, 0.15, 0.1))
-    offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
+    offset = distances(cloud, L - depth * g) - math.hypot(depth, r)
     sclera = behind & clear & (np.abs(offset) < band)
     fitted_sd = None
     if fixed_radius is None and sclera.sum() >= MIN_SCLERA_POINTS:
         depth, fitted_sd = _fitted_depth(cloud[sclera], limbus, depth)
-        offset = np.linalg.norm(cloud - (L - depth * g), axis=1) - math.hypot(depth, r)
+        offset = distances(cloud, L - depth * g) - math.hypot(depth, r)
         sclera = behind & clear & (np.abs(offset) < band)
     if sclera.sum() < MIN_SCLERA_POINTS:
         if fixed_radius is None:

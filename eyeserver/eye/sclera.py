@@ -54,6 +54,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.optimize import least_squares
 from scipy.spatial import cKDTree
 
+from eyeserver.core.arrays import distances
 from eyeserver.core.types import F64
 from eyeserver.eye.limbus import (
     Limbus,
@@ -111,7 +112,7 @@ def _occluders(cloud: F64 | None, centre: F64, radius: float) -> F64:
     """The cloud's points that can hide a sphere from a camera: what lies outside it (the lids,
     ≈ 1–3 mm outside); the sclera itself, however far the hypothesis is off, cannot."""
     occluders: F64 = np.empty((0, 3)) if cloud is None else np.asarray(cloud, dtype=np.float64)
-    reach = np.linalg.norm(occluders - centre, axis=1) - radius
+    reach = distances(occluders, centre) - radius
     kept: F64 = occluders[(reach > OUTSIDE_MM) & (reach < 4.0)]
     return kept
 
@@ -270,7 +271,7 @@ def _nearest_along_rays(cam: CalibratedCamera, points: F64,
     uv = project(points, cam.K, cam.dist, cam.R, cam.T)
     col, row = np.round(uv[:, 0]).astype(int) - x0, np.round(uv[:, 1]).astype(int) - y0
     inside = (col >= 0) & (col < x1 - x0) & (row >= 0) & (row < y1 - y0)
-    depth = np.linalg.norm(points[inside] - cam.centre, axis=1)
+    depth = distances(points[inside], cam.centre)
     np.minimum.at(nearest, (row[inside], col[inside]), depth)
     return np.asarray(cv2.erode(nearest, np.ones((3, 3), np.uint8),
                                 borderType=cv2.BORDER_REPLICATE), dtype=np.float64)
@@ -429,7 +430,7 @@ def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: floa
         if surface is not None and fixed_radius is not None:
             distance = surface(pts, centre_l - h * gaze, gaze)
         else:
-            distance = np.linalg.norm(pts - (centre_l - h * gaze), axis=1) - math.hypot(h, r)
+            distance = distances(pts, centre_l - h * gaze) - math.hypot(h, r)
         # soft L1 as a residual (its square is the loss), so the priors stay quadratic.
         robust = np.sign(distance) * ROBUST_MM * np.sqrt(
             2.0 * (np.sqrt(1.0 + (distance / ROBUST_MM) ** 2) - 1.0))

@@ -49,6 +49,7 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
+from eyeserver.core.arrays import distances
 from eyeserver.core.types import F64
 from eyeserver.eye.fit import (
     LIMBUS_FROM_IMAGES,
@@ -206,7 +207,7 @@ def lids_closed(points: F64, centre: F64, radius: float, gaze: F64, limbus_radiu
     least :data:`LIDS_COVER_SHARE` of the ring's points and :data:`MIN_SCLERA_POINTS`.
     """
     rel = points - centre
-    dist = np.linalg.norm(rel, axis=1)
+    dist = distances(rel)
     angle = np.degrees(np.arccos(np.clip((rel @ gaze) / np.maximum(dist, 1e-9), -1.0, 1.0)))
     edge = math.degrees(math.asin(min(limbus_radius / radius, 1.0)))
     off = dist - radius
@@ -220,7 +221,7 @@ def _shells(points: F64, centre: F64, radius: float, lid_radius: float, band: fl
             ) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
     """The points within ``band`` of the sphere and of the lid shell, each point on the
     nearer shell only (the shells are less than two bands apart at first)."""
-    dist = np.linalg.norm(points - centre, axis=1)
+    dist = distances(points, centre)
     on_globe = np.abs(dist - radius) < band
     if not math.isfinite(lid_radius):
         return on_globe, np.zeros(len(points), dtype=bool)
@@ -273,7 +274,7 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
     radius = float(model.globe_radius_mm if model.globe_radius_mm is not None
                    else previous.globe_radius_mm)
     # Only what lies around the last globe matters from here on (sclera, lids, cornea).
-    dist = np.linalg.norm(points - centre, axis=1)
+    dist = distances(points, centre)
     near = ((dist > radius - WARM_FIT_BAND_MM)
             & (dist < radius + LID_REACH_MM + WARM_FIT_BAND_MM))
     points, weights = points[near], weights[near]
@@ -289,7 +290,7 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
         last_gaze = np.asarray(previous.gaze, dtype=np.float64)
         if lids_closed(points, centre, radius, last_gaze, model.limbus_diameter_mm / 2):
             # A blink: the last globe and gaze stand, the gaze unseen (beam held).
-            off = np.linalg.norm(points - centre, axis=1) - radius
+            off = distances(points, centre) - radius
             return pose_from_cloud(centre, np.asarray(previous.centre_sd_mm, dtype=np.float64),
                                    radius, Gaze(last_gaze, 90.0, "none"),
                                    float(np.median(np.abs(off))), 0, started,

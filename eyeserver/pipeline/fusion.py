@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from eyeserver.core.arrays import column_range
+from eyeserver.core.arrays import column_range, rows_where
 from eyeserver.core.types import F32, F64
 
 SEAM_RADIUS_MM = 0.25
@@ -155,7 +155,7 @@ def fuse(parts: Sequence[Part], *, region: Region | None = None,
             outside += int(out.sum())
             keep &= ~out
         whole = bool(keep.all())  # most parts keep every point: no copy through a mask
-        points.append(part.points if whole else part.points[keep])
+        points.append(part.points if whole else rows_where(part.points, keep))
         quality.append(part.quality if whole else part.quality[keep])
         camera.append(np.full(len(points[-1]), part.camera, np.uint8))
     if not parts:
