@@ -11,8 +11,9 @@ from eyeserver.core.arrays import distances, rows_where, wrap
 
 
 def test_whole_turns_wrap_as_the_complex_exponentials_angle() -> None:
-    """``core.arrays.wrap`` (the order checks and the phase-to-height calibration's walk along
-    Z) gives the angle of exp(i·φ) in place, float32 and float64 alike, over many turns."""
+    """``core.arrays.wrap`` (the demodulation, the order checks and the phase-to-height
+    calibration's walk along Z) gives the angle of exp(i·φ) in place, float32 and float64
+    alike, over many turns."""
     rng = np.random.default_rng(3)
     phase = rng.uniform(-200.0, 200.0, 100_000)
     exact = np.angle(np.exp(1j * phase))

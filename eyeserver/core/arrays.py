@@ -39,11 +39,8 @@ def distances(points: npt.NDArray[np.floating], centre: npt.ArrayLike | None = N
     total = np.zeros(len(points))
     offsets = None if centre is None else np.asarray(centre, dtype=np.float64)
     for column in range(points.shape[1]):
-        part = points[:, column] * points[:, column] if offsets is None else \
-            points[:, column] - offsets[column]
-        if offsets is not None:
-            part *= part
-        total += part
+        part = points[:, column] if offsets is None else points[:, column] - offsets[column]
+        total += part * part
     return np.sqrt(total, out=total)
 
 
@@ -80,10 +77,12 @@ def angle(y: npt.ArrayLike, x: npt.ArrayLike, *, centred: bool = True) -> npt.ND
 
 def wrap(phase: FloatArrayT) -> FloatArrayT:
     """``phase`` (radians, a float array) wrapped into ``[−π, π]`` in place by taking whole
-    turns off, and returned: the angle of ``exp(i·phase)`` to 1e-15 rad, where NumPy's complex
-    exponential and angle took 70 times as long (docs/notes/speed.md)."""
-    turn = 2.0 * math.pi
-    phase -= turn * np.rint(phase / turn)
+    turns off, and returned, in its own precision: the angle of ``exp(i·phase)`` to 1e-15 rad
+    in float64, where NumPy's complex exponential and angle took 70 times as long, and
+    ``np.mod`` on float32 ten times (docs/notes/speed.md)."""
+    turns = np.rint(phase * (0.5 / math.pi))
+    turns *= 2.0 * math.pi
+    phase -= turns
     return phase
 
 

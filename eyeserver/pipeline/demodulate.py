@@ -53,7 +53,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.fft
 
-from eyeserver.core.arrays import angle
+from eyeserver.core.arrays import angle, wrap
 from eyeserver.core.frames import grey
 from eyeserver.core.types import F32, F64
 
@@ -62,8 +62,6 @@ __all__ = ["Carrier", "Demodulated", "band_gain", "carrier_ratios", "demodulate"
 
 _TWO_PI = 2.0 * math.pi
 _PI32 = np.float32(math.pi)
-_TWO_PI32 = np.float32(_TWO_PI)
-_INVERSE_TWO_PI32 = np.float32(1.0 / _TWO_PI)
 _MIN_SIZE = 8
 
 
@@ -163,7 +161,7 @@ class Demodulated:
         in about ``[−π, π]``."""
         if self.bend_bias is None:
             return self.wrapped_phase
-        return _wrapped(self.wrapped_phase - self.bend_bias)
+        return wrap(self.wrapped_phase - self.bend_bias)
 
 
 def checked_image(image: npt.ArrayLike, name: str = "image", min_size: int = _MIN_SIZE,
@@ -831,15 +829,6 @@ _WEAK_FRINGE = 0.25  # the fringe field ends below this share of its strong modu
 # (reconstruct.MODULATION_FRACTION masks there too)
 
 
-def _wrapped(phase: F32) -> F32:
-    """``phase`` (float32, radians) wrapped into about ``[−π, π]``, in place (whole turns off by
-    rounding: np.mod on float32 is ten times slower)."""
-    turns = np.rint(phase * _INVERSE_TWO_PI32)
-    turns *= _TWO_PI32
-    phase -= turns
-    return phase
-
-
 def _gradient_at(values: F64, spacing: int, rows: npt.NDArray[np.intp],
                  columns: npt.NDArray[np.intp]) -> tuple[F64, F64]:
     """``values``' derivatives along the rows and the columns at the points ``(rows, columns)``
@@ -885,7 +874,7 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     def smoothed(values: F32) -> F64:
         # (Halved for the central difference's step of two pixels after the average: the
         # same, on 16 times fewer pixels.)
-        small = 0.5 * np.asarray(cv2.resize(_wrapped(values), coarse,
+        small = 0.5 * np.asarray(cv2.resize(wrap(values), coarse,
                                             interpolation=cv2.INTER_AREA), dtype=np.float32)
         return np.asarray(cv2.GaussianBlur(small, (0, 0), sigma / factor), dtype=np.float64)
 
@@ -996,7 +985,7 @@ def phase_difference(wrapped_object: npt.ArrayLike, wrapped_reference: npt.Array
                          f"not {obj.shape} and {ref.shape}")
     difference = np.asarray(np.subtract(obj, ref, dtype=np.float32))
     # −π, and whatever float32 rounding leaves beyond ±π, folds to +π.
-    _wrapped(difference)
+    wrap(difference)
     np.putmask(difference, difference <= -_PI32, _PI32)
     np.minimum(difference, _PI32, out=difference)
     return np.asarray(difference, dtype=np.float32)
