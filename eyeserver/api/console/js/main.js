@@ -229,6 +229,9 @@ function route() {
   if (!context) return;
   const id = (location.hash.match(/^#\/([\w-]+)/) || [])[1] || "therapist";
   const entry = VIEWS.find((v) => v.id === id) || VIEWS[0];
+  // The view shown already (the first view, shown without a hash, then its own link clicked):
+  // left as it is, not mounted anew over what was typed into it.
+  if (current?.id === entry.id) return;
   unmount();
   for (const link of $("nav").querySelectorAll("a")) {
     link.classList.toggle("active", link.dataset.view === entry.id);
