@@ -8,6 +8,7 @@ fit on the same images (the bench renders anew on every run).
     .venv/bin/python scripts/pose_set.py cloud --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py ablate --seed 6 --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py lids [--room ROOM] --calibration CALDIR SETDIR
+    .venv/bin/python scripts/pose_set.py limbus [--room ROOM] --calibration CALDIR SETDIR
     PYTHONPATH=/path/to/other/checkout .venv/bin/python scripts/pose_set.py fit ... SETDIR
 
 Eyes are drawn as ``eyeserver.hardware.sim.population.draw`` draws them and placed within ±5 mm
@@ -23,7 +24,9 @@ reference capture sees it) with each group of its properties in turn set to the 
 (``-group``) and the sharp eye given only that group of the patient's (``+group``), and fits
 each: which property alone breaks the fit. ``lids`` renders the sharp eye with lids 0.3–0.8 mm
 outside the globe (the population's range reaches 0.3) and two lid openings, and fits each:
-are lids close to the globe told from the sclera.
+are lids close to the globe told from the sclera. ``limbus`` renders ``tests/test_limbus.py``'s
+looking eye with limbus transitions of 0.2 and 0.5 mm before a dark and a light iris, and fits
+each: is the limbus found across widths and contrasts (with its stated sd beside the errors).
 """
 
 from __future__ import annotations
@@ -209,6 +212,43 @@ def lids(args: argparse.Namespace) -> None:
                       flush=True)
 
 
+LIMBUS_VARIANTS = {"0.2 mm, dark iris": (0.2, 0.06), "0.5 mm, dark iris": (0.5, 0.06),
+                   "0.2 mm, light iris": (0.2, 0.25), "0.5 mm, light iris": (0.5, 0.25)}
+"""``limbus``'s transitions (width mm, iris albedo in near-infrared; the sclera's 0.42)."""
+
+
+def limbus(args: argparse.Namespace) -> None:
+    from eyeserver.errors import EyeserverError
+    from eyeserver.eye.fit import EyeModel, fit_eye
+    from eyeserver.hardware.sim.config import load_room
+    from eyeserver.hardware.sim.scenes import EyeSpec, SceneSpec
+    from eyeserver.hardware.sim.sessions import SimSession
+    from eyeserver.reconstruction import limbus_views, reconstruct_bundle
+
+    with SimSession.open(load_room(args.room), seed=3) as session:
+        for name, (width, iris) in LIMBUS_VARIANTS.items():
+            bundle = args.setdir / f"limbus{width:g}_iris{iris:g}"
+            eye = EyeSpec(gaze_deg=(7.0, -4.0), globe_radius_mm=12.5, limbus_width_mm=width,
+                          iris_albedo=iris, sclera_albedo=0.42)
+            session.record(SceneSpec(kind="eye", position_mm=(1.5, -1.0, -11.0), eye=eye),
+                           bundle, overwrite=True)
+            truth = json.loads((bundle / "truth.json").read_text())["eye"]
+            try:
+                made, _ = reconstruct_bundle(args.calibration, bundle, for_pose=True)
+                pose = fit_eye(made, EyeModel.population(),
+                               limbus_views(args.calibration, bundle))
+            except EyeserverError as exc:
+                print(f"{name:20s} refused: {exc}", flush=True)
+                continue
+            found = ("no limbus" if pose.limbus_centre_mm is None else
+                     off(pose.limbus_centre_mm, pose.gaze, truth, "limbus_centre_mm"))
+            sd = ", ".join(f"{v:.3f}" for v in pose.centre_sd_mm)
+            print(f"{name:20s} limbus {found}; globe "
+                  f"{off(pose.centre_mm, pose.gaze, truth).split(' gaze')[0]}, stated sd "
+                  f"({sd}) mm, shape sd {pose.shape_sd_mm:.2f} mm, confidence "
+                  f"{pose.confidence:.2f}", flush=True)
+
+
 def cloud(args: argparse.Namespace) -> None:
     """Each eye's cloud against the exact scene (globe, cornea, iris, lids, lashes, skin): is
     the reconstruction right before any fit, and what share of the globe's neighbourhood is
@@ -267,6 +307,11 @@ def main() -> None:
     shells.add_argument("--room", type=Path, default=None, help="room file (default room)")
     shells.add_argument("setdir", type=Path)
     shells.set_defaults(step=lids)
+    edges = steps.add_parser("limbus", help="limbus transitions and contrasts, fitted")
+    edges.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
+    edges.add_argument("--room", type=Path, default=None, help="room file (default room)")
+    edges.add_argument("setdir", type=Path)
+    edges.set_defaults(step=limbus)
     by_surface = steps.add_parser("cloud", help="each eye's cloud against the exact scene")
     by_surface.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
     by_surface.add_argument("--method", default="auto", choices=("auto", "multi-view", "spatial"))
