@@ -43,11 +43,14 @@ def test_distances_are_numpys_row_norms_to_the_bit() -> None:
 
 def test_rows_where_is_boolean_indexing_and_refuses_a_mask_of_another_length() -> None:
     """``rows_where`` (the clouds' subsets) keeps the same rows as ``array[keep]``; a mask that
-    does not give one flag per row is an error, not a silent truncation as np.compress's."""
+    does not give one boolean flag per row is an error, not np.compress's silent truncation or
+    indices taken for flags."""
     rng = np.random.default_rng(5)
     points = rng.random((1000, 3))
     keep = rng.random(1000) < 0.7
     assert np.array_equal(rows_where(points, keep), points[keep])
     assert np.array_equal(rows_where(keep, keep), keep[keep])
-    with pytest.raises(ValueError, match="one flag per row"):
+    with pytest.raises(ValueError, match="one boolean flag per row"):
         rows_where(points, keep[:-1])
+    with pytest.raises(ValueError, match="one boolean flag per row"):
+        rows_where(points, keep.astype(np.int64))
