@@ -35,6 +35,7 @@ export function mount(container, ctx) {
   let liveTimer = null;
   let liveUnit = null; // the unit whose live images are shown (null: not tracking)
   let livePending = null; // the live images' fetch under way (a promise), or null
+  let stopping = false; // a stop asked: no status starts the live images again meanwhile
   const liveUrls = new Map(); // camera -> the blob: URL its <img> shows
   const timers = [];
 
@@ -237,6 +238,7 @@ export function mount(container, ctx) {
 
   async function stopTracking() {
     stopButton.disabled = true;
+    stopping = true;
     setLive(null); // no preview asked of a session that is ending,
     await livePending; // nor one still on its way when the stop arrives (a 409 otherwise)
     try {
@@ -245,6 +247,10 @@ export function mount(container, ctx) {
     } catch (error) {
       replace(trackingMessage, message("error", reasonOf(error)));
     }
+    // A status asked before the stop (still "running") must not start the live images again
+    // (a CI run saw the 409 of a preview asked that way): it is let through first.
+    await trackingAsked;
+    stopping = false;
     await pollTracking();
   }
 
@@ -269,7 +275,7 @@ export function mount(container, ctx) {
     trackingRunning = status.running;
     lamp.dataset.tracking = String(status.running);
     // Previews only once the session has a frame (it warms its workers first: a few s).
-    setLive(status.running && status.frames_acquired > 0 ? status.unit : null);
+    setLive(status.running && status.frames_acquired > 0 && !stopping ? status.unit : null);
     replace(trackingFacts,
       field("Tracking", status.running ? `running (${status.patient_id ?? "?"}, fraction `
         + `${status.fraction ?? "?"})` : "stopped"),
