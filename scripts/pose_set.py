@@ -243,8 +243,8 @@ def limbus(args: argparse.Namespace) -> None:
             found = ("no limbus" if pose.limbus_centre_mm is None else
                      off(pose.limbus_centre_mm, pose.gaze, truth, "limbus_centre_mm"))
             sd = ", ".join(f"{v:.3f}" for v in pose.centre_sd_mm)
-            print(f"{name:20s} limbus {found}; globe "
-                  f"{off(pose.centre_mm, pose.gaze, truth).split(' gaze')[0]}, stated sd "
+            globe = float(np.linalg.norm(np.subtract(pose.centre_mm, truth["centre_mm"])))
+            print(f"{name:20s} limbus {found}; globe centre {globe:.3f} mm, stated sd "
                   f"({sd}) mm, shape sd {pose.shape_sd_mm:.2f} mm, confidence "
                   f"{pose.confidence:.2f}", flush=True)
 

@@ -533,9 +533,9 @@ def _shell_search(voxels: F64, counts: F64, r_bounds: tuple[float, float], fixed
         if found is None:
             break
         shells.append(found)
-        dist = np.abs(distances(voxels, found[0]) - found[1])
-        keep &= dist > 2 * SHELL_BAND_MM
-        keep &= distances(voxels, found[0]) < found[1] + 8.0
+        dist = distances(voxels, found[0])
+        keep &= np.abs(dist - found[1]) > 2 * SHELL_BAND_MM
+        keep &= dist < found[1] + 8.0
     if not shells:
         return []
     same = [s for s in shells if np.linalg.norm(s[0] - shells[0][0]) < 4.0]

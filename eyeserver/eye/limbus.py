@@ -824,6 +824,13 @@ def _mean_shift(votes: F64, weights: F64, start: float, bandwidths: Sequence[flo
     return depth
 
 
+def off_sphere_mm(points: F64, centre: F64, normal: F64, radius: float, depth: float) -> F64:
+    """Each point's distance (mm, + outside) from the sphere through the limbus circle
+    (``centre``, unit ``normal``, ``radius``; WCS mm) whose centre lies ``depth`` behind it:
+    the globe ``C = L − h·g``, ``R = √(h² + r²)``."""
+    return distances(points, centre - depth * normal) - math.hypot(depth, radius)
+
+
 def _fitted_depth(sclera: F64, limbus: Limbus, start: float) -> tuple[float, float]:
     """``h`` by robust least squares of the sclera's distances to the sphere through the
     limbus (soft L1, scale 0.05 mm, from ``start``), and its standard deviation.
@@ -836,8 +843,7 @@ def _fitted_depth(sclera: F64, limbus: Limbus, start: float) -> tuple[float, flo
     L, g, r = limbus.centre, limbus.normal, limbus.radius
 
     def residuals(x: F64) -> F64:
-        return np.asarray(distances(sclera, L - x[0] * g) - math.hypot(x[0], r),
-                          dtype=np.float64)
+        return off_sphere_mm(sclera, L, g, r, float(x[0]))
 
     def jacobian(x: F64) -> F64:
         rel = sclera - (L - x[0] * g)
@@ -899,7 +905,7 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
         depth = math.sqrt(max(fixed_radius**2 - r**2, 1.0))
     else:
         depth = _mean_shift(votes, weights, _innermost_depth(votes), (0.4, 0.25, 0.15, 0.1))
-    offset = distances(cloud, L - depth * g) - math.hypot(depth, r)
+    offset = off_sphere_mm(cloud, L, g, r, depth)
     gap = _lid_gap(offset[behind])
     band = min(gap, 0.3)  # the sclera's points: within this (mm) of the sphere
     # Only points that can be sclera are looked up (an eighth of the cloud or less), among the
@@ -916,12 +922,12 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
             if fixed_radius is None:
                 votes, weights = _votes(cloud, limbus, behind & clear)
                 depth = _mean_shift(votes, weights, depth, (0.25, 0.15, 0.1))
-    offset = distances(cloud, L - depth * g) - math.hypot(depth, r)
+    offset = off_sphere_mm(cloud, L, g, r, depth)
     sclera = behind & clear & (np.abs(offset) < band)
     fitted_sd = None
     if fixed_radius is None and sclera.sum() >= MIN_SCLERA_POINTS:
         depth, fitted_sd = _fitted_depth(cloud[sclera], limbus, depth)
-        offset = distances(cloud, L - depth * g) - math.hypot(depth, r)
+        offset = off_sphere_mm(cloud, L, g, r, depth)
         sclera = behind & clear & (np.abs(offset) < band)
     if sclera.sum() < MIN_SCLERA_POINTS:
         if fixed_radius is None:

@@ -62,6 +62,7 @@ from eyeserver.eye.limbus import (
     LimbusView,
     Shade,
     circle_points,
+    off_sphere_mm,
     refined,
 )
 from eyeserver.eye.tunables import (
@@ -430,7 +431,7 @@ def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: floa
         if surface is not None and fixed_radius is not None:
             distance = surface(pts, centre_l - h * gaze, gaze)
         else:
-            distance = distances(pts, centre_l - h * gaze) - math.hypot(h, r)
+            distance = off_sphere_mm(pts, centre_l, gaze, r, h)
         # soft L1 as a residual (its square is the loss), so the priors stay quadratic.
         robust = np.sign(distance) * ROBUST_MM * np.sqrt(
             2.0 * (np.sqrt(1.0 + (distance / ROBUST_MM) ** 2) - 1.0))
