@@ -27,6 +27,7 @@ from eyeserver.pipeline.demodulate import (
     demodulate,
     measure_carrier,
     phase_difference,
+    with_bend_bias,
 )
 
 HEIGHT, WIDTH = 320, 400
@@ -282,6 +283,31 @@ def test_no_bend_bias_is_taken_where_the_fringe_field_ends() -> None:
     assert np.sqrt(np.mean(corrected**2)) < 0.45 * np.sqrt(np.mean(raw**2))
 
 
+@pytest.mark.parametrize("name", list(CARRIERS))
+def test_a_window_given_its_origin_has_the_whole_images_bend_bias(name: str) -> None:
+    """Live tracking demodulates a window of each image: told where the window lies, the bend
+    correction averages over the whole image's blocks and the window's bias is the whole
+    image's away from its border (measured: within 0.0009 rad of a bias up to 0.15 rad; without
+    the origin, blocks of its own, up to 0.009 rad off)."""
+    carrier = CARRIERS[name]
+    true_phase = _carrier_phase(carrier) + _bump(amplitude_rad=10.0, sigma_px=60.0) + 0.3
+    image = _background() + FRINGE_DN * np.cos(true_phase)
+    whole = demodulate(image, carrier).bend_bias
+    assert whole is not None and np.abs(whole).max() > 0.08
+    x0, y0, x1, y1 = 37, 21, 337, 271  # a corner on no block's: the blocks are 4 px here
+    margin = 3 * math.ceil(carrier.period_px)
+    inner = np.s_[margin:-margin, margin:-margin]
+
+    def gap(origin: tuple[int, int]) -> float:
+        part = with_bend_bias(demodulate(image[y0:y1, x0:x1], carrier, measure_bends=False),
+                              carrier, origin=origin).bend_bias
+        assert part is not None
+        return float(np.abs(part[inner] - whole[y0:y1, x0:x1][inner]).max())
+
+    assert gap((x0, y0)) < 1.5e-3
+    assert gap((0, 0)) > 1.5 * gap((x0, y0))
+
+
 def test_an_image_shorter_than_a_period_still_demodulates() -> None:
     carrier = Carrier((0.0, 0.05))
     j = np.arange(12, dtype=np.float64)[None, :] * np.ones((64, 1))
@@ -400,6 +426,21 @@ def test_demodulate_rejects_bad_input(kwargs: dict[str, object], name: str) -> N
     arguments: dict[str, object] = {"image": _GOOD_IMAGE, "carrier": _GOOD_CARRIER, **kwargs}
     with pytest.raises(ValueError, match=name):
         demodulate(**arguments)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(("kwargs", "name"), [
+    ({"origin": (-1, 0)}, "origin"),
+    ({"origin": (0.5, 0)}, "origin"),
+    ({"origin": [0, 0]}, "origin"),
+    ({"origin": (0, 0, 0)}, "origin"),
+    ({"strong_modulation": -1.0}, "strong_modulation"),
+    ({"strong_modulation": math.nan}, "strong_modulation"),
+    ({"strong_modulation": True}, "strong_modulation"),
+])
+def test_with_bend_bias_rejects_bad_input(kwargs: dict[str, object], name: str) -> None:
+    result = demodulate(_GOOD_IMAGE, _GOOD_CARRIER, measure_bends=False)
+    with pytest.raises(ValueError, match=name):
+        with_bend_bias(result, _GOOD_CARRIER, **kwargs)  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize("frequency", [(0.0, 0.0), (0.6, 0.1), (0.1, -0.5), (math.nan, 0.1),

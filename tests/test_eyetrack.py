@@ -190,10 +190,12 @@ def test_a_window_of_the_images_reconstructs_the_same_points(
         # simulated eye a third more, in the sclera beside the limbus; the poses agree).
         assert len(common) > 0.5 * inner.sum() and len(common) > 5000
         gap = np.linalg.norm(full.points[in_full] - part.points[inner][in_part], axis=1)
-        # The demodulation's bend bias is measured from what each image holds (its fringe
-        # field's edges, its coarse grid): measured up to 0.014 mm apart, 0.0022 mm at p99.
+        # The window's bend bias is the whole image's (its blocks and its fringe field's edge
+        # are the whole image's: cropped's origin and strong modulation); what differs is the
+        # band-pass's reach from the window's border: measured up to 0.0031 mm apart, 0.0023 mm
+        # at p99 (a window's own blocks and edge had put one point 0.014 mm off).
         assert float(np.percentile(gap, 99)) < 0.004, float(np.percentile(gap, 99))
-        assert float(np.max(gap)) < 0.02, float(np.max(gap))
+        assert float(np.max(gap)) < 0.006, float(np.max(gap))
 
 
 def test_a_decimated_window_reconstructs_its_pixels_points(

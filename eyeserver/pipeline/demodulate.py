@@ -671,7 +671,8 @@ def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = BAN
     measure_bends : bool, optional
         Measure the phase bias of the band's tapered edge where the fringes bend
         (:attr:`Demodulated.bend_bias`, module docstring; on by default; its cost is
-        ``bend_correction`` in ``eyeserver bench speed``'s stage table).
+        ``bend_correction`` in ``eyeserver bench speed``'s stage table). A window of an
+        image: :func:`with_bend_bias`, told where the window lies.
 
     Returns
     -------
@@ -781,12 +782,40 @@ def demodulate(image: npt.ArrayLike, carrier: Carrier, *, bandwidth: float = BAN
 
 
 def with_bend_bias(result: Demodulated, carrier: Carrier, *, bandwidth: float = BANDWIDTH,
-                   taper: float = TAPER, elongation: float = ELONGATION) -> Demodulated:
+                   taper: float = TAPER, elongation: float = ELONGATION,
+                   origin: tuple[int, int] = (0, 0),
+                   strong_modulation: float | None = None) -> Demodulated:
     """``result`` (of :func:`demodulate` with ``measure_bends=False`` and the same band) with its
     :attr:`~Demodulated.bend_bias` measured: what ``measure_bends=True`` adds, on its own so
-    ``eyeserver bench speed`` can time it apart from the Fourier-transform method itself."""
+    ``eyeserver bench speed`` can time it apart from the Fourier-transform method itself, and
+    so a window of an image can be given the whole image's bias.
+
+    ``origin``: where the image's pixel ``(0, 0)`` lies in the camera's whole image,
+    ``(column, row)`` (a window's corner); the correction averages over blocks of the whole
+    image's grid. ``strong_modulation``: the whole image's strong fringes' modulation (the
+    reconstruction's :func:`~eyeserver.pipeline.reconstruct.fringe_strength`), where the fringe
+    field ends at :data:`_WEAK_FRINGE` of it; None: this image's own 95th percentile. Given
+    both, a window's bias is the whole image's away from the window's border.
+
+    Raises
+    ------
+    ValueError
+        An ``origin`` that is no pair of non-negative integers, or a ``strong_modulation`` that
+        is not a finite number ≥ 0.
+    """
+    if not (isinstance(origin, tuple) and len(origin) == 2
+            and all(isinstance(o, numbers.Integral) and not isinstance(o, bool) and o >= 0
+                    for o in origin)):
+        raise ValueError(f"origin must be a (column, row) pair of non-negative integers, "
+                         f"not {origin!r}")
+    if strong_modulation is not None and not (
+            isinstance(strong_modulation, numbers.Real) and not isinstance(strong_modulation, bool)
+            and math.isfinite(strong_modulation) and strong_modulation >= 0):
+        raise ValueError(f"strong_modulation must be a non-negative number, not "
+                         f"{strong_modulation!r}")
     bias = _bend_bias(result.wrapped_phase, result.modulation, carrier,
-                      *_band_shape(carrier, bandwidth, taper), elongation)
+                      *_band_shape(carrier, bandwidth, taper), elongation,
+                      (int(origin[0]), int(origin[1])), strong_modulation)
     return Demodulated(result.wrapped_phase, result.modulation, bias)
 
 
@@ -843,33 +872,44 @@ def _gradient_at(values: F64, spacing: int, rows: npt.NDArray[np.intp],
 
 
 def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: float, flat: float,
-               direction: tuple[float, float], elongation: float) -> F32 | None:
+               direction: tuple[float, float], elongation: float,
+               origin: tuple[int, int] = (0, 0),
+               strong_modulation: float | None = None) -> F32 | None:
     """The phase the pass band's edge adds where the fringes bend (module docstring); None where
-    every local frequency lies on the flat top (no bias)."""
+    every local frequency lies on the flat top (no bias). ``origin`` and ``strong_modulation``:
+    :func:`with_bend_bias`'s."""
     height, width = wrapped_phase.shape
     if height < 3 or width < 3:
         return None
     sigma = BEND_SMOOTHING_PERIODS * carrier.period_px
     # The bend varies over periods, not pixels: it is measured on a grid ``factor`` times
-    # coarser (area averages) and the bias interpolated back — 16 times fewer pixels to smooth.
-    # (A grid of whole blocks, which OpenCV averages six times as fast where the image's size
-    # is no multiple of ``factor``, moved a window's bias away from the whole image's:
-    # docs/notes/speed.md.)
+    # coarser (the averages of blocks of ``factor × factor`` pixels) and the bias interpolated
+    # back — 16 times fewer pixels to smooth. The blocks are the whole image's (``origin``),
+    # the arrays padded to whole blocks by their edge values: a window's bias is then the whole
+    # image's, and OpenCV's area average takes its fast path for a whole ratio, 6 times as fast
+    # as for a fractional one (docs/notes/speed.md).
     factor = max(1, int(sigma // 3))
-    coarse = (max(3, round(width / factor)), max(3, round(height / factor)))
+    pad_left, pad_top = origin[0] % factor, origin[1] % factor
+    coarse = (max(3, -(-(width + pad_left) // factor)), max(3, -(-(height + pad_top) // factor)))
+    padded_w, padded_h = coarse[0] * factor, coarse[1] * factor
+    pad_right, pad_bottom = padded_w - width - pad_left, padded_h - height - pad_top
     # The local fringe frequency (rad/px, carrier included) from wrapped central differences,
     # and the modulation's log, averaged over part of a period. (Weighting the average by the
     # modulation, so as not to take a bend from the noise beyond an outline, corrected the
     # simulated eye's sclera less well, measured without the fading term and the edge rule: the
     # radius 0.08 and 0.10 mm too small on 12- and 13-mm globes, against 0.02 and 0.04.)
-    slope_y = np.empty_like(wrapped_phase)
-    slope_x = np.empty_like(wrapped_phase)
+    slope_y = np.empty((padded_h, padded_w), np.float32)
+    slope_x = np.empty((padded_h, padded_w), np.float32)
+    inner_y = slope_y[pad_top:pad_top + height, pad_left:pad_left + width]
+    inner_x = slope_x[pad_top:pad_top + height, pad_left:pad_left + width]
     # (cv2.subtract into the views: NumPy's subtraction of the column-shifted views took four
     # times as long.)
-    cv2.subtract(wrapped_phase[2:], wrapped_phase[:-2], dst=slope_y[1:-1])
-    slope_y[0], slope_y[-1] = slope_y[1], slope_y[-2]
-    cv2.subtract(wrapped_phase[:, 2:], wrapped_phase[:, :-2], dst=slope_x[:, 1:-1])
-    slope_x[:, 0], slope_x[:, -1] = slope_x[:, 1], slope_x[:, -2]
+    cv2.subtract(wrapped_phase[2:], wrapped_phase[:-2], dst=inner_y[1:-1])
+    inner_y[0], inner_y[-1] = inner_y[1], inner_y[-2]
+    cv2.subtract(wrapped_phase[:, 2:], wrapped_phase[:, :-2], dst=inner_x[:, 1:-1])
+    inner_x[:, 0], inner_x[:, -1] = inner_x[:, 1], inner_x[:, -2]
+    for padded in (slope_y, slope_x):
+        _replicate_edges(padded, pad_top, pad_bottom, pad_left, pad_right)
 
     def smoothed(values: F32) -> F64:
         # (Halved for the central difference's step of two pixels after the average: the
@@ -895,8 +935,13 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     # Near where the fringe ends (an outline, the dark cornea, a shadow) neither bend nor fading
     # is a smooth surface's: no bias is taken there (BEND_EDGE_PERIODS), so it is computed only
     # off the flat top and inside the fringe field.
-    fringe = np.asarray(cv2.resize(modulation, coarse, interpolation=cv2.INTER_AREA))
-    present = (fringe > _WEAK_FRINGE * np.percentile(fringe, 95)).astype(np.uint8)
+    fringe = np.asarray(cv2.resize(
+        cv2.copyMakeBorder(modulation, pad_top, pad_bottom, pad_left, pad_right,
+                           cv2.BORDER_REPLICATE), coarse,
+        interpolation=cv2.INTER_AREA))
+    strong = (float(np.percentile(fringe, 95)) if strong_modulation is None
+              else strong_modulation)
+    present = (fringe > _WEAK_FRINGE * strong).astype(np.uint8)
     reach = max(1, round(BEND_EDGE_PERIODS * carrier.period_px / factor))
     inside = cv2.erode(present, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8),
                        borderType=cv2.BORDER_REPLICATE)
@@ -938,8 +983,23 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     values[here < _MIN_GAIN] = 0.0
     bias = np.zeros(offset_y.shape, np.float32)
     bias[rows, columns] = values
-    return np.asarray(cv2.resize(bias, (width, height), interpolation=cv2.INTER_LINEAR),
-                      dtype=np.float32)
+    fine = cv2.resize(bias, (padded_w, padded_h), interpolation=cv2.INTER_LINEAR)
+    return np.ascontiguousarray(fine[pad_top:pad_top + height, pad_left:pad_left + width],
+                                dtype=np.float32)
+
+
+def _replicate_edges(padded: F32, top: int, bottom: int, left: int, right: int) -> None:
+    """Fill ``padded``'s margins (``top`` rows, ``bottom`` rows, ``left`` and ``right``
+    columns) in place with the values at the edges of what they surround."""
+    height, width = padded.shape
+    if left:
+        padded[:, :left] = padded[:, left:left + 1]
+    if right:
+        padded[:, width - right:] = padded[:, width - right - 1:width - right]
+    if top:
+        padded[:top] = padded[top:top + 1]
+    if bottom:
+        padded[height - bottom:] = padded[height - bottom - 1:height - bottom]
 
 
 def phase_difference(wrapped_object: npt.ArrayLike, wrapped_reference: npt.ArrayLike) -> F32:

@@ -64,6 +64,7 @@ from eyeserver.pipeline.demodulate import (
     border_mask,
     demodulate,
     phase_difference,
+    with_bend_bias,
 )
 from eyeserver.pipeline.geometry import (
     intersect_plane_z,
@@ -211,6 +212,10 @@ class CalibratedCamera:
     """Image pixels between two neighbouring pixels of this camera: 1, or the factor of
     :func:`decimated`. The filters' sizes in pixels (:data:`SPECKLE_PX` and its kin) are
     given for spacing 1 and scaled by it, so that they keep their size on the object."""
+    origin: tuple[int, int] = (0, 0)
+    """Where this camera's pixel ``(0, 0)`` lies in the whole image, ``(column, row)``: a
+    window's corner (:func:`cropped`), so that the demodulation's bend correction averages
+    over the whole image's blocks (:func:`~eyeserver.pipeline.demodulate.with_bend_bias`)."""
     grid: InitVar[tuple[F64, F64] | None] = None
     """The undistorted normalised coordinates ``(x, y)`` of the pixels when known (a window or
     a decimation of another camera's: sliced, not computed again); None: computed when first
@@ -401,7 +406,8 @@ def cropped(camera: CalibratedCamera, x0: int, y0: int, x1: int, y1: int, *,
                             camera.border_px,
                             camera.strong_modulation if strong_modulation is None
                             else strong_modulation, camera.spacing_px,
-                            (camera.x[y0:y1, x0:x1], camera.y[y0:y1, x0:x1]))
+                            (camera.origin[0] + x0, camera.origin[1] + y0),
+                            grid=(camera.x[y0:y1, x0:x1], camera.y[y0:y1, x0:x1]))
 
 
 def decimated(camera: CalibratedCamera, factor: int) -> CalibratedCamera:
@@ -429,7 +435,7 @@ def decimated(camera: CalibratedCamera, factor: int) -> CalibratedCamera:
                             np.ascontiguousarray(camera.reference_phase[::factor, ::factor]),
                             camera.border_px, camera.strong_modulation,
                             camera.spacing_px * factor,
-                            (camera.x[::factor, ::factor], camera.y[::factor, ::factor]))
+                            grid=(camera.x[::factor, ::factor], camera.y[::factor, ::factor]))
 
 
 def _area_px(camera: CalibratedCamera, pixels: int) -> int:
@@ -594,10 +600,14 @@ def camera_phase(camera: CalibratedCamera, image: npt.ArrayLike,
     corrupts, and half a fringe period around every edge of what remains.
     """
     pixels = np.asarray(image)
-    result = demodulate(pixels, camera.carrier, measure_bends=measure_bends)
-    dphi = phase_difference(result.surface_phase(), camera.reference_phase)
+    result = demodulate(pixels, camera.carrier, measure_bends=False)
     strong = (fringe_strength(result.modulation) if camera.strong_modulation is None
               else camera.strong_modulation)
+    if measure_bends:
+        # A window's (cropped) bias is the whole image's: the same blocks, the same fringe field.
+        result = with_bend_bias(result, camera.carrier, origin=camera.origin,
+                                strong_modulation=strong)
+    dphi = phase_difference(result.surface_phase(), camera.reference_phase)
     period = math.ceil(camera.carrier.period_px)
     valid = result.modulation > MODULATION_FRACTION * strong
     if saturation_dn is not None:
