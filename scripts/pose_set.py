@@ -9,6 +9,7 @@ fit on the same images (the bench renders anew on every run).
     .venv/bin/python scripts/pose_set.py ablate --seed 6 --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py lids [--room ROOM] --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py limbus [--room ROOM] --calibration CALDIR SETDIR
+    .venv/bin/python scripts/pose_set.py orientation --calibration CALDIR SETDIR
     PYTHONPATH=/path/to/other/checkout .venv/bin/python scripts/pose_set.py fit ... SETDIR
 
 Eyes are drawn as ``eyeserver.hardware.sim.population.draw`` draws them and placed within ±5 mm
@@ -27,6 +28,8 @@ outside the globe (the population's range reaches 0.3) and two lid openings, and
 are lids close to the globe told from the sclera. ``limbus`` renders ``tests/test_limbus.py``'s
 looking eye with limbus transitions of 0.2 and 0.5 mm before a dark and a light iris, and fits
 each: is the limbus found across widths and contrasts (with its stated sd beside the errors).
+``orientation`` is a diagnostic of any rendered set: the limbus edges each camera finds about
+the true junction, their offsets from it binned by how the limbus runs to the camera's fringes.
 """
 
 from __future__ import annotations
@@ -249,6 +252,38 @@ def limbus(args: argparse.Namespace) -> None:
                   f"{pose.confidence:.2f}", flush=True)
 
 
+ORIENTATION_BINS = ((0.0, 0.5), (0.5, 0.8), (0.8, 0.95), (0.95, 1.01))
+"""``orientation``'s bins of |cos| between an edge's outward normal and the camera's carrier (1:
+the limbus runs along the fringes there)."""
+
+
+def orientation(args: argparse.Namespace) -> None:
+    from eyeserver.eye import limbus as limbus_module
+    from eyeserver.reconstruction import limbus_views
+
+    print("median offset of the edges from the true junction, mm (outwards +), and their count, "
+          "per |cos| bin " + ", ".join(f"{lo:g}-{min(hi, 1):g}" for lo, hi in ORIENTATION_BINS))
+    for bundle in sorted(p for p in args.setdir.iterdir() if (p / "truth.json").exists()):
+        truth = json.loads((bundle / "truth.json").read_text())
+        eye, spec = truth["eye"], truth["scene"]["eye"]
+        centre, gaze = np.asarray(eye["limbus_centre_mm"]), np.asarray(eye["gaze"])
+        radius, ratio = spec["limbus_diameter_mm"] / 2, spec["limbus_vertical_ratio"]
+        cells = []
+        for view in limbus_views(args.calibration, bundle):
+            image = limbus_module._Image(view, None)
+            angles, edges = limbus_module._edges(image, centre, gaze, radius, 8.0, ratio=ratio)
+            on, outward = image.outline(centre, gaze, radius, angles, ratio)
+            beyond, _ = image.outline(centre, gaze, radius + 0.1, angles, ratio)
+            offset = ((edges - on) * outward).sum(axis=1) / (
+                np.linalg.norm(beyond - on, axis=1) / 0.1)
+            fy, fx = view.camera.carrier.frequency
+            along = np.abs(outward @ np.array([fx, fy])) / math.hypot(fx, fy)
+            bins = [offset[(along >= lo) & (along < hi)] for lo, hi in ORIENTATION_BINS]
+            cells.append(view.camera.camera_id + " " + " ".join(
+                f"{np.median(b):+.2f}({len(b)})" if len(b) else "-" for b in bins))
+        print(f"{bundle.name:20s} " + " | ".join(cells), flush=True)
+
+
 def cloud(args: argparse.Namespace) -> None:
     """Each eye's cloud against the exact scene (globe, cornea, iris, lids, lashes, skin): is
     the reconstruction right before any fit, and what share of the globe's neighbourhood is
@@ -312,6 +347,11 @@ def main() -> None:
     edges.add_argument("--room", type=Path, default=None, help="room file (default room)")
     edges.add_argument("setdir", type=Path)
     edges.set_defaults(step=limbus)
+    turned = steps.add_parser("orientation", help="the limbus edges about the true junction, "
+                              "by how the limbus runs to the fringes (a diagnostic)")
+    turned.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
+    turned.add_argument("setdir", type=Path)
+    turned.set_defaults(step=orientation)
     by_surface = steps.add_parser("cloud", help="each eye's cloud against the exact scene")
     by_surface.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
     by_surface.add_argument("--method", default="auto", choices=("auto", "multi-view", "spatial"))
