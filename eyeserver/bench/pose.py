@@ -69,6 +69,7 @@ from eyeserver.service.patients import (
     Tolerances,
 )
 from eyeserver.service.verification import (
+    combined_sd_mm,
     gaze_angle_deg,
     measurement_reason,
     shape_reason,
@@ -135,14 +136,15 @@ def displacement_error(first: EyePose, second: EyePose, first_truth: dict[str, A
     confidence, though the daemon refuses a reference below ``min_confidence``). Beside them
     both captures' confidences and the move's own stated sd per axis (mm: the two poses'
     :attr:`~eyeserver.eye.fit.EyePose.centre_sd_mm` together, the shape's left out), which
-    the check weighs as :func:`~eyeserver.service.verification.measured_sd_mm` does."""
+    the check weighs as :func:`~eyeserver.service.verification.measured_sd_mm` does
+    (:func:`~eyeserver.service.verification.combined_sd_mm`)."""
     moved_by = np.subtract(second.centre_mm, first.centre_mm)
     true_move = np.subtract(second_truth["centre_mm"], first_truth["centre_mm"])
     turn = np.subtract(second.gaze, first.gaze)
     true_turn = np.subtract(second_truth["gaze"], first_truth["gaze"])
     error = float(np.linalg.norm(moved_by - true_move))
     shape = turned_shape_sd_mm(second.shape_sd_mm, second.gaze, first.gaze)
-    move_sd = [float(sd) for sd in np.hypot(first.centre_sd_mm, second.centre_sd_mm)]
+    move_sd = list(combined_sd_mm(first.centre_sd_mm, second.centre_sd_mm))
     return {"error_mm": error,
             "gaze_turn_error_deg": math.degrees(float(np.linalg.norm(turn - true_turn))),
             "true_move_mm": float(np.linalg.norm(true_move)),

@@ -49,7 +49,7 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
-from eyeserver.core.arrays import distances
+from eyeserver.core.arrays import distances, rows_where
 from eyeserver.core.types import F64
 from eyeserver.eye.fit import (
     LIMBUS_FROM_IMAGES,
@@ -277,7 +277,7 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
     dist = distances(points, centre)
     near = ((dist > radius - WARM_FIT_BAND_MM)
             & (dist < radius + LID_REACH_MM + WARM_FIT_BAND_MM))
-    points, weights = points[near], weights[near]
+    points, weights, dist = rows_where(points, near), weights[near], dist[near]
     if len(points) < MIN_SCLERA_POINTS:
         raise PoseError(f"eye lost: only {len(points)} points near the last globe")
     if views:
@@ -290,7 +290,7 @@ def track_eye(cloud: CloudLike, model: EyeModel, previous: EyePose,
         last_gaze = np.asarray(previous.gaze, dtype=np.float64)
         if lids_closed(points, centre, radius, last_gaze, model.limbus_diameter_mm / 2):
             # A blink: the last globe and gaze stand, the gaze unseen (beam held).
-            off = distances(points, centre) - radius
+            off = dist - radius
             return pose_from_cloud(centre, np.asarray(previous.centre_sd_mm, dtype=np.float64),
                                    radius, Gaze(last_gaze, 90.0, "none"),
                                    float(np.median(np.abs(off))), 0, started,

@@ -53,7 +53,7 @@ from eyeserver.service.patients import (
 from eyeserver.service.storage import UnknownIdError
 
 __all__ = ["MEASURED_SD_SHARE", "MIN_UNIT_POINTS", "MODEL_SD_SHARE", "Deviation", "FitFunction",
-           "PoseVerification", "Verdict", "deviation", "gaze_angle_deg", "judge",
+           "PoseVerification", "Verdict", "combined_sd_mm", "deviation", "gaze_angle_deg", "judge",
            "measured_sd_mm", "measurement_model", "measurement_reason", "model_sd_mm",
            "shape_cancels", "shape_reason", "turned_shape_sd_mm", "unit_contributions",
            "unit_shortfalls"]
@@ -170,9 +170,13 @@ def measured_sd_mm(pose: EyePose, reference: ReferencePose) -> tuple[float, floa
     by definition."""
     fit = (reference.evidence or {}).get("fit") if reference.source == "capture" else None
     ref_sd = fit.get("centre_sd_mm") if isinstance(fit, dict) else None
-    ref = (0.0, 0.0, 0.0) if ref_sd is None else ref_sd
-    x, y, z = (math.hypot(float(a), float(b)) for a, b in zip(pose.centre_sd_mm, ref,
-                                                              strict=True))
+    return combined_sd_mm(pose.centre_sd_mm, (0.0, 0.0, 0.0) if ref_sd is None else ref_sd)
+
+
+def combined_sd_mm(first: Vector, second: Vector) -> tuple[float, float, float]:
+    """The sd per axis (mm) of the difference of two independent measurements of sds
+    ``first`` and ``second`` per axis: each axis's in quadrature."""
+    x, y, z = (math.hypot(float(a), float(b)) for a, b in zip(first, second, strict=True))
     return x, y, z
 
 
