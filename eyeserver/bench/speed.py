@@ -443,6 +443,7 @@ def _multi_view_pass(frameset: RecordedFrameSet, samples: _Samples) -> dict[str,
             # A fresh Phase every pass: the partner's pinhole view is computed in grid_order,
             # once per frame, as in unit_clouds.
             with _stand_in(reconstruct, "demodulate", _returning(demodulated)), \
+                    _stand_in(reconstruct, "with_bend_bias", _returning(demodulated)), \
                     _stand_in(reconstruct, "phase_difference", _returning(dphi)):
                 phases[cid] = samples.time(cid, "masks", camera_phase, cam, image,
                                            frameset.saturation_dn)

@@ -898,23 +898,26 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     # modulation, so as not to take a bend from the noise beyond an outline, corrected the
     # simulated eye's sclera less well, measured without the fading term and the edge rule: the
     # radius 0.08 and 0.10 mm too small on 12- and 13-mm globes, against 0.02 and 0.04.)
-    slope_y = np.empty((padded_h, padded_w), np.float32)
-    slope_x = np.empty((padded_h, padded_w), np.float32)
-    inner_y = slope_y[pad_top:pad_top + height, pad_left:pad_left + width]
-    inner_x = slope_x[pad_top:pad_top + height, pad_left:pad_left + width]
+    slope_y = np.empty_like(wrapped_phase)
+    slope_x = np.empty_like(wrapped_phase)
     # (cv2.subtract into the views: NumPy's subtraction of the column-shifted views took four
     # times as long.)
-    cv2.subtract(wrapped_phase[2:], wrapped_phase[:-2], dst=inner_y[1:-1])
-    inner_y[0], inner_y[-1] = inner_y[1], inner_y[-2]
-    cv2.subtract(wrapped_phase[:, 2:], wrapped_phase[:, :-2], dst=inner_x[:, 1:-1])
-    inner_x[:, 0], inner_x[:, -1] = inner_x[:, 1], inner_x[:, -2]
-    for padded in (slope_y, slope_x):
-        _replicate_edges(padded, pad_top, pad_bottom, pad_left, pad_right)
+    cv2.subtract(wrapped_phase[2:], wrapped_phase[:-2], dst=slope_y[1:-1])
+    slope_y[0], slope_y[-1] = slope_y[1], slope_y[-2]
+    cv2.subtract(wrapped_phase[:, 2:], wrapped_phase[:, :-2], dst=slope_x[:, 1:-1])
+    slope_x[:, 0], slope_x[:, -1] = slope_x[:, 1], slope_x[:, -2]
+
+    def padded(values: F32) -> F32:
+        # To whole blocks of the whole image's grid, by the edge values.
+        if not (pad_top or pad_bottom or pad_left or pad_right):
+            return values
+        return np.asarray(cv2.copyMakeBorder(values, pad_top, pad_bottom, pad_left, pad_right,
+                                             cv2.BORDER_REPLICATE), dtype=np.float32)
 
     def smoothed(values: F32) -> F64:
         # (Halved for the central difference's step of two pixels after the average: the
         # same, on 16 times fewer pixels.)
-        small = 0.5 * np.asarray(cv2.resize(wrap(values), coarse,
+        small = 0.5 * np.asarray(cv2.resize(wrap(padded(values)), coarse,
                                             interpolation=cv2.INTER_AREA), dtype=np.float32)
         return np.asarray(cv2.GaussianBlur(small, (0, 0), sigma / factor), dtype=np.float64)
 
@@ -935,10 +938,7 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     # Near where the fringe ends (an outline, the dark cornea, a shadow) neither bend nor fading
     # is a smooth surface's: no bias is taken there (BEND_EDGE_PERIODS), so it is computed only
     # off the flat top and inside the fringe field.
-    fringe = np.asarray(cv2.resize(
-        cv2.copyMakeBorder(modulation, pad_top, pad_bottom, pad_left, pad_right,
-                           cv2.BORDER_REPLICATE), coarse,
-        interpolation=cv2.INTER_AREA))
+    fringe = np.asarray(cv2.resize(padded(modulation), coarse, interpolation=cv2.INTER_AREA))
     strong = (float(np.percentile(fringe, 95)) if strong_modulation is None
               else strong_modulation)
     present = (fringe > _WEAK_FRINGE * strong).astype(np.uint8)
@@ -986,20 +986,6 @@ def _bend_bias(wrapped_phase: F32, modulation: F32, carrier: Carrier, outer: flo
     fine = cv2.resize(bias, (padded_w, padded_h), interpolation=cv2.INTER_LINEAR)
     return np.ascontiguousarray(fine[pad_top:pad_top + height, pad_left:pad_left + width],
                                 dtype=np.float32)
-
-
-def _replicate_edges(padded: F32, top: int, bottom: int, left: int, right: int) -> None:
-    """Fill ``padded``'s margins (``top`` rows, ``bottom`` rows, ``left`` and ``right``
-    columns) in place with the values at the edges of what they surround."""
-    height, width = padded.shape
-    if left:
-        padded[:, :left] = padded[:, left:left + 1]
-    if right:
-        padded[:, width - right:] = padded[:, width - right - 1:width - right]
-    if top:
-        padded[:top] = padded[top:top + 1]
-    if bottom:
-        padded[height - bottom:] = padded[height - bottom - 1:height - bottom]
 
 
 def phase_difference(wrapped_object: npt.ArrayLike, wrapped_reference: npt.ArrayLike) -> F32:
