@@ -79,6 +79,34 @@ def test_gaze_and_limbus_from_the_images(calibrated_rooms: Any, room: str, tmp_p
     assert _angle_deg(pose.gaze, truth["gaze"]) < 2.0 * pose.gaze_sd_deg
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize(("room", "width_mm", "iris"), [
+    ("default", 0.5, 0.06), ("wide", 0.5, 0.06), ("horizontal", 0.5, 0.06),
+    ("default", 0.2, 0.25)])
+def test_a_soft_limbus_is_found_on_its_junction(calibrated_rooms: Any, room: str,
+                                                width_mm: float, iris: float, tmp_path: Path
+                                                ) -> None:
+    """A patient's limbus is a transition, not a step: the one found lies on the
+    corneoscleral junction (the transition's middle) on each rig, with a dark iris behind a
+    0.5-mm transition and a light one behind a 0.2-mm one. The sharpened image's illumination
+    once came from the transition's outer half, and each pass pulled the limbus further in
+    (measured with tunables.LIMBUS_MARGIN_MM 0.05 mm: 0.47, 0.25 and 0.05 mm off, radius 5.60,
+    5.73, 5.87 mm for the dark iris on the three rigs, 0.21 mm off for the light one; with
+    0.6 mm: 0.056, 0.030, 0.025 and 0.091 mm off, radius 5.85, 5.84, 5.87 and 5.79 mm)."""
+    _, caldir = calibrated_rooms(room)
+    assert LOOKING.eye is not None
+    eye = LOOKING.eye.model_copy(update={"limbus_width_mm": width_mm, "iris_albedo": iris,
+                                         "sclera_albedo": 0.42})
+    truth = _record(room, LOOKING.model_copy(update={"eye": eye}), tmp_path / "eye")
+
+    pose = _fit(caldir, tmp_path / "eye")
+
+    assert pose.limbus_centre_mm is not None
+    off = np.linalg.norm(np.subtract(pose.limbus_centre_mm, truth["limbus_centre_mm"]))
+    assert off < (0.1 if iris < 0.1 else 0.15)
+    assert pose.boundary_radius_mm == pytest.approx(11.7 / 2, abs=0.05 if iris < 0.1 else 0.1)
+
+
 INVISIBLE = SceneSpec(kind="eye", position_mm=(1.5, -1.0, -11.0), eye=EyeSpec(
     gaze_deg=(7.0, -4.0), globe_radius_mm=12.5, limbus_vertical_ratio=0.88,
     limbus_width_mm=1.0, iris_albedo=0.4, sclera_albedo=0.4, tear_reflectance=0.02))

@@ -205,10 +205,14 @@ IN_FRONT_MM = 0.25
 """A pixel whose ray meets a point of the cloud this much (mm) before the sphere does not see
 the sphere (a lid in front of it). Chosen by hand."""
 
-LIMBUS_MARGIN_MM = 0.05
-"""Sclera pixels closer than this (mm) to the limbus's plane are not fitted for the
-illumination (the edge's blur). Chosen on 36 rendered poses against 0.02 mm (and 15-pixel
-windows from 0.25 mm; docs/notes/sclera.md)."""
+LIMBUS_MARGIN_MM = 0.6
+"""Sclera pixels closer than this (mm, along the gaze) to the limbus's plane are not fitted for
+the illumination: they may lie on the limbus's transition, and dividing by a fit that follows its
+albedo flattens the transition's outer half and pulls the edge inwards, further at each pass. A
+patient's transition is up to 2 mm wide (10–90 %, docs/eye-model.md); beyond its outer half,
+1 mm over the globe's surface, lie ≈ 0.5 mm along the gaze at the limbus of a 12-mm globe, and
+the fit window reaches a little further in. Measured on rendered soft limbi against 0.05 mm
+(chosen on sharp ones) and 0.15–0.3 mm (docs/notes/patient-eye.md, eighteenth session)."""
 
 MIN_ILLUMINATION = 0.25
 """The illumination divided out is at least this share of the sclera's median background.
