@@ -8,7 +8,8 @@ fit on the same images (the bench renders anew on every run).
     .venv/bin/python scripts/pose_set.py cloud --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py ablate --seed 6 --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py lids [--room ROOM] --calibration CALDIR SETDIR
-    .venv/bin/python scripts/pose_set.py limbus [--room ROOM] --calibration CALDIR SETDIR
+    .venv/bin/python scripts/pose_set.py limbus [--room ROOM] [--widths MM ...] \
+        --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py orientation --calibration CALDIR SETDIR
     PYTHONPATH=/path/to/other/checkout .venv/bin/python scripts/pose_set.py fit ... SETDIR
 
@@ -26,8 +27,9 @@ reference capture sees it) with each group of its properties in turn set to the 
 each: which property alone breaks the fit. ``lids`` renders the sharp eye with lids 0.3–0.8 mm
 outside the globe (the population's range reaches 0.3) and two lid openings, and fits each:
 are lids close to the globe told from the sclera. ``limbus`` renders ``tests/test_limbus.py``'s
-looking eye with limbus transitions of 0.2 and 0.5 mm before a dark and a light iris, and fits
-each: is the limbus found across widths and contrasts (with its stated sd beside the errors).
+looking eye with limbus transitions of 0.2 and 0.5 mm (``--widths``) before a dark and a light
+iris, and fits each: is the limbus found across widths and contrasts (with its stated sd beside
+the errors).
 ``orientation`` is a diagnostic of any rendered set: the limbus edges each camera finds about
 the true junction, their offsets from it binned by how the limbus runs to the camera's fringes.
 """
@@ -35,6 +37,7 @@ the true junction, their offsets from it binned by how the limbus runs to the ca
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 from pathlib import Path
@@ -215,9 +218,8 @@ def lids(args: argparse.Namespace) -> None:
                       flush=True)
 
 
-LIMBUS_VARIANTS = {"0.2 mm, dark iris": (0.2, 0.06), "0.5 mm, dark iris": (0.5, 0.06),
-                   "0.2 mm, light iris": (0.2, 0.25), "0.5 mm, light iris": (0.5, 0.25)}
-"""``limbus``'s transitions (width mm, iris albedo in near-infrared; the sclera's 0.42)."""
+LIMBUS_IRISES = {"dark": 0.06, "light": 0.25}
+"""``limbus``'s irises: their albedo in near-infrared (the sclera's 0.42)."""
 
 
 def limbus(args: argparse.Namespace) -> None:
@@ -229,7 +231,8 @@ def limbus(args: argparse.Namespace) -> None:
     from eyeserver.reconstruction import limbus_views, reconstruct_bundle
 
     with SimSession.open(load_room(args.room), seed=3) as session:
-        for name, (width, iris) in LIMBUS_VARIANTS.items():
+        for width, (shade, iris) in itertools.product(args.widths, LIMBUS_IRISES.items()):
+            name = f"{width:g} mm, {shade} iris"
             bundle = args.setdir / f"limbus{width:g}_iris{iris:g}"
             eye = EyeSpec(gaze_deg=(7.0, -4.0), globe_radius_mm=12.5, limbus_width_mm=width,
                           iris_albedo=iris, sclera_albedo=0.42)
@@ -244,7 +247,8 @@ def limbus(args: argparse.Namespace) -> None:
                 print(f"{name:20s} refused: {exc}", flush=True)
                 continue
             found = ("no limbus" if pose.limbus_centre_mm is None else
-                     off(pose.limbus_centre_mm, pose.gaze, truth, "limbus_centre_mm"))
+                     off(pose.limbus_centre_mm, pose.gaze, truth, "limbus_centre_mm")
+                     + f" (its radius {pose.boundary_radius_mm or math.nan:.2f} mm)")
             sd = ", ".join(f"{v:.3f}" for v in pose.centre_sd_mm)
             globe = float(np.linalg.norm(np.subtract(pose.centre_mm, truth["centre_mm"])))
             print(f"{name:20s} limbus {found}; globe centre {globe:.3f} mm, stated sd "
@@ -345,6 +349,8 @@ def main() -> None:
     edges = steps.add_parser("limbus", help="limbus transitions and contrasts, fitted")
     edges.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
     edges.add_argument("--room", type=Path, default=None, help="room file (default room)")
+    edges.add_argument("--widths", type=float, nargs="+", default=[0.2, 0.5], metavar="MM",
+                       help="the transitions' 10–90 %% widths (default 0.2 0.5)")
     edges.add_argument("setdir", type=Path)
     edges.set_defaults(step=limbus)
     turned = steps.add_parser("orientation", help="the limbus edges about the true junction, "
