@@ -1,10 +1,9 @@
 """The limbus found in the fringe images (``eyeserver.eye.limbus``), on three rigs.
 
 The rendered patient eye is reconstructed and fitted as ``eyeserver pose`` does; truth is read
-only afterwards. Measured on the default rig over 200 random poses (eyeserver bench pose: ±5 mm,
-±10°, globes 11/12/13 mm): gaze 0.065° median (p95 0.15°), limbus centre 0.007 mm (p95 0.018
-mm), globe centre 0.033 mm (p95 0.098 mm; the radius comes from a narrow band of sclera, and
-sclera and limbus are measured again from the fringes: tests/test_sclera.py).
+only afterwards. Over many random poses of the default rig: docs/benchmarks.md (``eyeserver
+bench pose --eyes sharp``; the radius comes from a narrow band of sclera, and sclera and limbus
+are measured again from the fringes: tests/test_sclera.py).
 """
 
 from __future__ import annotations
