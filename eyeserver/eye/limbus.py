@@ -80,7 +80,6 @@ from eyeserver.eye.tunables import (
     OVAL_RATIOS,
     REACHES_PX,
     SAMPLES,
-    SEARCH_MIN_EDGE_DN_PER_PX,
     SHADOW_PROBE_MM,
     SHELL_SEARCH_MM,
     SHELL_TROUGH,
@@ -371,12 +370,11 @@ def _dark_blob_centre(images: Sequence[_Image], limbus_radius: float) -> F64 | N
 
 
 def _edges(image: _Image, centre: F64, normal: F64, radius: float, reach: float,
-           shade: Shade | None = None, ratio: float = 1.0,
-           floor: float = MIN_EDGE_DN_PER_PX) -> tuple[F64, F64]:
-    """``(angles, edge pixels)`` of the innermost strong rising edge near the projection (one
-    rising at least ``floor`` DN per pixel); with ``shade``, none where the cornea shadows the
-    sclera beyond the limbus from the camera's projector (:func:`in_cornea_shadow`; none left
-    out where the calibration gives no direction to the projector)."""
+           shade: Shade | None = None, ratio: float = 1.0) -> tuple[F64, F64]:
+    """``(angles, edge pixels)`` of the innermost strong rising edge near the projection; with
+    ``shade``, none where the cornea shadows the sclera beyond the limbus from the camera's
+    projector (:func:`in_cornea_shadow`; none left out where the calibration gives no
+    direction to the projector)."""
     angles = np.linspace(0.0, 2 * math.pi, SAMPLES, endpoint=False)
     uv, outward = image.outline(centre, normal, radius, angles, ratio)
     offsets = np.arange(-reach, reach + 0.25, 0.5)
@@ -384,7 +382,7 @@ def _edges(image: _Image, centre: F64, normal: F64, radius: float, reach: float,
     inner = rise[:, 1:-1]
     peak = (inner >= rise[:, :-2]) & (inner >= rise[:, 2:])
     strong = peak & (inner >= np.maximum(EDGE_SHARE * inner.max(axis=1, keepdims=True),
-                                         floor))
+                                         MIN_EDGE_DN_PER_PX))
     found = strong.any(axis=1)
     light = None if shade is None else image.camera.light_direction(centre)
     if shade is not None and light is not None:
@@ -524,15 +522,12 @@ def _edges_per_period(image: _Image, centre: F64, normal: F64, radius: float,
 
 def _refine(images: Sequence[_Image], centre: F64, normal: F64, radius: float,
             reaches: Sequence[float] = REACHES_PX, shade: Shade | None = None,
-            ratio: float = 1.0, fit_ratio: bool = False,
-            floor: float = MIN_EDGE_DN_PER_PX) -> Limbus:
+            ratio: float = 1.0, fit_ratio: bool = False) -> Limbus:
     """Edges and circle, a round per search reach (module steps 3 and 4), from one start;
-    with ``fit_ratio``, an oval whose height ``ratio`` is fitted too (:func:`_circles`);
-    ``floor`` as :func:`_edges`'s."""
+    with ``fit_ratio``, an oval whose height ``ratio`` is fitted too (:func:`_circles`)."""
     expected = radius
     for reach in reaches:
-        edges = [_edges(image, centre, normal, radius, reach, shade, ratio, floor)
-                 for image in images]
+        edges = [_edges(image, centre, normal, radius, reach, shade, ratio) for image in images]
         if sum(len(a) >= MIN_COVERAGE * SAMPLES for a, _ in edges) < 2:
             raise LimbusNotFoundError("no limbus edge in at least two cameras (lids closed?)")
         solution = _fit_circle(images, edges, centre, normal, radius, ratio, fit_ratio)
@@ -576,9 +571,9 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
     unit's cloud alone can put the gaze 40° off). When that ends in no limbus, or in edges
     further than :data:`GOOD_RESIDUAL_PX` from the circle, or the eye is in fewer than three
     cameras' views, and ``search`` is on, it starts again from the cornea's dark disc in the
-    whole images (module step 2), and the closest fit wins; its edges need rise only
-    :data:`SEARCH_MIN_EDGE_DN_PER_PX`. Without ``search``, the faster choice when the rough
-    pose is good (live tracking starts from the previous frame), only the window is read.
+    whole images (module step 2), and the closest fit wins. Without ``search``, the faster
+    choice when the rough pose is good (live tracking starts from the previous frame), only the
+    window is read.
 
     Raises
     ------
@@ -591,7 +586,6 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
     if gaze0[2] <= 0:
         raise LimbusNotFoundError("the eye looks away from the cameras")
     depth = math.sqrt(max(globe_radius**2 - limbus_radius**2, 1.0))
-    floor = SEARCH_MIN_EDGE_DN_PER_PX if search else MIN_EDGE_DN_PER_PX
     found: list[Limbus] = []
     failure = LimbusNotFoundError("fewer than two cameras see the eye")
     images = []
@@ -644,7 +638,7 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
             for axis, reaches, good_only in rounds:
                 try:
                     limbus = _refine(images, centre0 + depth * axis, axis, limbus_radius,
-                                     reaches, fit_ratio=oval, floor=floor)
+                                     reaches, fit_ratio=oval)
                 except LimbusNotFoundError as exc:
                     failure = exc
                     continue
@@ -670,8 +664,7 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
             # The gaze towards the cameras (+Z) about the dark disc, tilted as it fits best.
             _, normal = _start(whole, blob, 0.0, np.array([0.0, 0.0, 1.0]), limbus_radius)
             try:
-                found.append(_refine(whole, blob, normal, limbus_radius, fit_ratio=oval,
-                                     floor=floor))
+                found.append(_refine(whole, blob, normal, limbus_radius, fit_ratio=oval))
             except LimbusNotFoundError as exc:
                 failure = exc
     found = [limbus for limbus in found if limbus.residual_px <= MAX_RESIDUAL_PX]

@@ -38,17 +38,7 @@ chosen by hand."""
 
 MIN_EDGE_DN_PER_PX = 2.0
 """And by at least this much (DN per pixel): flatter profiles hold no edge. Chosen by hand
-(what it does on soft limbi: docs/notes/patient-eye.md). Where the limbus is followed from the
-last frame (live tracking) and found again in the sharpened image."""
-
-SEARCH_MIN_EDGE_DN_PER_PX = 1.0
-""":data:`MIN_EDGE_DN_PER_PX` of the one-shot fit's search (``find_limbus`` with ``search``):
-a patient's soft limbus rises ≈ 1 DN per pixel in the default room's images (a 1.3-mm
-transition), so the 2-DN/px floor left most patient limbi unseen. Measured on the pose bench's
-patient eyes against 2 and 0.5 (docs/notes/patient-eye.md, eighteenth session); the search's
-lower floor costs the painted eye nothing there, but where the limbus is followed (tracking) or
-found again in the sharpened image it took an extra round and tilted the painted eye's limbus
-(tests/test_limbus.py, tests/test_sclera.py), so those keep 2."""
+(what it does on soft limbi: docs/notes/patient-eye.md)."""
 
 REACHES_PX = (20.0, 8.0, 4.0)
 """Half-widths of the edge search, round by round (image pixels). Chosen by hand."""
