@@ -11,6 +11,7 @@ fit on the same images (the bench renders anew on every run).
     .venv/bin/python scripts/pose_set.py limbus [--room ROOM] [--widths MM ...] \
         --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py orientation --calibration CALDIR SETDIR
+    .venv/bin/python scripts/pose_set.py sclera --calibration CALDIR SETDIR
     PYTHONPATH=/path/to/other/checkout .venv/bin/python scripts/pose_set.py fit ... SETDIR
 
 Eyes are drawn as ``eyeserver.hardware.sim.population.draw`` draws them and placed within ±5 mm
@@ -32,6 +33,9 @@ iris, and fits each: is the limbus found across widths and contrasts (with its s
 the errors).
 ``orientation`` is a diagnostic of any rendered set: the limbus edges each camera finds about
 the true junction, their offsets from it binned by how the limbus runs to the camera's fringes.
+``sclera`` is another (any set, ``lids``'s too): the cloud's points behind the true limbus by
+the true surface each lies nearest, the sclera's offset from the true globe by its distance
+from the lids, and the globe placed on the true limbus circle.
 """
 
 from __future__ import annotations
@@ -310,6 +314,60 @@ def cloud(args: argparse.Namespace) -> None:
               f"{near}", flush=True)
 
 
+SCLERA_FROM_LIDS_MM = (0.0, 0.5, 1.0, 1.5, 2.0, 3.0, math.inf)
+"""``sclera``'s bins of the distance from the nearest lid point (mm)."""
+
+
+def sclera(args: argparse.Namespace) -> None:
+    """Each render's cloud behind the true limbus, by the true surface each point lies nearest
+    (a diagnostic, ground truth only): how many points are sclera and how many lids, how far
+    the sclera lies off the true globe by its distance from the lids (the band-limited
+    demodulation blends the two near the lid margin), and the globe that
+    ``limbus.globe_on_limbus`` places on the true limbus circle."""
+    from scipy.spatial import cKDTree
+
+    from eyeserver.eye.limbus import LIMBUS_CLEARANCE_MM, Limbus, globe_on_limbus
+    from eyeserver.hardware.sim.scoring import nearest_surfaces
+    from eyeserver.reconstruction import reconstruct_bundle
+
+    for bundle in sorted(p.parent for p in args.setdir.glob("*/truth.json")):
+        truth = json.loads((bundle / "truth.json").read_text())
+        eye = truth["eye"]
+        made, _ = reconstruct_bundle(args.calibration, bundle, for_pose=True)
+        points = made.points.astype(np.float64)
+        label, _, _ = nearest_surfaces(truth, points)
+        centre, gaze = np.asarray(eye["centre_mm"]), np.asarray(eye["gaze"])
+        junction = np.asarray(eye["limbus_centre_mm"])
+        depth = float((junction - centre) @ gaze)
+        radius = math.sqrt(eye["globe_radius_mm"] ** 2 - depth**2)
+        rel = points - junction
+        along = rel @ gaze
+        across = np.linalg.norm(rel - along[:, None] * gaze, axis=1)
+        behind = (along < -0.5) & (np.hypot(along, across - radius) > LIMBUS_CLEARANCE_MM)
+        counts = ", ".join(f"{name} {int(np.sum(behind & (label == name)))}"
+                           for name in ("sclera", "lids"))
+        true = Limbus(centre=junction, normal=gaze, radius=radius, centre_sd_mm=0.0,
+                      gaze_sd_deg=0.0, radius_sd_mm=0.0, residual_px=0.0, coverage={})
+        try:
+            globe = globe_on_limbus(points, true)
+            placed = (f"globe on the true limbus {np.linalg.norm(globe.centre - centre):.3f} mm "
+                      f"off, radius {globe.radius:.2f} for {eye['globe_radius_mm']:.2f} mm")
+        except ValueError as exc:
+            placed = f"no globe on the true limbus: {exc}"
+        print(f"{bundle.name}: behind the limbus {counts}; {placed}", flush=True)
+        on_sclera, on_lids = behind & (label == "sclera"), label == "lids"
+        if not on_sclera.any() or not on_lids.any():
+            continue
+        off = np.linalg.norm(points[on_sclera] - centre, axis=1) - eye["globe_radius_mm"]
+        from_lids, _ = cKDTree(points[on_lids]).query(points[on_sclera])
+        for lo, hi in itertools.pairwise(SCLERA_FROM_LIDS_MM):
+            mine = (from_lids >= lo) & (from_lids < hi)
+            if mine.any():
+                print(f"    sclera {lo:g}-{hi:g} mm from the lids: {int(mine.sum()):5d} points, "
+                      f"off the globe median {np.median(off[mine]):+.3f} mm, "
+                      f"p90 {np.percentile(off[mine], 90):+.3f} mm", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     steps = parser.add_subparsers(required=True)
@@ -364,6 +422,11 @@ def main() -> None:
     by_surface.add_argument("--room", type=Path, default=None, help="room file (default room)")
     by_surface.add_argument("setdir", type=Path)
     by_surface.set_defaults(step=cloud)
+    shell = steps.add_parser("sclera", help="the cloud's sclera and lids behind the true "
+                             "limbus, and the globe on it (a diagnostic)")
+    shell.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
+    shell.add_argument("setdir", type=Path)
+    shell.set_defaults(step=sclera)
     args = parser.parse_args()
     args.step(args)
 

@@ -5,7 +5,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
+from eyeserver.core.types import F64
 from eyeserver.hardware.sim.config import RoomConfig
 from eyeserver.hardware.sim.room import SimRoom
 from eyeserver.hardware.sim.scenes import build_scene
@@ -51,30 +53,37 @@ def score_cloud(truth: dict[str, Any], cloud: PointCloud, room: RoomConfig,
     }
 
 
+def nearest_surfaces(truth: dict[str, Any], points: npt.ArrayLike
+                     ) -> tuple[npt.NDArray[np.str_], F64, list[str]]:
+    """Each point's nearest labelled surface of ``truth``'s scene (``sclera``, ``lids``,
+    ``plate``, …), its distance to it (mm), and the scene's labels in its own order: what a
+    point of a reconstruction most likely shows, for scoring by surface."""
+    built = build_scene(truth_scene(truth), float(truth.get("t_s", 0.0)))
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    per_surface = [(body, surface) for body in built.scene.bodies for surface in body.surfaces]
+    names = np.array([surface.label for _, surface in per_surface])
+    order = list(dict.fromkeys(names.tolist()))
+    if not len(pts) or not per_surface:
+        return np.zeros(len(pts), dtype=names.dtype), np.full(len(pts), np.inf), order
+    table = np.stack([surface.distance(body.to_local(pts)) for body, surface in per_surface])
+    nearest = np.argmin(table, axis=0)
+    return (names[nearest], np.asarray(table[nearest, np.arange(len(pts))], dtype=np.float64),
+            order)
+
+
 def score_by_surface(truth: dict[str, Any], cloud: PointCloud) -> dict[str, Any]:
     """Points, median |distance| and RMSE per labelled surface of the scene (each point counted
-    on the surface nearest to it): a phantom's own body and its base plate apart, so a large
-    flat base cannot hide how the curved part fares."""
-    built = build_scene(truth_scene(truth), float(truth.get("t_s", 0.0)))
-    points = cloud.points.astype(np.float64)
-    if not len(points):
+    on the surface nearest to it, :func:`nearest_surfaces`): a phantom's own body and its base
+    plate apart, so a large flat base cannot hide how the curved part fares."""
+    if not len(cloud.points):
         return {}
-    labels: list[str] = []
-    distances = []
-    for body in built.scene.bodies:
-        local = body.to_local(points)
-        for surface in body.surfaces:
-            labels.append(surface.label)
-            distances.append(surface.distance(local))
-    table = np.stack(distances)
-    nearest = np.argmin(table, axis=0)
-    distance = table[nearest, np.arange(len(points))]
+    label_of, distance, labels = nearest_surfaces(truth, cloud.points)
     out: dict[str, Any] = {}
-    for label in dict.fromkeys(labels):
-        mine = np.isin(nearest, [n for n, name in enumerate(labels) if name == label])
-        if mine.any():
-            d = distance[mine]
-            out[label] = {"points": int(mine.sum()), "median_mm": float(np.median(d)),
-                          "rmse_mm": float(np.sqrt(np.mean(d**2))),
-                          "beyond_1mm": float(np.mean(d > 1.0))}
+    for label in labels:
+        d = distance[label_of == label]
+        if not d.size:
+            continue
+        out[label] = {"points": int(d.size), "median_mm": float(np.median(d)),
+                      "rmse_mm": float(np.sqrt(np.mean(d**2))),
+                      "beyond_1mm": float(np.mean(d > 1.0))}
     return out
