@@ -53,18 +53,19 @@ trusts that camera, so ``auto`` takes the orders from another unit's camera
 
 
 def unit_method(document: dict[str, Any], unit_id: str, method: str, *,
-                for_pose: bool = False) -> tuple[str, str]:
+                for_tracking: bool = False) -> tuple[str, str]:
     """The fringe-order method a unit is reconstructed with, and why.
 
     ``auto`` takes the spatial order (one order per region, voted by the multi-view picks of
     its pixels) wherever the calibration found the unit's two cameras discriminate fringe orders
     at all: it keeps what only one of them sees, which the multi-view order cannot
-    (docs/notes/fringe-order.md). With ``for_pose`` (the eye pose's path: verification, live
-    tracking, ``eyeserver pose``, whose figures were measured with it) it takes the multi-view
-    order where the margin is at least ``MARGIN_WARNING_RAD`` (about half the order's time;
-    every point confirmed by both cameras). Below :data:`BLIND_MARGIN_RAD` it gives
-    ``"blind"``: another unit's camera (:func:`order_judge`) or a depth prior must fix that
-    unit's orders. Any other method is kept.
+    (docs/notes/fringe-order.md), and the eye pose is fitted to it (the sclera beside steep lids:
+    docs/notes/patient-eye.md, nineteenth session). With ``for_tracking`` (live tracking, whose
+    frames must be posed within the frame period, its globe's radius held) it takes the
+    multi-view order where the margin is at least ``MARGIN_WARNING_RAD``: about half the
+    spatial order's time (``eyeserver bench speed``'s stage table). Below
+    :data:`BLIND_MARGIN_RAD` it gives ``"blind"``: another unit's camera (:func:`order_judge`)
+    or a depth prior must fix that unit's orders. Any other method is kept.
     """
     if method != "auto":
         return method, "asked for"
@@ -74,7 +75,7 @@ def unit_method(document: dict[str, Any], unit_id: str, method: str, *,
     if not isinstance(margin, (int, float)):
         return "spatial", "the calibration gives no fringe-order margin for this unit"
     if margin >= MARGIN_WARNING_RAD:
-        if for_pose:
+        if for_tracking:
             return "multi-view", (f"fringe-order margin {margin:.2f} rad, at least "
                                   f"{MARGIN_WARNING_RAD} rad")
         return "spatial", (f"fringe-order margin {margin:.2f} rad: regions unwrapped, each "
@@ -241,8 +242,7 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
                        frames: Sequence[int] | None = None, cameras: Sequence[str] | None = None,
                        method: str = "auto", depth_prior_mm: float | None = None,
                        region: Region | None = None, min_quality: float = 0.0,
-                       progress: Progress = quiet, for_pose: bool = False,
-                       ) -> tuple[PointCloud, dict[str, Any]]:
+                       progress: Progress = quiet) -> tuple[PointCloud, dict[str, Any]]:
     """The fused point cloud of a measurement bundle, and a summary per camera.
 
     ``frames`` and ``cameras`` restrict the views used (default: every fringe image). A camera's
@@ -252,8 +252,6 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
     needs ``depth_prior_mm``. ``region`` and ``min_quality`` crop the
     fused cloud. Each camera's summary says the method its unit used and why, the pixels that
     saw a fringe (``fringe_pixels``) and the share of them that gave a point (``coverage``).
-    ``for_pose``: ``auto`` as the eye pose's path takes it (:func:`unit_method`'s ``for_pose``:
-    the multi-view order where the margin allows it), for a cloud the eye model is fitted to.
     """
     if method not in RECONSTRUCTION_METHODS:
         raise ReconstructionError(f"unknown fringe-order method {method!r} (one of "
@@ -282,7 +280,7 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
     # Per view: its points, the camera that fixed its orders (None: the depth prior did), the
     # method and why, and its pixels that see a fringe.
     done: dict[tuple[int, str], tuple[CameraCloud, str | None, str, str, int]] = {}
-    methods = {unit.id: unit_method(document, unit.id, method, for_pose=for_pose)
+    methods = {unit.id: unit_method(document, unit.id, method)
                for unit in rig.units}
     judges: dict[tuple[int, str], Phase] = {}  # another unit's views a blind unit needed
 

@@ -181,7 +181,7 @@ def ablate(args: argparse.Namespace) -> None:
             print(f"{name:14s} {scored(args.calibration, bundle)}", flush=True)
 
 
-def scored(calibration: Path, bundle: Path, for_pose: bool = False) -> str:
+def scored(calibration: Path, bundle: Path) -> str:
     """``bundle`` reconstructed and fitted with the population's model (radius fitted): how
     far the pose lies from the truth, its confidence and radius, or why it was refused."""
     from eyeserver.errors import EyeserverError
@@ -190,7 +190,7 @@ def scored(calibration: Path, bundle: Path, for_pose: bool = False) -> str:
 
     truth = json.loads((bundle / "truth.json").read_text())["eye"]
     try:
-        made, _ = reconstruct_bundle(calibration, bundle, for_pose=for_pose)
+        made, _ = reconstruct_bundle(calibration, bundle)
         pose = fit_eye(made, EyeModel.population(), limbus_views(calibration, bundle))
     except EyeserverError as exc:
         return f"refused: {exc}"
@@ -218,7 +218,7 @@ def lids(args: argparse.Namespace) -> None:
                               aperture_offset_mm=offset, lid_gap_mm=gap)
                 session.record(SceneSpec(kind="eye", position_mm=(0.5, -0.5, -10.5), eye=eye),
                                bundle, overwrite=True)
-                print(f"{bundle.name:18s} {scored(args.calibration, bundle, for_pose=True)}",
+                print(f"{bundle.name:18s} {scored(args.calibration, bundle)}",
                       flush=True)
 
 
@@ -244,7 +244,7 @@ def limbus(args: argparse.Namespace) -> None:
                            bundle, overwrite=True)
             truth = json.loads((bundle / "truth.json").read_text())["eye"]
             try:
-                made, _ = reconstruct_bundle(args.calibration, bundle, for_pose=True)
+                made, _ = reconstruct_bundle(args.calibration, bundle)
                 pose = fit_eye(made, EyeModel.population(),
                                limbus_views(args.calibration, bundle))
             except EyeserverError as exc:
@@ -333,7 +333,7 @@ def sclera(args: argparse.Namespace) -> None:
     for bundle in sorted(p.parent for p in args.setdir.glob("*/truth.json")):
         truth = json.loads((bundle / "truth.json").read_text())
         eye = truth["eye"]
-        made, _ = reconstruct_bundle(args.calibration, bundle, for_pose=True)
+        made, _ = reconstruct_bundle(args.calibration, bundle)
         points = made.points.astype(np.float64)
         label, _, _ = nearest_surfaces(truth, points)
         centre, gaze = np.asarray(eye["centre_mm"]), np.asarray(eye["gaze"])

@@ -37,7 +37,7 @@ def test_sclera_is_reconstructed(calibrated_rooms: Any, name: str, tmp_path: Pat
     bundle = tmp_path / name
     with SimSession.open(load_room(None), seed=7) as session:
         session.record(EYES[name], bundle)
-    cloud, _ = reconstruct_bundle(caldir, bundle, for_pose=True)
+    cloud, _ = reconstruct_bundle(caldir, bundle, method="multi-view")
     score = score_by_surface(json.loads((bundle / "truth.json").read_text()), cloud)
     sclera, skin = score["sclera"], score["skin"]
     # Measured 3555 and 3256 points, medians 0.053 and 0.045 mm, none beyond 1 mm.
@@ -59,7 +59,7 @@ def test_every_camera_keeps_the_sclera_of_a_turned_eye(calibrated_rooms: Any, se
     bundle = tmp_path / "turned"
     with SimSession.open(load_room(None), seed=seed) as session:
         session.record(SceneSpec(kind="eye", eye=EyeSpec(gaze_deg=(8.0, 0.0))), bundle)
-    cloud, _ = reconstruct_bundle(caldir, bundle, for_pose=True)
+    cloud, _ = reconstruct_bundle(caldir, bundle, method="multi-view")
     truth = json.loads((bundle / "truth.json").read_text())
     for camera in np.unique(cloud.camera):
         mine = cloud.camera == camera

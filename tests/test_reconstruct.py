@@ -102,7 +102,7 @@ def test_two_views_reconstruct_too(calibrated_rooms: Any, tmp_path: Path) -> Non
     assert score["median_mm"] < 0.05
 
 
-@pytest.mark.parametrize(("section", "asked", "for_pose", "chosen", "why"), [
+@pytest.mark.parametrize(("section", "asked", "for_tracking", "chosen", "why"), [
     ({"margin_rad": 0.69}, "auto", False, "spatial", "margin 0.69 rad: regions unwrapped"),
     ({"margin_rad": 0.69}, "auto", True, "multi-view", "margin 0.69 rad, at least 0.5"),
     ({"margin_rad": 0.5}, "auto", True, "multi-view", "at least 0.5"),
@@ -115,13 +115,14 @@ def test_two_views_reconstruct_too(calibrated_rooms: Any, tmp_path: Path) -> Non
     (None, "auto", True, "spatial", "no fringe-order margin"),
     ({"margin_rad": 0.0}, "multi-view", False, "multi-view", "asked for"),
     ({"margin_rad": 0.69}, "spatial", True, "spatial", "asked for"),
-], ids=["clear", "clear, pose", "at the line, pose", "too blind", "too blind, pose", "blind",
-        "blind, pose", "one camera", "no section", "asked multi-view", "asked spatial"])
+], ids=["clear", "clear, tracking", "at the line, tracking", "too blind", "too blind, tracking",
+        "blind", "blind, tracking", "one camera", "no section", "asked multi-view",
+        "asked spatial"])
 def test_auto_picks_each_units_fringe_order_from_its_calibration(
-        section: dict[str, Any] | None, asked: str, for_pose: bool, chosen: str, why: str
+        section: dict[str, Any] | None, asked: str, for_tracking: bool, chosen: str, why: str
 ) -> None:
     document = {"phase_to_height": {"units": {} if section is None else {"left": section}}}
-    method, reason = unit_method(document, "left", asked, for_pose=for_pose)
+    method, reason = unit_method(document, "left", asked, for_tracking=for_tracking)
     assert method == chosen
     assert why in reason
 

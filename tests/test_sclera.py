@@ -178,9 +178,9 @@ class _Turned:
     """What the pose fit takes for the sclera: near the globe, behind the limbus."""
 
 
-def _reconstructed(turned: tuple[Path, Path]) -> _Turned:
+def _reconstructed(turned: tuple[Path, Path], method: str = "auto") -> _Turned:
     caldir, bundle = turned
-    cloud, _ = reconstruct_bundle(caldir, bundle, for_pose=True)
+    cloud, _ = reconstruct_bundle(caldir, bundle, method=method)
     truth = json.loads((bundle / "truth.json").read_text())["eye"]
     centre, radius = np.asarray(truth["centre_mm"]), float(truth["globe_radius_mm"])
     points = cloud.points.astype(np.float64)
@@ -194,7 +194,9 @@ def _reconstructed(turned: tuple[Path, Path]) -> _Turned:
 @pytest.mark.slow
 def test_the_remeasured_sclera_lies_on_the_globe_not_on_the_sphere_it_was_measured_about(
         turned: tuple[Path, Path]) -> None:
-    eye = _reconstructed(turned)
+    # The multi-view order's cloud, whose sclera lies 0.02 mm or more off the globe in each
+    # camera (the spatial order's, which the one-shot pose fits, in S1 only 0.006 mm).
+    eye = _reconstructed(turned, "multi-view")
     views, points, centre, radius = eye.views, eye.points, eye.centre, eye.radius
     on_globe, offset, gaze = eye.on_globe, eye.offset, eye.gaze
 
@@ -246,7 +248,7 @@ def test_the_limbus_found_again_with_the_fringe_divided_out_is_sharper(
     # 0.29° and 0.145° with the suite's calibration: docs/notes/patient-eye.md, eighteenth
     # session).
     caldir, bundle = turned
-    cloud, _ = reconstruct_bundle(caldir, bundle, for_pose=True)
+    cloud, _ = reconstruct_bundle(caldir, bundle)
     views = limbus_views(caldir, bundle)
     found: list[tuple[Limbus, Limbus]] = []
     real = sclera._sharpened
@@ -300,7 +302,7 @@ def test_a_remeasured_globe_of_no_eyes_size_is_not_trusted(
     _, caldir = calibrated_rooms("default")
     with SimSession.open(load_room(ROOMS["default"]), seed=3) as session:
         session.record(SceneSpec(kind="eye"), tmp_path / "eye")
-    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye", for_pose=True)
+    cloud, _ = reconstruct_bundle(caldir, tmp_path / "eye")
     views = limbus_views(caldir, tmp_path / "eye")
     model = EyeModel.population()
     # Everything else that sets the confidence held at 0.9, the radius alone differing.

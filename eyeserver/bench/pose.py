@@ -219,7 +219,7 @@ def _measure(session: SimSession, spec: SceneSpec, caldir: Path, bundle: Path,
     session.record(spec, bundle, units=units, overwrite=True)
     truth = json.loads((bundle / "truth.json").read_text())["eye"]
     try:
-        cloud, _ = reconstruct_bundle(caldir, bundle, for_pose=True)
+        cloud, _ = reconstruct_bundle(caldir, bundle)
         views = limbus_views(caldir, bundle)
         started = time.perf_counter()
         pose = fit_eye(cloud, model, views)

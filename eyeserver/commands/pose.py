@@ -165,8 +165,7 @@ def _pose(args: argparse.Namespace) -> int:
 
     # Checked before the reconstruction's seconds are spent.
     model, model_record = eye_model(args)
-    cloud, _ = reconstruct_bundle(args.calibration, args.bundle, progress=_progress,
-                                  for_pose=True)
+    cloud, _ = reconstruct_bundle(args.calibration, args.bundle, progress=_progress)
     views = limbus_views(args.calibration, args.bundle)
     # PoseError → "eyeserver: error: …", exit 2
     pose = fit_eye(cloud, model, views)

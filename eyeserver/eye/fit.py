@@ -969,7 +969,8 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
             return _surface_distance(pts, centre_at, held, gaze_at, model)
     refitted = (refit(views, limbus, globe.centre, globe.radius, globe.sclera, points,
                       fixed_radius, model.cornea_radius_mm, surface)
-                if remeasure and len(globe.sclera) >= MIN_SCLERA_POINTS else None)
+                if remeasure and len(globe.sclera) >= MIN_SCLERA_POINTS and not globe.two_shells
+                else None)
     if refitted is not None:
         limbus = refitted.limbus  # found again in the images with the fringe divided out
         centre_out, radius_out = refitted.centre, refitted.radius

@@ -293,7 +293,7 @@ class RigReconstructor:
         self._rig = rig
         self._methods: dict[str, tuple[str, str]] = {}
         for unit in rig.units:
-            chosen, why = unit_method(document, unit.id, "auto", for_pose=True)
+            chosen, why = unit_method(document, unit.id, "auto", for_tracking=True)
             if chosen == "blind" and len(rig.units) < 2:
                 raise ReconstructionError(blind_alone(unit.id, why))
             self._methods[unit.id] = (chosen, why)
