@@ -280,8 +280,7 @@ def reconstruct_bundle(calibration: str | Path, bundle_path: str | Path, *,
     # Per view: its points, the camera that fixed its orders (None: the depth prior did), the
     # method and why, and its pixels that see a fringe.
     done: dict[tuple[int, str], tuple[CameraCloud, str | None, str, str, int]] = {}
-    methods = {unit.id: unit_method(document, unit.id, method)
-               for unit in rig.units}
+    methods = {unit.id: unit_method(document, unit.id, method) for unit in rig.units}
     judges: dict[tuple[int, str], Phase] = {}  # another unit's views a blind unit needed
 
     def phase_of(view: tuple[int, str], judge: bool = False) -> Phase:
