@@ -326,7 +326,7 @@ def sclera(args: argparse.Namespace) -> None:
     ``limbus.globe_on_limbus`` places on the true limbus circle."""
     from scipy.spatial import cKDTree
 
-    from eyeserver.eye.limbus import LIMBUS_CLEARANCE_MM, Limbus, globe_on_limbus
+    from eyeserver.eye.limbus import Limbus, behind_limbus, globe_on_limbus
     from eyeserver.hardware.sim.scoring import nearest_surfaces
     from eyeserver.reconstruction import reconstruct_bundle
 
@@ -340,14 +340,11 @@ def sclera(args: argparse.Namespace) -> None:
         junction = np.asarray(eye["limbus_centre_mm"])
         depth = float((junction - centre) @ gaze)
         radius = math.sqrt(eye["globe_radius_mm"] ** 2 - depth**2)
-        rel = points - junction
-        along = rel @ gaze
-        across = np.linalg.norm(rel - along[:, None] * gaze, axis=1)
-        behind = (along < -0.5) & (np.hypot(along, across - radius) > LIMBUS_CLEARANCE_MM)
-        counts = ", ".join(f"{name} {int(np.sum(behind & (label == name)))}"
-                           for name in ("sclera", "lids"))
         true = Limbus(centre=junction, normal=gaze, radius=radius, centre_sd_mm=0.0,
                       gaze_sd_deg=0.0, radius_sd_mm=0.0, residual_px=0.0, coverage={})
+        behind = behind_limbus(points, true)
+        counts = ", ".join(f"{name} {int(np.sum(behind & (label == name)))}"
+                           for name in ("sclera", "lids"))
         try:
             globe = globe_on_limbus(points, true)
             placed = (f"globe on the true limbus {np.linalg.norm(globe.centre - centre):.3f} mm "

@@ -88,15 +88,11 @@ def test_a_soft_limbus_is_found_on_its_junction(calibrated_rooms: Any, room: str
                                                 ) -> None:
     """A patient's limbus is a transition, not a step: the one found lies on the
     corneoscleral junction (the transition's middle) on each rig, with a dark iris behind a
-    0.5-mm transition and a light one behind a 0.2-mm one. The sharpened image's illumination
-    once came from the transition's outer half, and each pass pulled the limbus further in
-    (measured with tunables.LIMBUS_MARGIN_MM 0.05 mm, default, wide and horizontal rigs: 0.47,
-    0.25 and 0.05 mm off, radius 5.60, 5.73 and 5.87 mm, for the dark iris, 0.21–0.25, 0.12
-    and 0.11 mm off for the light one; with 0.6 mm: 0.056, 0.030 and 0.025 mm off, radius
-    5.85, 5.84 and 5.87 mm, and 0.09, 0.09 and 0.11 mm off, radius 5.79, 5.81 and 5.87 mm).
-    Not yet: a 1-mm transition on the horizontal rig (0.55 mm off, at confidence 0.18), 1.5-mm
-    ones, or a light iris behind a 0.5-mm one (0.21–0.43 mm off, at confidence ≤ 0.27:
-    refused), docs/notes/patient-eye.md."""
+    0.5-mm transition and a light one behind a 0.2-mm one. With the sharpened image's
+    illumination fitted from the transition's outer half (tunables.LIMBUS_MARGIN_MM 0.05 mm)
+    each pass pulled the limbus further in; wider transitions and a light iris behind a 0.5-mm
+    one are not found yet, and refused. Measured: docs/notes/patient-eye.md, eighteenth
+    session."""
     _, caldir = calibrated_rooms(room)
     assert LOOKING.eye is not None
     eye = LOOKING.eye.model_copy(update={"limbus_width_mm": width_mm, "iris_albedo": iris,
@@ -205,13 +201,11 @@ closest), with more points in the cloud than the sclera beside the limbus."""
 def test_lids_close_to_the_globe_are_not_fitted_as_sclera(calibrated_rooms: Any, room: str,
                                                          tmp_path: Path) -> None:
     """Taken for the sclera, these lids made the globe 0.67 mm too large and put the centre
-    0.76 mm off along the gaze at confidence 0.69, a confident wrong pose (measured before the
-    two shells were told apart in the votes and the offsets). On the `wide` rig the multi-view
-    order's cloud kept too little sclera beside them to tell (1.42–2.6 mm off at confidence
-    0.65–0.77 with lids 0.45–0.8 mm out); the spatial order's keeps it. In the default room
-    the spatial order's cloud holds so much lid that the sclera's robust fit followed it (0.85
-    mm off at 0.76): the votes' mode is kept, 0.11 mm off, and the move is in the stated sd
-    (docs/notes/patient-eye.md, nineteenth session)."""
+    0.76 mm off along the gaze at confidence 0.69, a confident wrong pose. On `wide` the
+    multi-view order's cloud kept too little sclera beside them to tell them apart; in the
+    default room the spatial order's holds so much lid that the sclera's robust depth fit
+    follows it, and the votes' mode is kept with the move in the stated sd. Measured:
+    docs/notes/patient-eye.md, thirteenth and nineteenth sessions."""
     _, caldir = calibrated_rooms(room)
     truth = _record(room, CLOSE_LIDS, tmp_path / "eye")
 

@@ -243,10 +243,7 @@ def test_the_limbus_found_again_with_the_fringe_divided_out_is_sharper(
         turned: tuple[Path, Path], monkeypatch: pytest.MonkeyPatch) -> None:
     # The band's fringe-free intensity leaves fringe at the limbus, where the field ends; the
     # illumination fitted on the sclera beside it and divided out does not (measured on this
-    # eye with the benchmarks' calibration: the gaze 0.28° off before, 0.09° after; with the
-    # illumination fitted from 0.6 mm behind the limbus's plane, beyond a patient's transition,
-    # 0.29° and 0.145° with the suite's calibration: docs/notes/patient-eye.md, eighteenth
-    # session).
+    # eye: docs/notes/sclera.md and docs/notes/patient-eye.md, eighteenth session).
     caldir, bundle = turned
     cloud, _ = reconstruct_bundle(caldir, bundle)
     views = limbus_views(caldir, bundle)

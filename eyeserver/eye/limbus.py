@@ -869,6 +869,17 @@ def _fitted_depth(sclera: F64, limbus: Limbus, start: float) -> tuple[float, flo
                                        gain * CLOUD_SCLERA_BIAS_MM)
 
 
+def behind_limbus(points: F64, limbus: Limbus) -> npt.NDArray[np.bool_]:
+    """Which ``points`` (WCS mm) lie behind the limbus's plane (by more than 0.5 mm) and more
+    than :data:`LIMBUS_CLEARANCE_MM` from its circle: those that can carry the globe (sclera,
+    lids), clear of the cornea and the limbus's own blur."""
+    rel = points - limbus.centre
+    along = rel @ limbus.normal
+    across = distances(rel - along[:, None] * limbus.normal)
+    return np.asarray((along < -0.5)
+                      & (np.hypot(along, across - limbus.radius) > LIMBUS_CLEARANCE_MM))
+
+
 def _holds_a_shell(points: F64, limbus: Limbus, inner: float, outer: float) -> bool:
     """Whether the sphere through the limbus at depth ``inner`` (mm) carries a shell of its own
     beside the one at ``outer``: at least half as many of ``points`` within 0.05 mm of it (the
@@ -918,9 +929,7 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
     """
     cloud = np.asarray(points, dtype=np.float64)
     L, g, r = limbus.centre, limbus.normal, limbus.radius
-    along = (cloud - L) @ g
-    across = distances((cloud - L) - along[:, None] * g)
-    behind = (along < -0.5) & (np.hypot(along, across - r) > LIMBUS_CLEARANCE_MM)
+    behind = behind_limbus(cloud, limbus)
     votes, weights = _votes(cloud, limbus, behind)
     clear = np.ones(len(cloud), dtype=bool)
     if fixed_radius is not None:

@@ -80,13 +80,11 @@ The sclera measured again in the images has its own, :data:`REMEASURED_SCLERA_BI
 
 DEPTH_REFIT_LIMIT_MM = 0.3
 """How far (mm) the robust fit of the sclera's points may move the globe's depth ``h`` from the
-votes' mode it starts at (:func:`~eyeserver.eye.limbus.globe_on_limbus`). It refines: on 4
-renders it moved 0.006–0.17 mm (a vote's own noise, the sclera's ≈ 0.06 mm amplified four
-times, is ≈ 0.25 mm). Further, it has left the mode's shell: for the sclera's own where the
-mode sat on the noise inside the globe (the `wide` rig: 0.6–1.2 mm outwards, rightly), or for
-lids 0.3 mm outside the globe, seen in more points than the sclera (0.68 mm outwards onto them
-from a mode 0.1 mm from the truth): where the mode holds a shell of its own, it is kept and the
-move joins the depth's stated uncertainty (docs/notes/patient-eye.md, nineteenth session)."""
+votes' mode it starts at and still count as refining it (a vote's own noise, the sclera's
+≈ 0.06 mm amplified about four times, is ≈ 0.25 mm). A larger move has left the mode's shell:
+rightly where the mode sat on noise inside the globe, onto a lid shell where the mode holds a
+shell of its own (:func:`~eyeserver.eye.limbus.globe_on_limbus`). Measured:
+docs/notes/patient-eye.md, nineteenth session."""
 
 SHELL_SEARCH_MM = 2.0
 """How far (mm) beyond the first votes for ``h`` the sclera's shell is looked for. Measured on
