@@ -903,7 +903,10 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
     squared depth behind the plane (the vote's error shrinks with it). The sclera votes sharply
     for its own ``h``; the lids, outside it and on no sphere through the limbus, vote for
     larger, scattered values — often many more of them — so the innermost shell is taken
-    (:func:`_innermost_depth`) and refined by weighted mean shift; then again without the points
+    (:func:`_innermost_depth`) and refined by weighted mean shift (a shift that leaves it by
+    more than :data:`DEPTH_REFIT_LIMIT_MM` where it holds a shell of its own has been drawn
+    towards a lid shell, whose points lie further behind the limbus plane and weigh more: it
+    starts again from the innermost with narrower windows); then again without the points
     within :data:`LID_CLEARANCE_MM` of the lids, which the band-limited FTM pulls towards them (a
     least-squares fit of the whole cloud's sclera followed those points outwards). The lids begin
     where the points' offsets from that sphere show a shell of their own (:func:`_lid_gap`), as
@@ -935,7 +938,11 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
     if fixed_radius is not None:
         depth = math.sqrt(max(fixed_radius**2 - r**2, 1.0))
     else:
-        depth = _mean_shift(votes, weights, _innermost_depth(votes), (0.4, 0.25, 0.15, 0.1))
+        innermost = _innermost_depth(votes)
+        depth = _mean_shift(votes, weights, innermost, (0.4, 0.25, 0.15, 0.1))
+        if (abs(depth - innermost) > DEPTH_REFIT_LIMIT_MM
+                and _holds_a_shell(cloud[behind], limbus, innermost, depth)):
+            depth = _mean_shift(votes, weights, innermost, (0.15, 0.1))
     offset = off_sphere_mm(cloud, L, g, r, depth)
     gap = _lid_gap(offset[behind])
     band = min(gap, 0.3)  # the sclera's points: within this (mm) of the sphere

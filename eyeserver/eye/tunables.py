@@ -83,8 +83,9 @@ DEPTH_REFIT_LIMIT_MM = 0.3
 votes' mode it starts at and still count as refining it (a vote's own noise, the sclera's
 ≈ 0.06 mm amplified about four times, is ≈ 0.25 mm). A larger move has left the mode's shell:
 rightly where the mode sat on noise inside the globe, onto a lid shell where the mode holds a
-shell of its own (:func:`~eyeserver.eye.limbus.globe_on_limbus`). Measured:
-docs/notes/patient-eye.md, nineteenth session."""
+shell of its own (:func:`~eyeserver.eye.limbus.globe_on_limbus`). The votes' mean shift is held
+to the innermost shell by the same limit. Measured: docs/notes/patient-eye.md, nineteenth and
+twentieth sessions."""
 
 SHELL_SEARCH_MM = 2.0
 """How far (mm) beyond the first votes for ``h`` the sclera's shell is looked for. Measured on
