@@ -3,8 +3,8 @@ fit on the same images (the bench renders anew on every run).
 
     .venv/bin/python scripts/pose_set.py render --eyes patient --count 16 --seed 11 SETDIR
     .venv/bin/python scripts/pose_set.py fit --calibration CALDIR SETDIR
-    .venv/bin/python scripts/pose_set.py fit --stages --method spatial --calibration CALDIR SETDIR
-    .venv/bin/python scripts/pose_set.py oracle --method spatial --calibration CALDIR SETDIR
+    .venv/bin/python scripts/pose_set.py fit --stages --method multi-view --calibration CALDIR SETDIR
+    .venv/bin/python scripts/pose_set.py oracle --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py cloud --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py ablate --seed 6 --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py lids [--room ROOM] --calibration CALDIR SETDIR
@@ -377,8 +377,8 @@ def main() -> None:
     make.set_defaults(step=render)
     score = steps.add_parser("fit", help="fit every eye of SETDIR and score it")
     score.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
-    score.add_argument("--method", default="multi-view", choices=("multi-view", "spatial"),
-                       help="the reconstruction's fringe order")
+    score.add_argument("--method", default="auto", choices=("auto", "multi-view", "spatial"),
+                       help="the reconstruction's fringe order (default: as `eyeserver pose`)")
     score.add_argument("--stages", action="store_true",
                        help="also score the cloud-only pose and the limbus found from it")
     score.add_argument("setdir", type=Path)
@@ -386,7 +386,7 @@ def main() -> None:
     bound = steps.add_parser("oracle", help="the globe's stages from the true limbus (a "
                              "diagnostic: what a perfectly found limbus would give)")
     bound.add_argument("--calibration", type=Path, required=True, metavar="CALDIR")
-    bound.add_argument("--method", default="multi-view", choices=("multi-view", "spatial"))
+    bound.add_argument("--method", default="auto", choices=("auto", "multi-view", "spatial"))
     bound.add_argument("setdir", type=Path)
     bound.set_defaults(step=oracle)
     swap = steps.add_parser("ablate", help="one patient eye at rest with each group of its "
