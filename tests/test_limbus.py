@@ -195,25 +195,36 @@ CLOSE_LIDS = SceneSpec(kind="eye", position_mm=(0.5, -0.5, -10.5), eye=EyeSpec(
 """The painted eye with a patient's lids: a shell 0.3 mm outside the globe (the population's
 closest), with more points in the cloud than the sclera beside the limbus."""
 
+NARROW_LIDS = SceneSpec(kind="eye", position_mm=(0.5, -0.5, -10.5), eye=EyeSpec(
+    gaze_deg=(3.0, -2.0), globe_radius_mm=12.0, aperture_mm=(11.0, 6.5),
+    aperture_offset_mm=(0.0, -0.3), lid_gap_mm=0.3))
+"""The same lids opened less high: they cover the top and bottom of the limbus."""
+
 
 @pytest.mark.slow
-@pytest.mark.parametrize("room", ["default", "wide"])
+@pytest.mark.parametrize(("room", "spec", "bound_mm"), [
+    ("default", CLOSE_LIDS, 0.1), ("default", NARROW_LIDS, 0.1), ("wide", CLOSE_LIDS, 0.1),
+    # Fringes parallel to the lid margins: the lids blend into the sclera beside them.
+    ("horizontal", NARROW_LIDS, 0.15)], ids=["default", "default-narrow", "wide",
+                                              "horizontal-narrow"])
 def test_lids_close_to_the_globe_are_not_fitted_as_sclera(calibrated_rooms: Any, room: str,
+                                                         spec: SceneSpec, bound_mm: float,
                                                          tmp_path: Path) -> None:
     """Taken for the sclera, these lids made the globe 0.67 mm too large and put the centre
     0.76 mm off along the gaze at confidence 0.69, a confident wrong pose. On `wide` the
     multi-view order's cloud kept too little sclera beside them to tell them apart; in the
     default room the spatial order's holds so much lid that the votes' mean shift drifted from
     the sclera's shell towards theirs (0.108 mm off, confidence 0.55, before the sclera's shell
-    was held to). Measured: docs/notes/patient-eye.md, thirteenth, nineteenth and twentieth
-    sessions."""
+    was held to); on `horizontal` the narrow opening's pose was 0.46 mm off at confidence 0.74
+    before a dominant lid shell was told from the sclera without a trough between them.
+    Measured: docs/notes/patient-eye.md, thirteenth, nineteenth and twentieth sessions."""
     _, caldir = calibrated_rooms(room)
-    truth = _record(room, CLOSE_LIDS, tmp_path / "eye")
+    truth = _record(room, spec, tmp_path / "eye")
 
     pose = _fit(caldir, tmp_path / "eye")
 
     error = np.subtract(pose.centre_mm, truth["centre_mm"])
-    assert np.linalg.norm(error) < 0.1
+    assert np.linalg.norm(error) < bound_mm
     assert np.all(np.abs(error) <= 2.0 * np.asarray(pose.centre_sd_mm)), (error,
                                                                             pose.centre_sd_mm)
     assert pose.globe_radius_mm == pytest.approx(12.0, abs=0.1)

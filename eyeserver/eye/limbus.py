@@ -71,6 +71,7 @@ from eyeserver.eye.tunables import (
     GOOD_RESIDUAL_PX,
     LID_CLEARANCE_MM,
     LID_GAP_MM,
+    LID_SHELL_DOMINANCE,
     LIMBUS_CLEARANCE_MM,
     LIMBUS_WINDOW_MARGIN_PX,
     MAX_RESIDUAL_PX,
@@ -801,19 +802,30 @@ def _lid_gap(offset: F64) -> float:
     peak stands out (at least 0.3 of the sclera's, with a trough below :data:`SHELL_TROUGH`
     of the smaller); :data:`LID_GAP_MM` without one. A patient's lids may lie 0.3 mm outside
     the globe, the sclera's own flanks up to 0.3 mm (the band-limited FTM): a fixed clearance
-    takes one for the other either way."""
+    takes one for the other either way.
+
+    The sclera's peak is the highest local maximum within 0.15 mm of the sphere (the highest
+    count there can be the lid shell's rising flank). A lid shell closer than
+    :data:`LID_GAP_MM` that holds :data:`LID_SHELL_DOMINANCE` times the sclera's count begins
+    halfway between the two peaks, trough or not: with fringes parallel to the lid margins the
+    demodulation blends the lids into the sclera across the fringes, and the blend fills the
+    trough (docs/notes/patient-eye.md, twentieth session)."""
     step = 0.05
     edges = np.arange(-0.3, 1.6 + step / 2, step)
     counts = np.convolve(np.histogram(offset, bins=edges)[0], np.ones(3) / 3, mode="same")
     centres = edges[:-1] + step / 2
     near = np.flatnonzero(np.abs(centres) < 0.15)
-    sclera = int(near[np.argmax(counts[near])])
+    peaks = near[(counts[near] >= counts[near - 1]) & (counts[near] >= counts[near + 1])]
+    if not len(peaks):
+        peaks = near
+    sclera = int(peaks[np.argmax(counts[peaks])])
     beyond = np.flatnonzero(centres > centres[sclera] + 0.2)
-    if not len(beyond):
+    if not len(beyond) or counts[sclera] <= 0:
         return LID_GAP_MM
     lid = int(beyond[np.argmax(counts[beyond])])
-    if (counts[sclera] <= 0 or counts[lid] < 0.3 * counts[sclera]
-            or not _shells_apart(counts, sclera, lid)):
+    if counts[lid] >= LID_SHELL_DOMINANCE * counts[sclera] and centres[lid] < LID_GAP_MM:
+        return float(0.5 * (centres[sclera] + centres[lid]))
+    if counts[lid] < 0.3 * counts[sclera] or not _shells_apart(counts, sclera, lid):
         return LID_GAP_MM
     trough = sclera + int(np.argmin(counts[sclera:lid + 1]))
     return float(np.clip(centres[trough], 0.1, LID_GAP_MM))
