@@ -3,7 +3,8 @@ fit on the same images (the bench renders anew on every run).
 
     .venv/bin/python scripts/pose_set.py render --eyes patient --count 16 --seed 11 SETDIR
     .venv/bin/python scripts/pose_set.py fit --calibration CALDIR SETDIR
-    .venv/bin/python scripts/pose_set.py fit --stages --method multi-view --calibration CALDIR SETDIR
+    .venv/bin/python scripts/pose_set.py fit --stages --method multi-view \
+        --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py oracle --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py cloud --calibration CALDIR SETDIR
     .venv/bin/python scripts/pose_set.py ablate --seed 6 --calibration CALDIR SETDIR

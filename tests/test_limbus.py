@@ -210,14 +210,12 @@ NARROW_LIDS = SceneSpec(kind="eye", position_mm=(0.5, -0.5, -10.5), eye=EyeSpec(
 def test_lids_close_to_the_globe_are_not_fitted_as_sclera(calibrated_rooms: Any, room: str,
                                                          spec: SceneSpec, bound_mm: float,
                                                          tmp_path: Path) -> None:
-    """Taken for the sclera, these lids made the globe 0.67 mm too large and put the centre
-    0.76 mm off along the gaze at confidence 0.69, a confident wrong pose. On `wide` the
-    multi-view order's cloud kept too little sclera beside them to tell them apart; in the
-    default room the spatial order's holds so much lid that the votes' mean shift drifted from
-    the sclera's shell towards theirs (0.108 mm off, confidence 0.55, before the sclera's shell
-    was held to); on `horizontal` the narrow opening's pose was 0.46 mm off at confidence 0.74
-    before a dominant lid shell was told from the sclera without a trough between them.
-    Measured: docs/notes/patient-eye.md, thirteenth, nineteenth and twentieth sessions."""
+    """Lids taken for the sclera make the globe too large and put the centre off along the
+    gaze with a confident face. On `wide` the multi-view order's cloud kept too little sclera
+    beside them to tell them apart; in the default room the votes' mean shift drifted from the
+    sclera's shell towards the lids' heavier votes; on `horizontal` no trough separates a
+    dominant lid shell from the sclera. Measured: docs/notes/patient-eye.md, thirteenth,
+    nineteenth and twentieth sessions."""
     _, caldir = calibrated_rooms(room)
     truth = _record(room, spec, tmp_path / "eye")
 
@@ -236,9 +234,8 @@ def test_close_lids_across_horizontal_fringes_are_refused_not_fitted(calibrated_
                                                                      tmp_path: Path) -> None:
     """With fringes parallel to the lid margins the band-limited demodulation blends the lids
     into the sclera beside them, across the fringes, and the cloud cannot tell the two shells
-    apart: the pose must say so. It came out 0.80 mm off along the gaze with a stated sd of
-    0.11 mm and confidence 0.76 (a confident wrong pose) before the depth was held to the
-    sclera's shell; now its stated sd covers its error and the daemon's check refuses it."""
+    apart: the pose must say so, its stated sd covering its error, and the daemon's check
+    refuse it (it was a confident wrong pose: docs/notes/patient-eye.md, twentieth session)."""
     _, caldir = calibrated_rooms("horizontal")
     truth = _record("horizontal", CLOSE_LIDS, tmp_path / "eye")
 

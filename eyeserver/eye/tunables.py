@@ -67,10 +67,9 @@ Chosen by hand."""
 LID_SHELL_DOMINANCE = 2.0
 """A shell of points closer than :data:`LID_GAP_MM` outside the sphere through the limbus that
 holds this many times the sclera's points is taken for lids even where no trough separates
-the two (:func:`~eyeserver.eye.limbus._lid_gap`). Chosen by hand: on `horizontal`'s lids
-0.3 mm out it held 4.5 times the sclera's; where the sphere sits on the noise inside the globe
-(`wide`) the sclera itself can be taken for lids, and the pose is refused rather than wrong
-(docs/notes/patient-eye.md, twentieth session)."""
+the two (:func:`~eyeserver.eye.limbus._lid_gap`). Chosen by hand; where the sphere sits on the
+noise inside the globe the sclera itself can be taken for lids, and the pose is refused rather
+than wrong (docs/notes/patient-eye.md, twentieth session)."""
 
 LIMBUS_CLEARANCE_MM = 1.5
 """And so are those closer than this (mm) to the limbus. Chosen by hand."""
