@@ -294,3 +294,31 @@ def test_a_cameras_pixel_rays_are_computed_when_first_needed_and_windows_slice_t
                                   camera.rays.reshape(height, width, 3)[20:90, 30:110])
     coarse = decimated(window, 2)
     np.testing.assert_array_equal(coarse.y, y[20:90:2, 30:110:2])
+
+
+def test_the_sampled_unwrapping_gives_each_part_of_a_region_its_own_vote() -> None:
+    """``spatial_unwrap`` unwraps every second pixel: a one-pixel neck of the mask on an odd row
+    joins two halves at full resolution but not among the samples, whose halves are unwrapped
+    apart (each with its own offset). Each half must be a region of its own, its steps
+    consistent with the true phase; a steep ramp (0.9 rad a pixel, 1.8 between samples) still
+    unwraps."""
+    from eyeserver.pipeline.reconstruct import Phase, spatial_unwrap
+
+    rows, cols = np.mgrid[0:64, 0:96]
+    truth = 0.9 * cols + 0.3 * rows
+    valid = np.zeros(truth.shape, bool)
+    valid[:, :40] = True
+    valid[:, 51:] = True
+    valid[31, 40:51] = True  # the neck: no sample lies on it
+    wrapped = np.angle(np.exp(1j * truth)).astype(np.float32)
+    unwrapped = spatial_unwrap(Phase(wrapped, np.ones_like(wrapped), valid))
+
+    assert len(unwrapped.pixels) >= valid.sum() - 11  # at most the neck left out
+    side = np.where(unwrapped.pixels % 96 < 45, 0, 1)
+    regions = [set(unwrapped.region[side == s].tolist()) for s in (0, 1)]
+    assert len(regions[0]) == 1 and len(regions[1]) == 1 and regions[0] != regions[1]
+    true_steps = np.rint((truth.ravel() - wrapped.ravel()) / (2 * np.pi))[unwrapped.pixels]
+    for region in np.unique(unwrapped.region):
+        inside = unwrapped.region == region
+        offsets = true_steps[inside] - unwrapped.steps[inside]
+        assert np.unique(offsets).size == 1

@@ -230,6 +230,10 @@ def render_speed(speed: dict[str, Any]) -> str:
                          f"{_value(value.get('peer_median_ms'), 1)} ms against "
                          f"{_value(value.get('ours_median_ms'), 1)} ms, ratio "
                          f"{_value(value.get('time_ratio'), 2)}")
+            if "orders_differ_share" in value:
+                lines[-1] += (f"; its orders differ from ours beyond one offset per region on "
+                              f"{_value(100 * value['orders_differ_share'], 3)} % of the pixels, "
+                              f"ours leaves {_value(100 * value['left_out_share'], 3)} % out")
             bent = value.get("with_bend_correction")
             if bent:
                 lines[-1] += (f"; with our bend correction {_value(bent.get('ours_median_ms'), 1)}"

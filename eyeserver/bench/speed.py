@@ -23,7 +23,8 @@ held in memory (no file I/O is timed), with OpenCV held to one thread of its own
   unwrapping, fringe order      multi-view path (one step does both): ``fringe_order_grid``
                                 (:func:`grid_order`), ``fringe_order_propagate``
                                 (:func:`propagate_order`); spatial path: ``spatial_unwrapping``
-                                (scikit-image), ``spatial_region_order`` (:func:`spatial_order`)
+                                (:func:`spatial_unwrap`), ``spatial_region_order``
+                                (:func:`spatial_order`)
   phase-to-height               ``phase_to_height`` (``PhaseHeightModel.height``)
   transversal mapping           ``transversal_mapping`` (:func:`intersect_plane_z`)
   (checks in ``unit_clouds``)   ``order_check``, ``cloud_assembly``, ``cross_check``, ``despeckle``
@@ -31,10 +32,12 @@ held in memory (no file I/O is timed), with OpenCV held to one thread of its own
   ============================  ===================================================================
 
 * **Peers** on the same images, as time ratios (peer ÷ ours, above 1 when ours is faster):
-  scikit-image's ``unwrap_phase`` on the same masked wrapped phase against our multi-view fringe
-  order; a plain FFT Fourier-transform method (``rfft2``, a fixed box around the carrier,
-  inverse) and OpenCV contrib's ``structured_light`` FTP against :func:`demodulate`, with the
-  phase agreement to ours. The contrib peer needs ``opencv-contrib-python-headless`` *instead
+  scikit-image's ``unwrap_phase`` on the whole masked wrapped phase (the spatial path's
+  unwrapping before it sampled every second pixel) against :func:`spatial_unwrap`, with the
+  share of pixels whose orders differ beyond one offset per region; a plain FFT
+  Fourier-transform method (``rfft2``, a fixed box around the carrier, inverse) and OpenCV
+  contrib's ``structured_light`` FTP against :func:`demodulate`, with the phase agreement to
+  ours. The contrib peer needs ``opencv-contrib-python-headless`` *instead
   of* ``opencv-python-headless`` (both are the ``cv2`` package: never install the two); without
   it the peer is reported unavailable, with the reason.
 * **Memory**: the process's peak resident set and the Python-visible peak of one frame-set
@@ -113,8 +116,8 @@ STAGES: dict[str, str] = {
     "cross_check": "points the partner's own reconstruction confirms (unit_clouds)",
     "despeckle": "patches of continuous depth under 1000 px dropped unless the partner "
                  "confirms a 200 px+ patch's order as a whole",
-    "spatial_unwrapping": "spatial path: scikit-image unwrap_phase (Herráez) of the masked "
-                          "phase",
+    "spatial_unwrapping": "spatial path: spatial_unwrap (scikit-image's Herráez unwrapping of "
+                          "every second pixel, each pixel stepped to a sample)",
     "spatial_region_order": "spatial path: one order per unwrapped region, voted by the grid",
 }
 """Per-camera stages of the reconstruction, in pipeline order (``fusion`` is per frame-set)."""
@@ -403,8 +406,8 @@ def _cross_check(cloud: CameraCloud, camera: CalibratedCamera, phase: Phase,
 
 
 def skimage_unwrap(phase: Phase) -> Any:
-    """scikit-image's Herráez unwrapping of a camera's masked wrapped phase (a masked array),
-    called exactly as :func:`spatial_order` calls it."""
+    """scikit-image's Herráez unwrapping of a camera's whole masked wrapped phase (a masked
+    array), as :func:`spatial_order` called it before :func:`spatial_unwrap` (the peer)."""
     from skimage.restoration import unwrap_phase
 
     masked = np.ma.masked_array(phase.dphi.astype(np.float64), mask=~phase.valid)
@@ -494,7 +497,13 @@ def _side_pass(frameset: RecordedFrameSet, samples: _Samples, peers: dict[str, C
     """
     from eyeserver.pipeline import reconstruct
     from eyeserver.pipeline.demodulate import demodulate
-    from eyeserver.pipeline.reconstruct import Phase, grid_order, propagate_order, spatial_order
+    from eyeserver.pipeline.reconstruct import (
+        Phase,
+        grid_order,
+        propagate_order,
+        spatial_order,
+        spatial_unwrap,
+    )
 
     def fringe_order(unit: UnitImages, cam: CalibratedCamera) -> object:
         other = unit.cam_b if cam is unit.cam_a else unit.cam_a
@@ -503,14 +512,17 @@ def _side_pass(frameset: RecordedFrameSet, samples: _Samples, peers: dict[str, C
         grid = grid_order(cam, state["phases"][cam.camera_id], other, fresh, frameset.z_range)
         return propagate_order(grid, state["phases"][cam.camera_id])
 
-    peer_phase: dict[str, dict[str, F32]] = defaultdict(dict)
+    peer_phase: dict[str, dict[str, Any]] = defaultdict(dict)
     for unit in frameset.units[:2]:
         for cam, image in ((unit.cam_a, unit.image_a), (unit.cam_b, unit.image_b)):
             cid = cam.camera_id
             phase = state["phases"][cid]
             samples.time(cid, "ours:fringe_order", fringe_order, unit, cam)
-            unwrapped = samples.time(cid, "spatial_unwrapping", skimage_unwrap, phase)
-            with _stand_in(reconstruct, "unwrap_phase", _returning(unwrapped)):
+            unwrapped = samples.time(cid, "spatial_unwrapping", spatial_unwrap, phase)
+            peer_phase["spatial_unwrap"][cid] = unwrapped
+            peer_phase["skimage_unwrap_phase"][cid] = samples.time(
+                cid, "skimage_unwrap_phase", skimage_unwrap, phase)
+            with _stand_in(reconstruct, "spatial_unwrap", _returning(unwrapped)):
                 samples.time(cid, "spatial_region_order", spatial_order, cam, phase,
                              state["grids"][cid], None)
             samples.time(cid, "ours:demodulation", demodulate, image, cam.carrier,
@@ -593,13 +605,14 @@ def stages(frameset: RecordedFrameSet, frames: int = 100, progress: Progress = q
             report["per_frameset"][label][f"sum_{path}"] = _summary(total)
 
     peer_report: dict[str, Any] = {}
-    ours_order = {cid: samples.seconds[(cid, "ours:fringe_order")] for cid in cameras}
     peer_report["skimage_unwrap_phase"] = _peer(
-        "scikit-image " + metadata.version("scikit-image"),
-        "grid_order + propagate_order (the multi-view order: the unwrapping and the absolute "
-        "order at once), timed just before the peer in the same pass",
-        {cid: samples.seconds[(cid, "spatial_unwrapping")] for cid in cameras},
-        ours_order)
+        "scikit-image " + metadata.version("scikit-image") + " unwrap_phase of every masked "
+        "pixel (the spatial path's unwrapping before spatial_unwrap)",
+        "spatial_unwrap (scikit-image's unwrapping of every second pixel), timed just before "
+        "the peer in the same pass",
+        {cid: samples.seconds[(cid, "skimage_unwrap_phase")] for cid in cameras},
+        {cid: samples.seconds[(cid, "spatial_unwrapping")] for cid in cameras})
+    peer_report["skimage_unwrap_phase"].update(_unwrap_agreement(last, cameras))
     ours_demod = {cid: samples.seconds[(cid, "ours:demodulation")] for cid in cameras}
     ours_bent = np.concatenate([samples.seconds[(cid, "ours:demodulation_bent")]
                                 for cid in cameras])
@@ -658,6 +671,26 @@ def _agreement(state: dict[str, Any], name: str, cameras: Sequence[str]) -> dict
     pooled = np.concatenate(differences) if differences else np.zeros(1)
     return {"phase_vs_ours_median_rad": float(np.median(pooled)),
             "phase_vs_ours_p95_rad": float(np.percentile(pooled, 95))}
+
+
+def _unwrap_agreement(state: dict[str, Any], cameras: Sequence[str]) -> dict[str, Any]:
+    """How often :func:`spatial_unwrap`'s steps differ from scikit-image's on the whole image
+    beyond one offset per region (which the region's vote sets anyway), over the pixels both
+    unwrap, and how many of scikit-image's pixels ours leaves out."""
+    differ = left_out = total = 0
+    for cid in cameras:
+        ours = state["peer_phase"]["spatial_unwrap"][cid]
+        theirs = np.ma.getdata(state["peer_phase"]["skimage_unwrap_phase"][cid]).ravel()
+        phase = state["phases"][cid]
+        steps = np.rint((theirs[ours.pixels] - phase.dphi.ravel()[ours.pixels])
+                        / (2 * np.pi)).astype(np.int64) - ours.steps
+        for region in np.unique(ours.region):
+            _, counts = np.unique(steps[ours.region == region], return_counts=True)
+            differ += int(counts.sum() - counts.max())
+        left_out += int(phase.valid.sum()) - len(ours.pixels)
+        total += int(phase.valid.sum())
+    return {"orders_differ_share": differ / max(total, 1),
+            "left_out_share": left_out / max(total, 1)}
 
 
 def _reproduces(frameset: RecordedFrameSet, clouds: dict[str, CameraCloud]) -> bool:
@@ -1105,7 +1138,7 @@ def format_text(report: dict[str, Any]) -> str:
     if peers:
         lines.append("")
         lines.append(f"{'peers, same images':<44}{'peer ms':>9}{'ours ms':>9}{'peer/ours':>11}")
-        names = {"skimage_unwrap_phase": "scikit-image unwrap_phase vs fringe order",
+        names = {"skimage_unwrap_phase": "scikit-image unwrap_phase vs spatial_unwrap",
                  "numpy_fft_ftm": "plain FFT FTM (box band) vs demodulate",
                  "opencv_contrib_ftp": "OpenCV contrib FTP vs demodulate"}
         for key, label in names.items():
@@ -1120,6 +1153,9 @@ def format_text(report: dict[str, Any]) -> str:
             if "phase_vs_ours_median_rad" in peer:
                 line += (f"   phase vs ours: median {peer['phase_vs_ours_median_rad']:.3f} rad,"
                          f" p95 {peer['phase_vs_ours_p95_rad']:.3f} rad")
+            if "orders_differ_share" in peer:
+                line += (f"   orders differ on {100 * peer['orders_differ_share']:.3f} %, "
+                         f"{100 * peer['left_out_share']:.3f} % left out")
             lines.append(line)
             bent = peer.get("with_bend_correction")
             if bent:

@@ -167,6 +167,11 @@ MIN_REGION_PX = 200
 """Spatially unwrapped regions smaller than this are noise islands and dropped."""
 MIN_REGION_VOTES = 3
 """Multi-view picks a region needs before their majority fixes its order."""
+UNWRAP_STRIDE = 2
+"""The spatial order unwraps every second pixel of each axis (a quarter of them); every pixel
+then takes the 2π step that brings it nearest a sample within one pixel of it
+(:func:`spatial_unwrap`). The samples' steps differ twice as much as the pixels', still far
+below π on the surfaces the calibrated volume holds."""
 
 METHODS = ("multi-view", "spatial")
 """The fringe-order paths :func:`unit_clouds` offers."""
@@ -779,40 +784,99 @@ def propagate_order(grid: GridOrder, phase_a: Phase) -> tuple[npt.NDArray[np.int
     return pixels.astype(np.intp), order
 
 
+@dataclass(frozen=True)
+class Unwrapped:
+    """A camera's masked-in pixels unwrapped: their 2π steps from the wrapped phase, each
+    consistent only within its region (:func:`spatial_unwrap`)."""
+
+    pixels: npt.NDArray[np.intp]
+    steps: Int
+    region: Int
+    """1 … ``count``: pixels of one region were unwrapped along paths through each other."""
+    count: int
+
+
+def spatial_unwrap(phase: Phase) -> Unwrapped:
+    """The masked phase unwrapped by scikit-image's quality-guided (Herráez) unwrapper on every
+    :data:`UNWRAP_STRIDE`-th pixel of each axis, each pixel stepped to the unwrapped phase of
+    the nearest of the (up to four) samples within one pixel of it that lies in its own
+    4-connected region. A region is a region of the full mask and of the samples' mask at once
+    (a narrow neck of the mask may part the samples; each part is unwrapped on its own), so its
+    steps come from one unwrapping. Pixels without such a sample (a few at the mask's edges)
+    are left out.
+
+    Why not the full image: the unwrapper's sorting of every pixel's edges took 45–49 ms a
+    camera on the eye phantom, the samples 9 ms; the orders, checked against the multi-view
+    picks, as often right (docs/notes/speed.md, twenty-first session).
+    """
+    dphi, valid = phase.dphi, phase.valid
+    w = valid.shape[1]
+    s = UNWRAP_STRIDE
+    sampled = valid[::s, ::s]
+    pixels = np.flatnonzero(valid).astype(np.intp)
+    if not sampled.any():
+        return Unwrapped(pixels[:0], np.zeros(0, np.int64), np.zeros(0, np.int64), 0)
+    coarse = np.ma.getdata(unwrap_phase(  # type: ignore[no-untyped-call]
+        np.ma.masked_array(dphi[::s, ::s].astype(np.float64), mask=~sampled)))
+    full_labels, _ = ndimage.label(valid)
+    coarse_labels, coarse_count = ndimage.label(sampled)
+    si, sj = np.nonzero(sampled)
+    pair = full_labels[si * s, sj * s].astype(np.int64) * (coarse_count + 1) + coarse_labels[si, sj]
+    pairs, sample_region = np.unique(pair, return_inverse=True)
+    rows, cols = sampled.shape
+    region_of = np.zeros(rows * cols, np.int64)
+    region_of[si * cols + sj] = sample_region + 1
+    label_of = np.zeros(rows * cols, np.int64)
+    label_of[si * cols + sj] = full_labels[si * s, sj * s]
+    i, j = np.divmod(pixels, w)
+    own = full_labels.ravel()[pixels]
+    sample = np.full(len(pixels), -1, np.intp)
+    # Nearest first: the sample at or just above and left of the pixel serves all but the
+    # mask's edges, so the others are tried only where it did not.
+    up, left = i // s, j // s
+    down, right = np.minimum(-(-i // s), rows - 1), np.minimum(-(-j // s), cols - 1)
+    for ci, cj in ((up, left), (up, right), (down, left), (down, right)):
+        open_ = np.flatnonzero(sample < 0)
+        index = ci[open_] * cols + cj[open_]
+        take = (region_of[index] > 0) & (label_of[index] == own[open_])
+        sample[open_[take]] = index[take]
+    found = sample >= 0
+    pixels, sample = pixels[found], sample[found]
+    region = region_of[sample]
+    steps = np.rint((coarse.ravel()[sample] - dphi.ravel()[pixels]) / TWO_PI).astype(np.int64)
+    return Unwrapped(pixels, steps, region, len(pairs))
+
+
 def spatial_order(cam_a: CalibratedCamera, phase_a: Phase, grid: GridOrder | None,
                   depth_prior_mm: float | None,
                   ) -> tuple[npt.NDArray[np.intp], Int, npt.NDArray[np.bool_]]:
-    """Orders from quality-guided spatial unwrapping, one offset per connected region.
+    """Orders from quality-guided spatial unwrapping (:func:`spatial_unwrap`), one offset per
+    region.
 
     Returns the pixels, their orders and whether each pixel's region was fixed by multi-view
     votes (True) or by the depth prior (False). Regions with neither are dropped.
     """
     h, w = phase_a.dphi.shape
-    valid = phase_a.valid
-    labels, count = ndimage.label(valid)
+    unwrapped = spatial_unwrap(phase_a)
+    count, pixels, steps, region = (unwrapped.count, unwrapped.pixels, unwrapped.steps,
+                                    unwrapped.region)
     if count == 0:
         return np.zeros(0, np.intp), np.zeros(0, np.int64), np.zeros(0, bool)
-    sizes = np.bincount(labels.ravel(), minlength=count + 1)
-    # scikit-image's Herráez unwrapper (≈ 100 ms per frame: docs/notes/design-measurements.md)
-    # unwraps each 4-connected region of the unmasked pixels on its own, as ndimage.label counts
-    # them.
-    masked = np.ma.masked_array(phase_a.dphi.astype(np.float64), mask=~valid)
-    unwrapped = unwrap_phase(masked)  # type: ignore[no-untyped-call]
-    pixels = np.flatnonzero(valid)
-    dphi = phase_a.dphi.ravel()[pixels].astype(np.float64)
-    steps = np.rint((np.ma.getdata(unwrapped).ravel()[pixels] - dphi) / TWO_PI).astype(np.int64)
-    region = labels.ravel()[pixels]
+    sizes = np.bincount(region, minlength=count + 1)
     offset = np.zeros(count + 1, np.int64)
     decided = np.zeros(count + 1, np.int8)  # 0 undecided, 1 multi-view, 2 depth prior
     if grid is not None and grid.pixels.size:
         step_at = np.zeros(h * w, np.int64)
         step_at[pixels] = steps
-        votes_region = labels.ravel()[grid.pixels]
+        region_at = np.zeros(h * w, np.int64)
+        region_at[pixels] = region
+        votes_region = region_at[grid.pixels]
         diff = grid.order - step_at[grid.pixels]
         low = int(diff.min())
         span = int(diff.max()) - low + 1
         table = np.bincount(votes_region * span + (diff - low),
                             minlength=(count + 1) * span).reshape(count + 1, span)
+        table[0] = 0  # grid pixels left out of the unwrapping vote for nothing
         support = table.max(axis=1)
         majority = support >= np.maximum(MIN_REGION_VOTES, 0.6 * table.sum(axis=1))
         offset = np.where(majority, table.argmax(axis=1) + low, 0)
@@ -822,7 +886,8 @@ def spatial_order(cam_a: CalibratedCamera, phase_a: Phase, grid: GridOrder | Non
     undecided = undecided[undecided > 0]
     if depth_prior_mm is not None and undecided.size:
         # The offset that puts the region's median pixel nearest the prior height.
-        medians = ndimage.median(np.ma.getdata(unwrapped), labels, undecided)
+        level = phase_a.dphi.ravel()[pixels].astype(np.float64) + TWO_PI * steps
+        medians = ndimage.median(level, region, undecided)
         labels_present, first = np.unique(region, return_index=True)
         index = first[np.searchsorted(labels_present, undecided)]
         x, y = cam_a.x.ravel()[pixels[index]], cam_a.y.ravel()[pixels[index]]
