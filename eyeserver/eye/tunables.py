@@ -257,16 +257,17 @@ MRI ellipsoid fits and the 0.1–0.2 mm repeatability of MRI axial lengths; the 
 places the centre behind the limbus at the depth the model's shape gives, so this error moves
 the centre along the gaze by ≈ 0.18 mm (sd) for a 12-mm globe."""
 
-MODEL_ERROR_CENTRE_MM = 1.69
+MODEL_ERROR_CENTRE_MM = 2.39
 """Scale (mm) of the error the fit's own covariances do not count (the limbus mistaken, the lids
 taken for sclera, a globe that is no sphere), added per axis to a pose's centre sd as
 ``MODEL_ERROR_CENTRE_MM · (max(0, c₀ − c)/c)^MODEL_ERROR_POWER`` for its confidence ``c`` and
 ``c₀`` = :data:`MODEL_ERROR_BELOW_CONFIDENCE` (:func:`~eyeserver.eye.fit.model_error_sds`).
 Calibrated on draws the benchmarks never report (seeds 7 and 8: 120 patient eyes, 48 with
 biometry), so that 97.5 % of their errors lie within 2 sd (``scripts/calibrate_model_error.py``;
-docs/notes/patient-eye.md, "Sixth session" and "Seventh session")."""
+docs/notes/patient-eye.md, "Sixth session", "Seventh session" and, for these values, the fit as
+it is since the twentieth, "Twenty-first session")."""
 
-MODEL_ERROR_GAZE_DEG = 10.8
+MODEL_ERROR_GAZE_DEG = 17.3
 """The same for the gaze's sd, degrees (calibrated with :data:`MODEL_ERROR_CENTRE_MM`)."""
 
 MODEL_ERROR_BELOW_CONFIDENCE = 0.5
