@@ -170,8 +170,9 @@ MIN_REGION_VOTES = 3
 UNWRAP_STRIDE = 2
 """The spatial order unwraps every second pixel of each axis (a quarter of them); every pixel
 then takes the 2π step that brings it nearest a sample within one pixel of it
-(:func:`spatial_unwrap`). The samples' steps differ twice as much as the pixels', still far
-below π on the surfaces the calibrated volume holds."""
+(:func:`spatial_unwrap`). The samples' phases differ twice as much as neighbouring pixels';
+on the eye phantom of five rigs the orders came out as with every pixel unwrapped
+(docs/notes/speed.md)."""
 
 METHODS = ("multi-view", "spatial")
 """The fringe-order paths :func:`unit_clouds` offers."""
@@ -805,9 +806,9 @@ def spatial_unwrap(phase: Phase) -> Unwrapped:
     steps come from one unwrapping. Pixels without such a sample (a few at the mask's edges)
     are left out.
 
-    Why not the full image: the unwrapper's sorting of every pixel's edges took 45–49 ms a
-    camera on the eye phantom, the samples 9 ms; the orders, checked against the multi-view
-    picks, as often right (docs/notes/speed.md, twenty-first session).
+    Why not the full image: the unwrapper took 45–52 ms a camera on the eye phantom, on the
+    samples 9 ms, and the orders, checked against the multi-view picks, were as often right
+    (docs/notes/speed.md, twenty-first session).
     """
     dphi, valid = phase.dphi, phase.valid
     w = valid.shape[1]
