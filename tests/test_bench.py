@@ -307,8 +307,7 @@ def test_speed_bench_times_the_pipeline(calibrated_rooms: Any,
         assert peers[name]["time_ratio"] == pytest.approx(
             peers[name]["peer_median_ms"] / peers[name]["ours_median_ms"])
     assert peers["numpy_fft_ftm"]["phase_vs_ours_median_rad"] < 0.1
-    # The sampled unwrapping gives the whole image's orders (measured: 37 of 674,000 pixels
-    # differ, 12 left out on the eye phantom's four cameras).
+    # The sampled unwrapping gives the whole image's orders (docs/notes/speed.md).
     assert peers["skimage_unwrap_phase"]["orders_differ_share"] < 1e-3
     assert peers["skimage_unwrap_phase"]["left_out_share"] < 1e-3
     contrib = peers["opencv_contrib_ftp"]

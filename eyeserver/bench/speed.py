@@ -485,9 +485,10 @@ def _multi_view_pass(frameset: RecordedFrameSet, samples: _Samples) -> dict[str,
 
 
 def _side_pass(frameset: RecordedFrameSet, samples: _Samples, peers: dict[str, Callable[..., Any]],
-               state: dict[str, Any]) -> dict[str, dict[str, F32]]:
+               state: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """One repetition of the spatial path's own stages and of the peers, per camera, on the
-    phases and grids of a multi-view pass (``state``); returns the peers' phases.
+    phases and grids of a multi-view pass (``state``); returns the peers' results (phases,
+    scikit-image's unwrapped phase) and :func:`spatial_unwrap`'s, per camera.
 
     Kept apart from the multi-view passes: interleaved, their large allocations (memory handed
     back and faulted in again) inflated the multi-view stages, whose sum for a 2-camera
@@ -497,27 +498,13 @@ def _side_pass(frameset: RecordedFrameSet, samples: _Samples, peers: dict[str, C
     """
     from eyeserver.pipeline import reconstruct
     from eyeserver.pipeline.demodulate import demodulate
-    from eyeserver.pipeline.reconstruct import (
-        Phase,
-        grid_order,
-        propagate_order,
-        spatial_order,
-        spatial_unwrap,
-    )
-
-    def fringe_order(unit: UnitImages, cam: CalibratedCamera) -> object:
-        other = unit.cam_b if cam is unit.cam_a else unit.cam_a
-        seen = state["phases"][other.camera_id]
-        fresh = Phase(seen.dphi, seen.modulation, seen.valid)  # its pinhole view not cached
-        grid = grid_order(cam, state["phases"][cam.camera_id], other, fresh, frameset.z_range)
-        return propagate_order(grid, state["phases"][cam.camera_id])
+    from eyeserver.pipeline.reconstruct import spatial_order, spatial_unwrap
 
     peer_phase: dict[str, dict[str, Any]] = defaultdict(dict)
     for unit in frameset.units[:2]:
         for cam, image in ((unit.cam_a, unit.image_a), (unit.cam_b, unit.image_b)):
             cid = cam.camera_id
             phase = state["phases"][cid]
-            samples.time(cid, "ours:fringe_order", fringe_order, unit, cam)
             unwrapped = samples.time(cid, "spatial_unwrapping", spatial_unwrap, phase)
             peer_phase["spatial_unwrap"][cid] = unwrapped
             peer_phase["skimage_unwrap_phase"][cid] = samples.time(
