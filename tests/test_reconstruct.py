@@ -296,6 +296,55 @@ def test_a_cameras_pixel_rays_are_computed_when_first_needed_and_windows_slice_t
     np.testing.assert_array_equal(coarse.y, y[20:90:2, 30:110:2])
 
 
+def test_a_region_too_small_for_the_sparse_vote_is_voted_on_the_full_grid(
+        calibrated_rooms: Any) -> None:
+    """``spatial_order`` votes each region's offset with multi-view picks on every ninth pixel
+    first. A plate's phase masked into a large region and a 15 × 15-pixel island (above the
+    200-pixel least region, one or two sparse picks, some 25 on the full grid) must give the
+    island its order from the full grid, and every pixel the order the full grid's vote gives
+    (the spatial path before the sparse vote)."""
+    from eyeserver.calibration.artefact import load_calibration
+    from eyeserver.io import rig_from_dict
+    from eyeserver.pipeline.reconstruct import (
+        COARSE_STRIDE,
+        SPARSE_VOTE_STRIDE,
+        Phase,
+        camera_phase,
+        grid_order,
+        spatial_order,
+    )
+    from eyeserver.reconstruction import calibrated_cameras, z_range
+
+    _, caldir = calibrated_rooms("default")
+    with SimSession.open(load_room(None), seed=5) as session:
+        session.room.set_scene(SceneSpec(kind="plate", position_mm=(0.0, 0.0, 3.0)))
+        rig = rig_from_dict(session.rig.spec(), "<simulated rig>")
+        step = session.rig.acquire([session.rig.units[0].id])[0]
+    document = load_calibration(caldir, rig)
+    cameras, limits = calibrated_cameras(document), z_range(document)
+    id_a, id_b = list(step.frames)[:2]
+    cam_a, cam_b = cameras[id_a], cameras[id_b]
+    phase_a = camera_phase(cam_a, step.frames[id_a].image)
+    phase_b = camera_phase(cam_b, step.frames[id_b].image)
+    h, w = phase_a.valid.shape
+    keep = np.zeros((h, w), bool)
+    keep[:, : w // 2 - 20] = True  # the large region
+    top, left = 257, w // 2 + 40  # the island: rows 257–271 hold one row of sparse picks
+    keep[top:top + 15, left:left + 15] = True
+    assert phase_a.valid[top:top + 15, left:left + 15].all()
+    masked = Phase(phase_a.dphi, phase_a.modulation, phase_a.valid & keep)
+
+    pixels, order, by_votes = spatial_order(cam_a, masked, cam_b, phase_b, limits, None)
+    dense = grid_order(cam_a, masked, cam_b, phase_b, limits, stride=COARSE_STRIDE)
+    d_pixels, d_order, _ = spatial_order(cam_a, masked, cam_b, phase_b, limits, None,
+                                         grid=dense)
+    island = (pixels // w >= top) & (pixels % w >= left)
+    assert island.sum() >= 200 and by_votes[island].all()
+    sparse = grid_order(cam_a, masked, cam_b, phase_b, limits, stride=SPARSE_VOTE_STRIDE)
+    assert np.count_nonzero((sparse.pixels // w >= top) & (sparse.pixels % w >= left)) < 3
+    assert np.array_equal(pixels, d_pixels) and np.array_equal(order, d_order)
+
+
 def test_the_sampled_unwrapping_gives_each_part_of_a_region_its_own_vote() -> None:
     """``spatial_unwrap`` unwraps every second pixel: a one-pixel neck of the mask on an odd row
     joins two halves at full resolution but not among the samples, whose halves are unwrapped

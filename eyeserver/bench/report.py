@@ -234,6 +234,10 @@ def render_speed(speed: dict[str, Any]) -> str:
                 lines[-1] += (f"; its orders differ from ours beyond one offset per region on "
                               f"{_value(100 * value['orders_differ_share'], 3)} % of the pixels, "
                               f"ours leaves {_value(100 * value['left_out_share'], 3)} % out")
+            if "pixel_orders_differ_share" in value:
+                lines[-1] += (f"; the order (or whether there is one) differs from ours on "
+                              f"{_value(100 * value['pixel_orders_differ_share'], 3)} % of the "
+                              "pixels either orders")
             bent = value.get("with_bend_correction")
             if bent:
                 lines[-1] += (f"; with our bend correction {_value(bent.get('ours_median_ms'), 1)}"

@@ -118,12 +118,14 @@ STAGES: dict[str, str] = {
                  "confirms a 200 px+ patch's order as a whole",
     "spatial_unwrapping": "spatial path: spatial_unwrap (scikit-image's Herráez unwrapping of "
                           "every second pixel, each pixel stepped to a sample)",
-    "spatial_region_order": "spatial path: one order per unwrapped region, voted by the grid",
+    "spatial_region_order": "spatial path: one order per unwrapped region, voted by multi-view "
+                            "picks on every 9th pixel (on every 3rd of a region they do not "
+                            "settle)",
 }
 """Per-camera stages of the reconstruction, in pipeline order (``fusion`` is per frame-set)."""
 
 MULTI_VIEW_STAGES = tuple(s for s in STAGES if not s.startswith("spatial_"))
-SPATIAL_STAGES = tuple(s for s in STAGES if s != "fringe_order_propagate")
+SPATIAL_STAGES = tuple(s for s in STAGES if not s.startswith("fringe_order_"))
 
 
 def _summary(samples_s: Sequence[float]) -> dict[str, float]:
@@ -405,6 +407,24 @@ def _cross_check(cloud: CameraCloud, camera: CalibratedCamera, phase: Phase,
     return cloud.subset(_checked(cloud, known, wrong, camera, phase))
 
 
+def _fresh(phase: Phase) -> Phase:
+    """``phase`` without its cached pinhole view."""
+    from eyeserver.pipeline.reconstruct import Phase
+
+    return Phase(phase.dphi, phase.modulation, phase.valid, phase.bend_bias)
+
+
+def dense_grid_votes(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCamera,
+                     phase_b: Phase, z_range: tuple[float, float],
+                     ) -> tuple[npt.NDArray[np.intp], Any, Any]:
+    """The spatial order's regions voted by the multi-view picks on every third pixel, as
+    :func:`spatial_order` did before it voted on a sparse grid first (the peer)."""
+    from eyeserver.pipeline.reconstruct import grid_order, spatial_order
+
+    return spatial_order(cam_a, phase_a, cam_b, phase_b, z_range, None,
+                         grid=grid_order(cam_a, phase_a, cam_b, phase_b, z_range))
+
+
 def skimage_unwrap(phase: Phase) -> Any:
     """scikit-image's Herráez unwrapping of a camera's whole masked wrapped phase (a masked
     array), as :func:`spatial_order` called it before :func:`spatial_unwrap` (the peer)."""
@@ -509,9 +529,17 @@ def _side_pass(frameset: RecordedFrameSet, samples: _Samples, peers: dict[str, C
             peer_phase["spatial_unwrap"][cid] = unwrapped
             peer_phase["skimage_unwrap_phase"][cid] = samples.time(
                 cid, "skimage_unwrap_phase", skimage_unwrap, phase)
+            other = unit.cam_b if cam is unit.cam_a else unit.cam_a
+            seen = state["phases"][other.camera_id]
             with _stand_in(reconstruct, "spatial_unwrap", _returning(unwrapped)):
-                samples.time(cid, "spatial_region_order", spatial_order, cam, phase,
-                             state["grids"][cid], None)
+                # The partner's phase anew each time: its pinhole view is made in the first
+                # grid_order, as in unit_clouds.
+                peer_phase["spatial_order"][cid] = samples.time(
+                    cid, "spatial_region_order", spatial_order, cam, phase, other,
+                    _fresh(seen), frameset.z_range, None)
+                peer_phase["dense_grid_votes"][cid] = samples.time(
+                    cid, "dense_grid_votes", dense_grid_votes, cam, phase, other, _fresh(seen),
+                    frameset.z_range)
             samples.time(cid, "ours:demodulation", demodulate, image, cam.carrier,
                          measure_bends=False)
             samples.time(cid, "ours:demodulation_bent", demodulate, image, cam.carrier)
@@ -600,6 +628,14 @@ def stages(frameset: RecordedFrameSet, frames: int = 100, progress: Progress = q
         {cid: samples.seconds[(cid, "skimage_unwrap_phase")] for cid in cameras},
         {cid: samples.seconds[(cid, "spatial_unwrapping")] for cid in cameras})
     peer_report["skimage_unwrap_phase"].update(_unwrap_agreement(last, cameras))
+    peer_report["dense_grid_votes"] = _peer(
+        "spatial_order's regions voted by multi-view picks on every 3rd pixel (grid_order, "
+        "then the vote: the spatial path before the sparse vote)",
+        "spatial_order (picks on every 9th pixel, every 3rd where they do not settle a "
+        "region), timed just before the peer in the same pass, the unwrapping stood in",
+        {cid: samples.seconds[(cid, "dense_grid_votes")] for cid in cameras},
+        {cid: samples.seconds[(cid, "spatial_region_order")] for cid in cameras})
+    peer_report["dense_grid_votes"].update(_order_agreement(last, cameras))
     ours_demod = {cid: samples.seconds[(cid, "ours:demodulation")] for cid in cameras}
     ours_bent = np.concatenate([samples.seconds[(cid, "ours:demodulation_bent")]
                                 for cid in cameras])
@@ -678,6 +714,25 @@ def _unwrap_agreement(state: dict[str, Any], cameras: Sequence[str]) -> dict[str
         total += int(phase.valid.sum())
     return {"orders_differ_share": differ / max(total, 1),
             "left_out_share": left_out / max(total, 1)}
+
+
+def _order_agreement(state: dict[str, Any], cameras: Sequence[str]) -> dict[str, Any]:
+    """Over the pixels either vote orders, the share whose order (or whether it has one)
+    differs between :func:`spatial_order` and the dense vote."""
+    differ = total = 0
+    for cid in cameras:
+        size = state["phases"][cid].dphi.size
+        orders = []
+        for name in ("spatial_order", "dense_grid_votes"):
+            pixels, order, _ = state["peer_phase"][name][cid]
+            image = np.full(size, np.iinfo(np.int64).min)
+            image[pixels] = order
+            orders.append(image)
+        either = np.flatnonzero((orders[0] != np.iinfo(np.int64).min)
+                                | (orders[1] != np.iinfo(np.int64).min))
+        differ += int(np.count_nonzero(orders[0][either] != orders[1][either]))
+        total += either.size
+    return {"pixel_orders_differ_share": differ / max(total, 1)}
 
 
 def _reproduces(frameset: RecordedFrameSet, clouds: dict[str, CameraCloud]) -> bool:
@@ -1126,6 +1181,7 @@ def format_text(report: dict[str, Any]) -> str:
         lines.append("")
         lines.append(f"{'peers, same images':<44}{'peer ms':>9}{'ours ms':>9}{'peer/ours':>11}")
         names = {"skimage_unwrap_phase": "scikit-image unwrap_phase vs spatial_unwrap",
+                 "dense_grid_votes": "votes on every 3rd pixel vs spatial_order",
                  "numpy_fft_ftm": "plain FFT FTM (box band) vs demodulate",
                  "opencv_contrib_ftp": "OpenCV contrib FTP vs demodulate"}
         for key, label in names.items():
@@ -1143,6 +1199,8 @@ def format_text(report: dict[str, Any]) -> str:
             if "orders_differ_share" in peer:
                 line += (f"   orders differ on {100 * peer['orders_differ_share']:.3f} %, "
                          f"{100 * peer['left_out_share']:.3f} % left out")
+            if "pixel_orders_differ_share" in peer:
+                line += f"   orders differ on {100 * peer['pixel_orders_differ_share']:.3f} %"
             lines.append(line)
             bent = peer.get("with_bend_correction")
             if bent:

@@ -15,9 +15,10 @@ The fringe order comes by one of two paths, and the result says which (``CameraC
     the interpolated absolute phase of its grid neighbours, then checked against B.
 ``"spatial"`` (the robust path)
     Quality-guided spatial unwrapping (Herráez et al. 2002, scikit-image) leaves one unknown
-    order per connected region; the multi-view picks inside a region vote for it. A region B
+    order per connected region; the multi-view picks inside a region vote for it (on every
+    ninth pixel, on every third of a region those do not settle). A region B
     cannot judge falls back on a depth prior (the offset that puts its median height nearest
-    ``depth_prior_mm``), and says so. Slower (the unwrapping alone takes ≈ 0.1 s per frame), but
+    ``depth_prior_mm``), and says so. Slower (the unwrapping takes ≈ 20 ms a camera), but
     it keeps what the other camera does not see where it continues points B confirms
     (:func:`_checked`).
 
@@ -167,6 +168,18 @@ MIN_REGION_PX = 200
 """Spatially unwrapped regions smaller than this are noise islands and dropped."""
 MIN_REGION_VOTES = 3
 """Multi-view picks a region needs before their majority fixes its order."""
+SPARSE_VOTE_STRIDE = 9
+"""The spatial order's regions are voted first by multi-view picks on every ninth pixel of each
+axis (a ninth of :data:`COARSE_STRIDE`'s grid, and a subset of it: 9 // 2 lies on the grid):
+an eye phantom's one region had 17,000 picks on the full grid, 97–99 % of them for one offset
+(docs/notes/speed.md, twenty-second session)."""
+SPARSE_MIN_VOTES = 100
+"""Picks on the sparse grid that settle a region's offset (with :data:`SPARSE_MIN_SHARE`; a
+region of some 8,000 pixels or more); other regions are voted on the full grid, as before."""
+SPARSE_MIN_SHARE = 0.8
+"""Share of a region's sparse picks that must agree to settle it: were the picks independent,
+100 of a region whose full grid holds the least majority (0.6) would agree this well once in
+60,000 (binomial); wrong picks come in patches, so the margin is wide."""
 UNWRAP_STRIDE = 2
 """The spatial order unwraps every second pixel of each axis (a quarter of them); every pixel
 then takes the 2π step that brings it nearest a sample within one pixel of it
@@ -711,16 +724,20 @@ class GridOrder:
 
 
 def grid_order(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCamera,
-               phase_b: Phase, z_range: tuple[float, float]) -> GridOrder:
-    """The multi-view fringe order on every :data:`COARSE_STRIDE`-th pixel of A's mask.
+               phase_b: Phase, z_range: tuple[float, float], *, stride: int = COARSE_STRIDE,
+               within: Bool | None = None) -> GridOrder:
+    """The multi-view fringe order on every ``stride``-th pixel of A's mask (and of ``within``,
+    a mask of A's pixels, if given).
 
     All candidates of all grid pixels are evaluated at once; a pick is kept when it matches B
     within :data:`MAX_MISMATCH_RAD` and beats the runner-up by :data:`MIN_SEPARATION_RAD`, then
     a median over each grid pixel's neighbours cleans isolated wrong picks.
     """
     w = phase_a.dphi.shape[1]
-    s, o = COARSE_STRIDE, COARSE_STRIDE // 2
+    s, o = stride, stride // 2
     grid_valid = phase_a.valid[o::s, o::s]
+    if within is not None:
+        grid_valid = grid_valid & within[o::s, o::s]
     gi, gj = np.nonzero(grid_valid)
     pixels = ((gi * s + o) * w + gj * s + o).astype(np.intp)
     empty = GridOrder(pixels[:0], np.zeros(0, np.int64), np.zeros(0))
@@ -730,9 +747,12 @@ def grid_order(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCamera,
     dphi = phase_a.dphi.ravel()[pixels].astype(np.float64)
     ks = _candidate_orders(cam_a, x, y, z_range)
     z = _candidate_heights(cam_a, pixels, dphi, ks, z_range)
-    mismatch = _mismatch(cam_a, cam_b, phase_b.pinhole_view(cam_b), pixels,
-                         np.nan_to_num(z, nan=z_range[0]))
-    mismatch = np.where(np.isnan(z), np.inf, mismatch)
+    # Only the candidates inside the calibrated range are judged (on the eye phantom 72 % of
+    # the pixels' candidates): the others cannot win.
+    inside = np.isfinite(z)
+    mismatch = np.full(z.shape, np.inf)
+    mismatch[inside] = _mismatch(cam_a, cam_b, phase_b.pinhole_view(cam_b),
+                                 np.broadcast_to(pixels[:, None], z.shape)[inside], z[inside])
     best = np.argmin(mismatch, axis=1)
     rows = np.arange(len(pixels))
     # The runner-up must lose clearly. Candidates whose point leaves B's field cannot be
@@ -848,11 +868,32 @@ def spatial_unwrap(phase: Phase) -> Unwrapped:
     return Unwrapped(pixels, steps, region, len(pairs))
 
 
-def spatial_order(cam_a: CalibratedCamera, phase_a: Phase, grid: GridOrder | None,
-                  depth_prior_mm: float | None,
+def _region_votes(grid: GridOrder, step_at: Int, region_at: Int, count: int,
+                  ) -> tuple[Int, Int, Int]:
+    """Per region (0 … ``count``; 0 is no region) the offset most of the grid's picks in it
+    vote for, their number and the number of all its picks (all zero without picks)."""
+    if grid.pixels.size == 0:
+        none = np.zeros(count + 1, np.int64)
+        return none, none, none
+    votes_region = region_at[grid.pixels]
+    diff = grid.order - step_at[grid.pixels]
+    low = int(diff.min())
+    span = int(diff.max()) - low + 1
+    table = np.bincount(votes_region * span + (diff - low),
+                        minlength=(count + 1) * span).reshape(count + 1, span)
+    table[0] = 0  # grid pixels left out of the unwrapping vote for nothing
+    return table.argmax(axis=1) + low, table.max(axis=1), table.sum(axis=1)
+
+
+def spatial_order(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCamera | None,
+                  phase_b: Phase | None, z_range: tuple[float, float],
+                  depth_prior_mm: float | None, *, grid: GridOrder | None = None,
                   ) -> tuple[npt.NDArray[np.intp], Int, npt.NDArray[np.bool_]]:
     """Orders from quality-guided spatial unwrapping (:func:`spatial_unwrap`), one offset per
-    region.
+    region, voted by B's multi-view picks (:func:`grid_order`): first on every
+    :data:`SPARSE_VOTE_STRIDE`-th pixel, then, for a region those picks did not settle
+    (:data:`SPARSE_MIN_VOTES`, :data:`SPARSE_MIN_SHARE`), on every :data:`COARSE_STRIDE`-th
+    pixel of it. ``grid``: picks already made (on every pixel's grid); they vote alone.
 
     Returns the pixels, their orders and whether each pixel's region was fixed by multi-view
     votes (True) or by the depth prior (False). Regions with neither are dropped.
@@ -864,25 +905,34 @@ def spatial_order(cam_a: CalibratedCamera, phase_a: Phase, grid: GridOrder | Non
     if count == 0:
         return np.zeros(0, np.intp), np.zeros(0, np.int64), np.zeros(0, bool)
     sizes = np.bincount(region, minlength=count + 1)
-    offset = np.zeros(count + 1, np.int64)
-    decided = np.zeros(count + 1, np.int8)  # 0 undecided, 1 multi-view, 2 depth prior
-    if grid is not None and grid.pixels.size:
-        step_at = np.zeros(h * w, np.int64)
-        step_at[pixels] = steps
-        region_at = np.zeros(h * w, np.int64)
-        region_at[pixels] = region
-        votes_region = region_at[grid.pixels]
-        diff = grid.order - step_at[grid.pixels]
-        low = int(diff.min())
-        span = int(diff.max()) - low + 1
-        table = np.bincount(votes_region * span + (diff - low),
-                            minlength=(count + 1) * span).reshape(count + 1, span)
-        table[0] = 0  # grid pixels left out of the unwrapping vote for nothing
-        support = table.max(axis=1)
-        majority = support >= np.maximum(MIN_REGION_VOTES, 0.6 * table.sum(axis=1))
-        offset = np.where(majority, table.argmax(axis=1) + low, 0)
-        decided[majority] = 1
     min_region = _area_px(cam_a, MIN_REGION_PX)
+    decided = np.zeros(count + 1, np.int8)  # 0 undecided, 1 multi-view, 2 depth prior
+    step_at = np.zeros(h * w, np.int64)
+    step_at[pixels] = steps
+    region_at = np.zeros(h * w, np.int64)
+    region_at[pixels] = region
+    if grid is not None:
+        offset, support, total = _region_votes(grid, step_at, region_at, count)
+    elif cam_b is not None and phase_b is not None:
+        offset, support, total = _region_votes(
+            grid_order(cam_a, phase_a, cam_b, phase_b, z_range, stride=SPARSE_VOTE_STRIDE),
+            step_at, region_at, count)
+        settled = (total >= SPARSE_MIN_VOTES) & (support >= SPARSE_MIN_SHARE * total)
+        unsettled = np.flatnonzero(~settled & (sizes >= min_region))
+        unsettled = unsettled[unsettled > 0]
+        if unsettled.size:
+            mask = np.zeros(count + 1, bool)
+            mask[unsettled] = True
+            within = mask[region_at].reshape(h, w)
+            dense = _region_votes(grid_order(cam_a, phase_a, cam_b, phase_b, z_range,
+                                             within=within), step_at, region_at, count)
+            for mine, theirs in zip((offset, support, total), dense, strict=True):
+                mine[unsettled] = theirs[unsettled]
+    else:
+        offset = support = total = np.zeros(count + 1, np.int64)
+    majority = (support >= np.maximum(MIN_REGION_VOTES, 0.6 * total)) & (total > 0)
+    offset = np.where(majority, offset, 0)
+    decided[majority] = 1
     undecided = np.flatnonzero((decided == 0) & (sizes >= min_region))
     undecided = undecided[undecided > 0]
     if depth_prior_mm is not None and undecided.size:
@@ -1096,12 +1146,13 @@ def camera_cloud(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCamer
         source = np.full(pixels.size, ORDER_SOURCES.index("depth prior"), np.uint8)
         points, z = _points(cam_a, phase_a, pixels, order)
         return _cloud(cam_a, phase_a, pixels, points, z, np.zeros(pixels.size), source, z_range)
-    grid = grid_order(cam_a, phase_a, cam_b, phase_b, z_range)
     if method == "multi-view":
-        pixels, order = propagate_order(grid, phase_a)
+        pixels, order = propagate_order(grid_order(cam_a, phase_a, cam_b, phase_b, z_range),
+                                        phase_a)
         source = np.zeros(pixels.size, np.uint8)
     else:
-        pixels, order, by_votes = spatial_order(cam_a, phase_a, grid, depth_prior_mm)
+        pixels, order, by_votes = spatial_order(cam_a, phase_a, cam_b, phase_b, z_range,
+                                                depth_prior_mm)
         source = np.where(by_votes, 1, 2).astype(np.uint8)
     # Every pixel's final order checked against B: a multi-view pixel must match B's phase; a
     # spatially unwrapped one must not contradict it where B can judge.
@@ -1229,7 +1280,8 @@ def _checked(cloud: CameraCloud, known: Bool, wrong: Bool, cam: CalibratedCamera
     extension = (source == ORDER_SOURCES.index("spatial + multi-view")) & ~known & ~wrong
     if not extension.any():
         return np.asarray(base)
-    extension &= _unbiased(cam, phase, cloud.pixels)
+    at = np.flatnonzero(extension)  # the check only where it decides: a few % of the points
+    extension[at] = _unbiased(cam, phase, cloud.pixels[at])
     return np.asarray(base | (extension & _continues(
         cloud, base | extension, base, cam.shape, SPECKLE_STEP_MM * cam.spacing_px)))
 
@@ -1248,10 +1300,10 @@ def _unbiased(cam: CalibratedCamera, phase: Phase, pixels: npt.NDArray[np.intp])
     rows, cols = np.divmod(pixels, w)
     up, down = np.minimum(rows + 1, h - 1), np.maximum(rows - 1, 0)
     right, left = np.minimum(cols + 1, w - 1), np.maximum(cols - 1, 0)
-    dphi = phase.dphi.astype(np.float64)
+    dphi = phase.dphi
     step = 2.0 * cam.spacing_px * TWO_PI  # two samples, radians to cycles
-    fy = wrap(dphi[up, cols] - dphi[down, cols]) / step
-    fx = wrap(dphi[rows, right] - dphi[rows, left]) / step
+    fy = wrap(dphi[up, cols].astype(np.float64) - dphi[down, cols]) / step
+    fx = wrap(dphi[rows, right].astype(np.float64) - dphi[rows, left]) / step
     return np.asarray(band_gain(cam.carrier, fy, fx) >= EXTENSION_MIN_GAIN)
 
 
