@@ -26,7 +26,7 @@ held in memory (no file I/O is timed), with OpenCV held to one thread of its own
                                 (:func:`spatial_unwrap`), ``spatial_region_order``
                                 (:func:`spatial_order`)
   phase-to-height               ``phase_to_height`` (``PhaseHeightModel.height``)
-  transversal mapping           ``transversal_mapping`` (:func:`intersect_plane_z`)
+  transversal mapping           ``transversal_mapping`` (:meth:`CalibratedCamera.points_at`)
   (checks in ``unit_clouds``)   ``order_check``, ``cloud_assembly``, ``cross_check``, ``despeckle``
   fusion                        ``fusion`` (:func:`fuse`, per frame-set)
   ============================  ===================================================================
@@ -34,7 +34,9 @@ held in memory (no file I/O is timed), with OpenCV held to one thread of its own
 * **Peers** on the same images, as time ratios (peer ÷ ours, above 1 when ours is faster):
   scikit-image's ``unwrap_phase`` on the whole masked wrapped phase (the spatial path's
   unwrapping before it sampled every second pixel) against :func:`spatial_unwrap`, with the
-  share of pixels whose orders differ beyond one offset per region; a plain FFT
+  share of pixels whose orders differ beyond one offset per region; the spatial order's
+  regions voted by the multi-view picks on every third pixel (before the sparse vote) against
+  :func:`spatial_order`, with the share of pixels whose orders differ; a plain FFT
   Fourier-transform method (``rfft2``, a fixed box around the carrier, inverse) and OpenCV
   contrib's ``structured_light`` FTP against :func:`demodulate`, with the phase agreement to
   ours. The contrib peer needs ``opencv-contrib-python-headless`` *instead
@@ -110,7 +112,8 @@ STAGES: dict[str, str] = {
     "fringe_order_propagate": "propagate_order: full-resolution order from the grid (the "
                               "multi-view path's unwrapping)",
     "phase_to_height": "PhaseHeightModel.height of every masked-in pixel",
-    "transversal_mapping": "intersect_plane_z: X, Y where each pixel's ray meets its height",
+    "transversal_mapping": "CalibratedCamera.points_at: X, Y where each pixel's ray meets its "
+                           "height",
     "order_check": "every pixel's order checked against the partner camera's phase",
     "cloud_assembly": "quality, range crop (camera_cloud's last step)",
     "cross_check": "points the partner's own reconstruction confirms (unit_clouds)",
@@ -381,9 +384,7 @@ def _phase_to_height(camera: CalibratedCamera, phase: Phase, pixels: npt.NDArray
 
 def _transversal(camera: CalibratedCamera, pixels: npt.NDArray[np.intp],
                  z: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    from eyeserver.pipeline.geometry import intersect_plane_z
-
-    return intersect_plane_z(camera.centre, camera.rays[pixels], z)
+    return camera.points_at(pixels, z)
 
 
 def _order_check(cam_a: CalibratedCamera, cam_b: CalibratedCamera, phase_b: Phase,

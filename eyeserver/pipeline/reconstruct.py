@@ -68,7 +68,6 @@ from eyeserver.pipeline.demodulate import (
     with_bend_bias,
 )
 from eyeserver.pipeline.geometry import (
-    intersect_plane_z,
     pixel_grid_normalised,
     project,
     rays_from_normalised,
@@ -273,6 +272,27 @@ class CalibratedCamera:
     def rays(self) -> F64:
         """Each pixel's unit ray in the WCS ``(height · width, 3)``."""
         return rays_from_normalised(self.x, self.y, self.R).reshape(-1, 3)
+
+    @cached_property
+    def _ray_rows(self) -> F64:
+        # (3, H·W): a pixel's ray gathered from three contiguous rows, not one row of an
+        # (H·W, 3) array, as in :meth:`towards` (2.6 times faster for the eye phantom's pixels).
+        return np.ascontiguousarray(self.rays.T)
+
+    def points_at(self, pixels: npt.NDArray[np.intp], z: F64) -> F64:
+        """WCS points ``(N, 3)`` where the rays of ``pixels`` (flat indices) meet the planes
+        ``Z = z`` (mm), as :func:`~eyeserver.pipeline.geometry.intersect_plane_z` computes
+        them (the same numbers); NaN for a ray parallel to the plane."""
+        centre, rows = self.centre, self._ray_rows
+        dz = rows[2].take(pixels)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (np.asarray(z, dtype=np.float64) - centre[2]) / dz
+        t = np.where(np.abs(dz) > 1e-12, t, np.nan)
+        points = np.empty((len(t), 3))
+        for axis in range(3):
+            np.multiply(t, rows[axis].take(pixels), out=points[:, axis])
+            points[:, axis] += centre[axis]
+        return points
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -839,7 +859,8 @@ def spatial_unwrap(phase: Phase) -> Unwrapped:
         return Unwrapped(pixels[:0], np.zeros(0, np.int64), np.zeros(0, np.int64), 0)
     coarse = np.ma.getdata(unwrap_phase(  # type: ignore[no-untyped-call]
         np.ma.masked_array(dphi[::s, ::s].astype(np.float64), mask=~sampled)))
-    full_labels, _ = ndimage.label(valid)
+    # OpenCV's labelling: 0.55 ms on a 640 × 512 mask where ndimage.label takes 1.2.
+    full_labels = cv2.connectedComponents(valid.view(np.uint8), connectivity=4)[1]
     coarse_labels, coarse_count = ndimage.label(sampled)
     si, sj = np.nonzero(sampled)
     pair = full_labels[si * s, sj * s].astype(np.int64) * (coarse_count + 1) + coarse_labels[si, sj]
@@ -851,12 +872,13 @@ def spatial_unwrap(phase: Phase) -> Unwrapped:
     label_of[si * cols + sj] = full_labels[si * s, sj * s]
     i, j = np.divmod(pixels, w)
     own = full_labels.ravel()[pixels]
-    sample = np.full(len(pixels), -1, np.intp)
     # Nearest first: the sample at or just above and left of the pixel serves all but the
     # mask's edges, so the others are tried only where it did not.
     up, left = i // s, j // s
+    sample = up * cols + left
+    sample[(region_of[sample] == 0) | (label_of[sample] != own)] = -1
     down, right = np.minimum(-(-i // s), rows - 1), np.minimum(-(-j // s), cols - 1)
-    for ci, cj in ((up, left), (up, right), (down, left), (down, right)):
+    for ci, cj in ((up, right), (down, left), (down, right)):
         open_ = np.flatnonzero(sample < 0)
         index = ci[open_] * cols + cj[open_]
         take = (region_of[index] > 0) & (label_of[index] == own[open_])
@@ -972,7 +994,7 @@ def _points(camera: CalibratedCamera, phase: Phase, pixels: npt.NDArray[np.intp]
     """WCS points (N, 3) and their heights: Z from the model, X and Y from the pixel's ray."""
     x, y = camera.x.ravel()[pixels], camera.y.ravel()[pixels]
     z = camera.model.height(x, y, phase.dphi.ravel()[pixels] + TWO_PI * order)
-    return intersect_plane_z(camera.centre, camera.rays[pixels], z), z
+    return camera.points_at(pixels, z), z
 
 
 def _despeckle(pixels: npt.NDArray[np.intp], z: F64, shape: tuple[int, int],
