@@ -65,3 +65,24 @@ def test_project_is_opencvs_projection(dist: list[float]) -> None:
     uv = project(points, K, np.array(dist), R, T)
     assert uv.shape == (500, 2)
     assert np.max(np.abs(uv - expected.reshape(-1, 2))) < 1e-9
+
+
+def test_a_calibrated_cameras_points_at_are_intersect_plane_zs() -> None:
+    """``CalibratedCamera.points_at`` (the rays gathered from three contiguous rows) gives the
+    numbers :func:`intersect_plane_z` gives from the (H·W, 3) rays, on a rolled, distorted
+    camera, and its points lie on their planes."""
+    from eyeserver.pipeline.demodulate import Carrier
+    from eyeserver.pipeline.phase_height import PhaseHeightModel
+    from eyeserver.pipeline.reconstruct import CalibratedCamera
+
+    sim = SimRoom(room_from_dict(STRONG)).renderer.cameras["S1"]
+    model = PhaseHeightModel((10.0, 1.0, 0, 0, 0, 0, 0, 0, 0, 0, 0),
+                             0.0, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0, (-10.0, 25.0))
+    camera = CalibratedCamera("S1", sim.K, sim.dist, sim.R, sim.T, model, Carrier((0.0, 0.1)),
+                              np.zeros((512, 640), np.float32), border_px=10)
+    rng = np.random.default_rng(3)
+    pixels = rng.integers(0, 512 * 640, 2000).astype(np.intp)
+    z = rng.uniform(-10.0, 25.0, pixels.size)
+    points = camera.points_at(pixels, z)
+    assert np.array_equal(points, intersect_plane_z(camera.centre, camera.rays[pixels], z))
+    assert np.allclose(points[:, 2], z)
