@@ -620,22 +620,25 @@ def stages(frameset: RecordedFrameSet, frames: int = 100, progress: Progress = q
         for label, total in _by_frameset(samples, frameset, names).items():
             report["per_frameset"][label][f"sum_{path}"] = _summary(total)
 
+    def stage_peer(peer: str, ours: str, what: str, against: str) -> dict[str, Any]:
+        """A peer timed as a stage of the side pass against our stage ``ours``."""
+        return _peer(what, against, {cid: samples.seconds[(cid, peer)] for cid in cameras},
+                     {cid: samples.seconds[(cid, ours)] for cid in cameras})
+
     peer_report: dict[str, Any] = {}
-    peer_report["skimage_unwrap_phase"] = _peer(
+    peer_report["skimage_unwrap_phase"] = stage_peer(
+        "skimage_unwrap_phase", "spatial_unwrapping",
         "scikit-image " + metadata.version("scikit-image") + " unwrap_phase of every masked "
         "pixel (the spatial path's unwrapping before spatial_unwrap)",
         "spatial_unwrap (scikit-image's unwrapping of every second pixel), timed just before "
-        "the peer in the same pass",
-        {cid: samples.seconds[(cid, "skimage_unwrap_phase")] for cid in cameras},
-        {cid: samples.seconds[(cid, "spatial_unwrapping")] for cid in cameras})
+        "the peer in the same pass")
     peer_report["skimage_unwrap_phase"].update(_unwrap_agreement(last, cameras))
-    peer_report["dense_grid_votes"] = _peer(
+    peer_report["dense_grid_votes"] = stage_peer(
+        "dense_grid_votes", "spatial_region_order",
         "spatial_order's regions voted by multi-view picks on every 3rd pixel (grid_order, "
         "then the vote: the spatial path before the sparse vote)",
         "spatial_order (picks on every 9th pixel, every 3rd where they do not settle a "
-        "region), timed just before the peer in the same pass, the unwrapping stood in",
-        {cid: samples.seconds[(cid, "dense_grid_votes")] for cid in cameras},
-        {cid: samples.seconds[(cid, "spatial_region_order")] for cid in cameras})
+        "region), timed just before the peer in the same pass, the unwrapping stood in")
     peer_report["dense_grid_votes"].update(_order_agreement(last, cameras))
     ours_demod = {cid: samples.seconds[(cid, "ours:demodulation")] for cid in cameras}
     ours_bent = np.concatenate([samples.seconds[(cid, "ours:demodulation_bent")]

@@ -905,6 +905,14 @@ def _holds_a_shell(points: F64, limbus: Limbus, inner: float, outer: float) -> b
     return bool(at_inner >= 0.5 * at_outer)
 
 
+def _left_its_shell(points: F64, limbus: Limbus, start: float, moved: float) -> bool:
+    """Whether a refinement of the depth from ``start`` to ``moved`` (mm) left the shell it
+    started on for another: it moved more than :data:`DEPTH_REFIT_LIMIT_MM` and ``start``
+    holds a shell of its own (:func:`_holds_a_shell`; ``points``: those behind the limbus)."""
+    return (abs(moved - start) > DEPTH_REFIT_LIMIT_MM
+            and _holds_a_shell(points, limbus, start, moved))
+
+
 def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float | None = None
                     ) -> Globe:
     """The sphere through the limbus circle that the cloud's sclera lies on.
@@ -952,8 +960,7 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
     else:
         innermost = _innermost_depth(votes)
         depth = _mean_shift(votes, weights, innermost, (0.4, 0.25, 0.15, 0.1))
-        if (abs(depth - innermost) > DEPTH_REFIT_LIMIT_MM
-                and _holds_a_shell(cloud[behind], limbus, innermost, depth)):
+        if _left_its_shell(cloud[behind], limbus, innermost, depth):
             depth = _mean_shift(votes, weights, innermost, (0.15, 0.1))
     offset = off_sphere_mm(cloud, L, g, r, depth)
     gap = _lid_gap(offset[behind])
@@ -979,10 +986,9 @@ def globe_on_limbus(points: npt.ArrayLike, limbus: Limbus, fixed_radius: float |
     if fixed_radius is None and sclera.sum() >= MIN_SCLERA_POINTS:
         mode = depth
         depth, fitted_sd = _fitted_depth(cloud[sclera], limbus, mode)
-        if abs(depth - mode) > DEPTH_REFIT_LIMIT_MM:  # not a refinement: another shell
-            two_shells = _holds_a_shell(cloud[behind], limbus, mode, depth)
-            if two_shells:
-                depth, fitted_sd = mode, math.hypot(fitted_sd, depth - mode)
+        two_shells = _left_its_shell(cloud[behind], limbus, mode, depth)
+        if two_shells:  # not a refinement: another shell
+            depth, fitted_sd = mode, math.hypot(fitted_sd, depth - mode)
         offset = off_sphere_mm(cloud, L, g, r, depth)
         sclera = behind & clear & (np.abs(offset) < band)
     if sclera.sum() < MIN_SCLERA_POINTS:
