@@ -31,17 +31,13 @@ held in memory (no file I/O is timed), with OpenCV held to one thread of its own
   fusion                        ``fusion`` (:func:`fuse`, per frame-set)
   ============================  ===================================================================
 
-* **Peers** on the same images, as time ratios (peer ÷ ours, above 1 when ours is faster):
-  scikit-image's ``unwrap_phase`` on the whole masked wrapped phase (the spatial path's
-  unwrapping before it sampled every second pixel) against :func:`spatial_unwrap`, with the
-  share of pixels whose orders differ beyond one offset per region; the spatial order's
-  regions voted by the multi-view picks on every third pixel (before the sparse vote) against
-  :func:`spatial_order`, with the share of pixels whose orders differ; a plain FFT
-  Fourier-transform method (``rfft2``, a fixed box around the carrier, inverse) and OpenCV
-  contrib's ``structured_light`` FTP against :func:`demodulate`, with the phase agreement to
-  ours. The contrib peer needs ``opencv-contrib-python-headless`` *instead
-  of* ``opencv-python-headless`` (both are the ``cv2`` package: never install the two); without
-  it the peer is reported unavailable, with the reason.
+* **Peers** on the same images, as time ratios (peer ÷ ours, above 1 when ours is faster), each
+  with its agreement to ours: scikit-image's ``unwrap_phase`` on the whole masked phase against
+  :func:`spatial_unwrap`; the regions voted on every third pixel against :func:`spatial_order`;
+  a plain FFT Fourier-transform method (``rfft2``, a fixed box around the carrier, inverse) and
+  OpenCV contrib's ``structured_light`` FTP against :func:`demodulate`. The contrib peer needs
+  ``opencv-contrib-python-headless`` *instead of* ``opencv-python-headless`` (both are the
+  ``cv2`` package: never install the two); without it the peer is reported unavailable.
 * **Memory**: the process's peak resident set and the Python-visible peak of one frame-set
   (tracemalloc: numpy arrays, not OpenCV's or the FFT's internal buffers).
 """
@@ -417,7 +413,8 @@ def _fresh(phase: Phase) -> Phase:
 
 def dense_grid_votes(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCamera,
                      phase_b: Phase, z_range: tuple[float, float],
-                     ) -> tuple[npt.NDArray[np.intp], Any, Any]:
+                     ) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.int64],
+                                npt.NDArray[np.bool_]]:
     """The spatial order's regions voted by the multi-view picks on every third pixel, as
     :func:`spatial_order` did before it voted on a sparse grid first (the peer)."""
     from eyeserver.pipeline.reconstruct import grid_order, spatial_order
@@ -438,8 +435,8 @@ def skimage_unwrap(phase: Phase) -> Any:
 def _multi_view_pass(frameset: RecordedFrameSet, samples: _Samples) -> dict[str, Any]:
     """One repetition of the multi-view path, stage by stage, in :func:`unit_clouds`' order
     (unit by unit: both cameras' phases, both clouds, the cross-check, the speckle filter), then
-    fusion per frame-set. Returns what the side pass and the checks need: phases, demodulations,
-    grids and the clouds."""
+    fusion per frame-set. Returns what the side pass and the checks need: phases, demodulations
+    and the clouds."""
     from eyeserver.pipeline import reconstruct
     from eyeserver.pipeline.demodulate import demodulate, phase_difference, with_bend_bias
     from eyeserver.pipeline.fusion import Part, fuse
@@ -451,7 +448,7 @@ def _multi_view_pass(frameset: RecordedFrameSet, samples: _Samples) -> dict[str,
         propagate_order,
     )
 
-    out: dict[str, Any] = {"phases": {}, "demodulated": {}, "grids": {}, "clouds": {}}
+    out: dict[str, Any] = {"phases": {}, "demodulated": {}, "clouds": {}}
     parts = []
     for unit in frameset.units[:2]:
         pair = ((unit.cam_a, unit.image_a), (unit.cam_b, unit.image_b))
@@ -487,7 +484,6 @@ def _multi_view_pass(frameset: RecordedFrameSet, samples: _Samples) -> dict[str,
             clouds[a] = samples.time(a, "cloud_assembly", _cloud, cam_a, phases[a],
                                      pixels[keep], points[keep], z[keep], cost[keep],
                                      np.zeros(int(keep.sum()), np.uint8), frameset.z_range)
-            out["grids"][a] = grid
         checked = {
             cam.camera_id: samples.time(cam.camera_id, "cross_check", _cross_check,
                                         clouds[cam.camera_id], cam, phases[cam.camera_id],
@@ -508,7 +504,7 @@ def _multi_view_pass(frameset: RecordedFrameSet, samples: _Samples) -> dict[str,
 def _side_pass(frameset: RecordedFrameSet, samples: _Samples, peers: dict[str, Callable[..., Any]],
                state: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """One repetition of the spatial path's own stages and of the peers, per camera, on the
-    phases and grids of a multi-view pass (``state``); returns the peers' results (phases,
+    phases of a multi-view pass (``state``); returns the peers' results (phases,
     scikit-image's unwrapped phase) and :func:`spatial_unwrap`'s, per camera.
 
     Kept apart from the multi-view passes: interleaved, their large allocations (memory handed

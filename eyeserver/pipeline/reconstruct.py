@@ -908,8 +908,8 @@ def _region_votes(grid: GridOrder, step_at: Int, region_at: Int, count: int,
     return table.argmax(axis=1) + low, table.max(axis=1), table.sum(axis=1)
 
 
-def spatial_order(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCamera | None,
-                  phase_b: Phase | None, z_range: tuple[float, float],
+def spatial_order(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCamera,
+                  phase_b: Phase, z_range: tuple[float, float],
                   depth_prior_mm: float | None, *, grid: GridOrder | None = None,
                   ) -> tuple[npt.NDArray[np.intp], Int, npt.NDArray[np.bool_]]:
     """Orders from quality-guided spatial unwrapping (:func:`spatial_unwrap`), one offset per
@@ -936,7 +936,7 @@ def spatial_order(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCame
     region_at[pixels] = region
     if grid is not None:
         offset, support, total = _region_votes(grid, step_at, region_at, count)
-    elif cam_b is not None and phase_b is not None:
+    else:
         offset, support, total = _region_votes(
             grid_order(cam_a, phase_a, cam_b, phase_b, z_range, stride=SPARSE_VOTE_STRIDE),
             step_at, region_at, count)
@@ -951,8 +951,6 @@ def spatial_order(cam_a: CalibratedCamera, phase_a: Phase, cam_b: CalibratedCame
                                              within=within), step_at, region_at, count)
             for mine, theirs in zip((offset, support, total), dense, strict=True):
                 mine[unsettled] = theirs[unsettled]
-    else:
-        offset = support = total = np.zeros(count + 1, np.int64)
     majority = support >= np.maximum(MIN_REGION_VOTES, 0.6 * total)
     offset = np.where(majority, offset, 0)
     decided[majority] = 1
