@@ -65,6 +65,7 @@ from eyeserver.eye.tunables import (
     EDGE_IS_LIMBUS_MM,
     IMPLAUSIBLE_RADIUS,
     LID_REACH_MM,
+    LIMBUS_AXIS_SD_MM,
     MEASURED_GLOBE_SD_MM,
     MIN_SCLERA_POINTS,
     MODEL_ERROR_BELOW_CONFIDENCE,
@@ -954,8 +955,11 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     pixels, so that it does not depend on how densely the cloud was reconstructed.
     """
     try:
+        # Both units' cloud places the globe's axis well enough to hold the search near it
+        # (three cameras or more: a unit has two).
+        held = LIMBUS_AXIS_SD_MM if search and len(views) >= 3 else None
         limbus = find_limbus(views, centre, rough_gaze, radius, model.limbus_diameter_mm / 2,
-                             search=search, oval=search and OVAL_LIMBUS)
+                             search=search, oval=search and OVAL_LIMBUS, axis_sd_mm=held)
         if fixed_radius is None:
             fixed_radius = model.radius_through_limbus(limbus.radius)
         globe = globe_on_limbus(points, limbus, fixed_radius)

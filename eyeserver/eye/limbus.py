@@ -72,6 +72,7 @@ from eyeserver.eye.tunables import (
     LID_CLEARANCE_MM,
     LID_GAP_MM,
     LID_SHELL_DOMINANCE,
+    LIMBUS_AXIS_STRAY_SDS,
     LIMBUS_CLEARANCE_MM,
     LIMBUS_WINDOW_MARGIN_PX,
     MAX_RESIDUAL_PX,
@@ -457,9 +458,18 @@ def _circle_residuals(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]]
     return rows
 
 
+def _off_axis(params: F64, axis_point: F64) -> F64:
+    """Rows ``(H, 3)``: each circle's centre's offset (mm) from the line through
+    ``axis_point`` along its own normal (0 for a limbus concentric with a globe centred
+    there)."""
+    offset = params[:, :3] - axis_point
+    g = _gaze(params)
+    return np.asarray(offset - np.sum(offset * g, axis=1, keepdims=True) * g, dtype=np.float64)
+
+
 def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], centre: F64,
-                normal: F64, radius: float, ratio: float = 1.0, fit_ratio: bool = False
-                ) -> _Circle:
+                normal: F64, radius: float, ratio: float = 1.0, fit_ratio: bool = False,
+                axis: tuple[F64, float] | None = None) -> _Circle:
     """Robust least squares (Cauchy loss, scale 1 px) of the edges' distances to the projected
     circle's tangents (pixels).
 
@@ -469,6 +479,9 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
     within one (the round's search reach), which turns them by a fraction of a degree. The
     Jacobian is a forward difference taken in one batched projection per camera (the circle
     and its six nudged copies; SciPy's own differencing projects once per parameter).
+    ``axis`` (a point and an sd, mm) adds three plain least-squares rows: the centre's offset
+    from the line through the point along the circle's normal (:func:`_off_axis`), in sds; the
+    returned residuals and Jacobian are the edges' alone.
 
     The minimisation is Levenberg–Marquardt on iteratively reweighted least squares, written
     here rather than ``scipy.optimize.least_squares``, whose bookkeeping around six parameters
@@ -480,18 +493,28 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
     size = 7 if fit_ratio else 6
     steps, x_scale = CIRCLE_STEPS[:size], CIRCLE_X_SCALE[:size]
 
+    count = 0
+
     def evaluate(params: F64) -> tuple[F64, F64]:
         """Residuals ``(N,)`` at ``params`` and their forward-difference Jacobian ``(N, 6)``
-        (7 with the oval's ratio)."""
-        values = rows(np.vstack([params, params + np.diag(steps)]))
+        (7 with the oval's ratio); with the axis held, its three rows last."""
+        batch = np.vstack([params, params + np.diag(steps)])
+        values = rows(batch)
+        if axis is not None:
+            values = np.concatenate([values, _off_axis(batch, axis[0]) / axis[1]], axis=1)
         return values[0], ((values[1:] - values[0]) / steps[:, None]).T
+
+    def total(values: F64) -> float:
+        return _cauchy_cost(values[:count]) + 0.5 * float(np.sum(values[count:] ** 2))
 
     x = np.array([*centre, normal[0], normal[1], radius, ratio][:size])
     residuals, jac = evaluate(x)
-    cost = _cauchy_cost(residuals)
+    count = len(residuals) - (0 if axis is None else 3)
+    cost = total(residuals)
     damping = 1e-3
     for _ in range(CIRCLE_ITERATIONS):
         weights = 1.0 / (1.0 + residuals * residuals)
+        weights[count:] = 1.0
         hessian = jac.T @ (weights[:, None] * jac)
         gradient = jac.T @ (weights * residuals)
         try:
@@ -501,7 +524,7 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
             break
         trial = x + step
         trial_residuals, trial_jac = evaluate(trial)
-        trial_cost = _cauchy_cost(trial_residuals)
+        trial_cost = total(trial_residuals)
         if trial_cost <= cost:
             x, residuals, jac, cost = trial, trial_residuals, trial_jac, trial_cost
             damping = max(damping / 10.0, 1e-9)
@@ -511,6 +534,7 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
             damping *= 10.0
             if damping > 1e8:
                 break
+    residuals, jac = residuals[:count], jac[:count]
     squared = residuals * residuals
     scale = np.maximum((1.0 - squared) / (1.0 + squared) ** 2, np.finfo(float).eps)
     return _Circle(x=x, fun=residuals, jac=jac * np.sqrt(scale)[:, None])
@@ -529,15 +553,23 @@ def _edges_per_period(image: _Image, centre: F64, normal: F64, radius: float,
 
 def _refine(images: Sequence[_Image], centre: F64, normal: F64, radius: float,
             reaches: Sequence[float] = REACHES_PX, shade: Shade | None = None,
-            ratio: float = 1.0, fit_ratio: bool = False) -> Limbus:
+            ratio: float = 1.0, fit_ratio: bool = False,
+            axis: tuple[F64, float] | None = None) -> Limbus:
     """Edges and circle, a round per search reach (module steps 3 and 4), from one start;
     with ``fit_ratio``, an oval whose height ``ratio`` is fitted too (:func:`_circles`)."""
     expected = radius
-    for reach in reaches:
+    for index, reach in enumerate(reaches):
         edges = [_edges(image, centre, normal, radius, reach, shade, ratio) for image in images]
         if sum(len(a) >= MIN_COVERAGE * SAMPLES for a, _ in edges) < 2:
             raise LimbusNotFoundError("no limbus edge in at least two cameras (lids closed?)")
-        solution = _fit_circle(images, edges, centre, normal, radius, ratio, fit_ratio)
+        # The axis guides the rounds; the last is the edges' own unless it strays from it.
+        last = index == len(reaches) - 1
+        solution = _fit_circle(images, edges, centre, normal, radius, ratio, fit_ratio,
+                               None if last else axis)
+        if (last and axis is not None and float(np.linalg.norm(
+                _off_axis(solution.x[None], axis[0]))) > LIMBUS_AXIS_STRAY_SDS * axis[1]):
+            solution = _fit_circle(images, edges, centre, normal, radius, ratio, fit_ratio,
+                                   axis)
         centre, normal, radius = solution.x[:3], _gaze(solution.x), float(solution.x[5])
         if fit_ratio:
             ratio = float(solution.x[6])
@@ -570,7 +602,7 @@ def _refine(images: Sequence[_Image], centre: F64, normal: F64, radius: float,
 
 def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: npt.ArrayLike,
                 globe_radius: float, limbus_radius: float, *, search: bool = True,
-                oval: bool = False) -> Limbus:
+                oval: bool = False, axis_sd_mm: float | None = None) -> Limbus:
     """The limbus circle seen in ``views``, starting from a rough eye pose (see the module).
 
     The search starts about the rough pose, in a window of each image around it (and, with
@@ -581,6 +613,13 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
     whole images (module step 2), and the closest fit wins. Without ``search``, the faster
     choice when the rough pose is good (live tracking starts from the previous frame), only the
     window is read.
+
+    With ``axis_sd_mm``, every circle is held near the axis through ``globe_centre`` along its
+    own normal (a prior of that sd, mm, on its centre's offset across it): the limbus is
+    concentric with the globe, and on a patient's eye the edges of shadows and lids fit
+    circles millimetres off it better than the faint limbus (docs/notes/patient-eye.md). The
+    prior barely moves a limbus its edges place well (hundreds of edges against three rows);
+    it decides where they do not.
 
     Raises
     ------
@@ -593,6 +632,7 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
     if gaze0[2] <= 0:
         raise LimbusNotFoundError("the eye looks away from the cameras")
     depth = math.sqrt(max(globe_radius**2 - limbus_radius**2, 1.0))
+    held = None if axis_sd_mm is None else (centre0, float(axis_sd_mm))
     found: list[Limbus] = []
     failure = LimbusNotFoundError("fewer than two cameras see the eye")
     images = []
@@ -611,7 +651,7 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
         # from its edges.
         try:
             limbus = _refine(images, centre0 + depth * gaze0, gaze0, limbus_radius,
-                             REACHES_PX[-1:], fit_ratio=oval)
+                             REACHES_PX[-1:], fit_ratio=oval, axis=held)
         except LimbusNotFoundError as exc:
             failure = exc
         else:
@@ -645,7 +685,7 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
             for axis, reaches, good_only in rounds:
                 try:
                     limbus = _refine(images, centre0 + depth * axis, axis, limbus_radius,
-                                     reaches, fit_ratio=oval)
+                                     reaches, fit_ratio=oval, axis=held)
                 except LimbusNotFoundError as exc:
                     failure = exc
                     continue
@@ -671,7 +711,8 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
             # The gaze towards the cameras (+Z) about the dark disc, tilted as it fits best.
             _, normal = _start(whole, blob, 0.0, np.array([0.0, 0.0, 1.0]), limbus_radius)
             try:
-                found.append(_refine(whole, blob, normal, limbus_radius, fit_ratio=oval))
+                found.append(_refine(whole, blob, normal, limbus_radius, fit_ratio=oval,
+                                     axis=held))
             except LimbusNotFoundError as exc:
                 failure = exc
     found = [limbus for limbus in found if limbus.residual_px <= MAX_RESIDUAL_PX]
