@@ -17,8 +17,9 @@ fit on the same images (the bench renders anew on every run).
 
 Eyes are drawn as ``eyeserver.hardware.sim.population.draw`` draws them and placed within ±5 mm
 and ±10° as the pose bench places them; each bundle keeps its ``truth.json``, which only the fit
-step's scoring reads, after the fit (``--stages``: also the cloud-only pose and the limbus found
-from it, each against the truth). ``oracle`` is a diagnostic, not a fit: it hands the globe's
+step's scoring reads, after the fit (``--stages``: also the cloud-only pose and the limbus the
+free search finds from it (an oval, no axis held), each against the truth, and how far the true
+and the found limbus centres lie from the cloud globe's axis). ``oracle`` is a diagnostic, not a fit: it hands the globe's
 stages the true limbus circle (the corneoscleral junction: the scene's horizontal limbus
 radius), to see what the rest of the fit makes of a perfectly found limbus. A calibration
 comes from ``eyeserver bench accuracy --out`` or the benches' ``calibrate_room``.
@@ -76,6 +77,14 @@ def off(pose_centre: Any, pose_gaze: Any, eye: dict[str, Any], key: str = "centr
     return f"centre {centre:.3f} mm gaze {math.degrees(math.acos(min(1.0, cos))):.2f}°"
 
 
+def across_axis(point: Any, direction: Any, through: Any) -> float:
+    """How far (mm) ``point`` lies from the line through ``through`` along unit ``direction``:
+    a limbus centre's offset from a globe's axis."""
+    offset = np.subtract(point, through)
+    g = np.asarray(direction, dtype=np.float64)
+    return float(np.linalg.norm(offset - (offset @ g) * g))
+
+
 def fit(args: argparse.Namespace) -> None:
     from eyeserver.errors import EyeserverError
     from eyeserver.eye.fit import EyeModel, fit_eye
@@ -93,12 +102,19 @@ def fit(args: argparse.Namespace) -> None:
                 rough = fit_eye(cloud, model)
                 stages = f"  cloud alone: {off(rough.centre_mm, rough.gaze, eye)}, radius " \
                     f"{rough.globe_radius_mm:.2f} for {eye['globe_radius_mm']:.2f} mm"
+                true_off = across_axis(eye["limbus_centre_mm"], eye["gaze"], rough.centre_mm)
+                stages += f"; the true limbus {true_off:.2f} mm off its axis"
                 try:
+                    # The free search (no axis held), as the fit ran before the twenty-third
+                    # session and still runs for one unit.
                     limbus = find_limbus(views, rough.centre_mm, rough.gaze,
-                                         rough.globe_radius_mm, model.limbus_diameter_mm / 2)
+                                         rough.globe_radius_mm, model.limbus_diameter_mm / 2,
+                                         oval=True)
                     found = off(limbus.centre, limbus.normal, eye, "limbus_centre_mm")
                     stages += f"; limbus from it: {found} (its centre), radius " \
-                        f"{limbus.radius:.2f} mm"
+                        f"{limbus.radius:.2f} mm, " \
+                        f"{across_axis(limbus.centre, limbus.normal, rough.centre_mm):.2f} mm " \
+                        "off the cloud globe's axis"
                 except (EyeserverError, LimbusNotFoundError) as exc:
                     stages += f"; no limbus from it: {exc}"
             pose = fit_eye(cloud, model, views)
