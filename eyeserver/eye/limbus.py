@@ -26,8 +26,9 @@ fringe period outside it, lopsided.
    the edges' distances to the projected circle's tangents, the reach shrinking round by round
    (:data:`REACHES_PX`). Where both units' cloud gives the globe, the one-shot search holds the
    circle near the globe's axis (the limbus is concentric with it; :data:`LIMBUS_AXIS_SD_MM`):
-   on a patient's eye, shadow and lid edges fit circles off it better than a faint limbus. Uncertainties from the Jacobian and a robust residual scale, each
-   camera's edges counted once per fringe period (errors within a period are shared).
+   on a patient's eye, shadow and lid edges fit circles off it better than a faint limbus.
+   Uncertainties from the Jacobian and a robust residual scale, each camera's edges counted
+   once per fringe period (errors within a period are shared).
 5. **Globe.** ``C = L − h·g``, ``R = √(h² + r²)``: one number ``h``, which the cloud's sclera
    gives (:func:`globe_on_limbus`), clear of the lids and the limbus (the band blends surfaces
    across depth steps). Its systematic error, amplified 3–8 times into ``h``, sets the depth's
