@@ -617,12 +617,13 @@ def find_limbus(views: Sequence[LimbusView], globe_centre: npt.ArrayLike, gaze: 
     choice when the rough pose is good (live tracking starts from the previous frame), only the
     window is read.
 
-    With ``axis_sd_mm``, every circle is held near the axis through ``globe_centre`` along its
-    own normal (a prior of that sd, mm, on its centre's offset across it): the limbus is
+    With ``axis_sd_mm``, the circles are held near the axis through ``globe_centre`` along
+    their own normal (a prior of that sd, mm, on the centre's offset across it): the limbus is
     concentric with the globe, and on a patient's eye the edges of shadows and lids fit
     circles millimetres off it better than the faint limbus (docs/notes/patient-eye.md). The
     prior barely moves a limbus its edges place well (hundreds of edges against three rows);
-    it decides where they do not.
+    it decides where they do not. A search's last round is the edges' own fit, held only where
+    that strays more than :data:`LIMBUS_AXIS_STRAY_SDS` sds from the axis.
 
     Raises
     ------
