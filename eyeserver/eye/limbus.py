@@ -496,7 +496,7 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
     size = 7 if fit_ratio else 6
     steps, x_scale = CIRCLE_STEPS[:size], CIRCLE_X_SCALE[:size]
 
-    count = 0
+    count = sum(len(angles) for angles, _ in edges)  # the edges' rows; the axis's follow
 
     def evaluate(params: F64) -> tuple[F64, F64]:
         """Residuals ``(N,)`` at ``params`` and their forward-difference Jacobian ``(N, 6)``
@@ -512,7 +512,6 @@ def _fit_circle(images: Sequence[_Image], edges: Sequence[tuple[F64, F64]], cent
 
     x = np.array([*centre, normal[0], normal[1], radius, ratio][:size])
     residuals, jac = evaluate(x)
-    count = len(residuals) - (0 if axis is None else 3)
     cost = total(residuals)
     damping = 1e-3
     for _ in range(CIRCLE_ITERATIONS):

@@ -45,18 +45,14 @@ REACHES_PX = (20.0, 8.0, 4.0)
 
 LIMBUS_AXIS_SD_MM = 0.1
 """How far (sd, mm) the one-shot search lets the limbus centre stray from the axis through the
-cloud's globe centre along its own normal, where both units' cameras see the eye: the limbus
-is concentric with the globe, and the cloud of both units places the globe's centre across
-the gaze within 0.004–0.28 mm of the truth (median 0.04; 16 patient eyes, seed 11 of
-``scripts/pose_set.py render``), where circles on a patient eye's shadow and lid edges strayed
-0.4–5.4 mm. One unit's cloud strays up to 9 mm across the gaze: its search is not held.
-Measured: docs/notes/patient-eye.md, twenty-third session."""
+cloud's globe centre along its own normal, where both units see the eye: the limbus is
+concentric with the globe, whose axis both units' cloud places to a few tenths of a millimetre
+at worst; one unit's is not held (measured: docs/notes/patient-eye.md, twenty-third session)."""
 
 LIMBUS_AXIS_STRAY_SDS = 3.0
-"""The held search's last round fits the edges alone (a limbus they place well keeps its own
-circle), and is held to the axis again only where that circle's centre lies more than this many
-:data:`LIMBUS_AXIS_SD_MM` from it. Chosen by hand: held in every round, a close-lids eye's
-limbus moved by 0.0004 mm, enough to flip its depth's two-shell decision (0.03 → 0.11 mm)."""
+"""The held search's last round fits the edges alone, so a limbus they place well keeps its own
+circle; it is held again only where that circle's centre lies more than this many
+:data:`LIMBUS_AXIS_SD_MM` from the axis. Chosen by hand (why not every round: the same notes)."""
 
 MIN_COVERAGE = 0.4
 """Share of the circle's samples that must hold an edge, in at least two cameras. Share;
