@@ -100,6 +100,20 @@ def test_the_fit_defaults_are_not_built_in(eyes: list[EyeSpec]) -> None:
                    or eye.lid_gap_mm == 1.2 for eye in eyes)
 
 
+def test_the_limbus_is_decentred_on_the_globe_within_its_range(eyes: list[EyeSpec]) -> None:
+    offsets = np.array([eye.limbus_offset_mm for eye in eyes])
+    length = np.hypot(offsets[:, 0], offsets[:, 1])
+    assert length.max() <= 0.6
+    assert 0.2 < float(np.median(length)) < 0.27  # sd 0.2 each way: a Rayleigh median 0.235
+    assert np.abs(offsets.mean(axis=0)).max() < 0.02  # no side preferred
+    assert not _with(SHARP, limbus_offset_mm=(0.1, 0.0)).sharp
+    # Drawn from a stream of its own: the other properties are what they were without it.
+    eye = _eyes(1, seed=5)[0]
+    rng = np.random.default_rng(5)
+    again = draw_eye(rng)
+    assert again == eye and draw_eye(rng) == _eyes(2, seed=5)[1]
+
+
 def test_the_globe_is_mostly_an_ellipsoid(eyes: list[EyeSpec]) -> None:
     ellipsoids = [eye for eye in eyes if eye.globe_semi_axes_mm is not None]
     assert 0.80 < len(ellipsoids) / len(eyes) < 0.90
@@ -119,6 +133,7 @@ def test_properties_are_drawn_independently(eyes: list[EyeSpec]) -> None:
         eye.limbus_vertical_ratio, eye.limbus_width_mm, eye.limbus_scatter, eye.sclera_albedo,
         eye.iris_albedo, eye.tear_reflectance, eye.tear_glints, eye.aperture_mm[1],
         eye.aperture_offset_mm[1], eye.lid_gap_mm, eye.lashes, eye.globe_radius_mm,
+        *eye.limbus_offset_mm,
     ] for eye in eyes])
     correlation = np.corrcoef(table, rowvar=False)
     off_diagonal = correlation[~np.eye(len(correlation), dtype=bool)]
@@ -160,6 +175,9 @@ def test_a_lowered_opening_hides_a_known_share(offset_y: float, half_height: flo
     eye = _with(SHARP, aperture_mm=(1000.0, half_height), aperture_offset_mm=(0.0, offset_y))
     assert lid_cover(eye) == pytest.approx(expected, abs=2e-3)
     assert describe(eye)["lid_cover"] == pytest.approx(expected, abs=2e-3)
+    # The opening and the limbus lowered together (a decentred limbus): the same share.
+    both = _with(eye, aperture_offset_mm=(0.0, offset_y - 0.3), limbus_offset_mm=(0.0, -0.3))
+    assert lid_cover(both) == pytest.approx(expected, abs=2e-3)
 
 
 def test_an_oval_limbus_is_covered_by_arc_length() -> None:
@@ -183,6 +201,8 @@ def test_anatomy_mismatch() -> None:
     assert describe(_with(SHARP, limbus_diameter_mm=11.1))["anatomy_mismatch_mm"] == \
         pytest.approx(0.3)
     assert describe(_with(SHARP, lid_gap_mm=0.4))["anatomy_mismatch_mm"] == pytest.approx(0.8)
+    decentred = _with(SHARP, limbus_offset_mm=(0.3, -0.4))
+    assert describe(decentred)["anatomy_mismatch_mm"] == pytest.approx(0.5)
     ellipsoid = _with(SHARP, globe_semi_axes_mm=(12.1, 11.9, 12.35))
     assert describe(ellipsoid)["anatomy_mismatch_mm"] == pytest.approx(0.45)
     # The conic's sagitta from (1+Q)z² − 2Rz + r² = 0 against the sphere's R − √(R² − r²).

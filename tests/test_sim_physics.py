@@ -581,6 +581,31 @@ def test_corneal_apex_lies_near_z_plus_3_mm() -> None:
     np.testing.assert_allclose(apex, truth_apex, atol=1e-9)
 
 
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (0.4, -0.3)])
+def test_a_decentred_limbus_is_drawn_where_its_truth_says(offset: tuple[float, float]) -> None:
+    # A turned ellipsoidal eye, no lids: the clear cornea (rays along the gaze reach the iris)
+    # ends at the limbus about the truth's limbus centre, which lies the offset's length off
+    # the axis through the globe's centre along the gaze.
+    eye = EyeSpec(limbus_offset_mm=offset, cornea_asphericity=-0.2, gaze_deg=(10.0, 5.0),
+                  aperture_mm=(1000.0, 1000.0), globe_semi_axes_mm=(12.2, 11.8, 12.4))
+    spec = SceneSpec(kind="eye", eye=eye)
+    built = build_scene(spec)
+    truth = scene_truth(spec)["eye"]
+    limbus, gaze = np.asarray(truth["limbus_centre_mm"]), np.asarray(truth["gaze"])
+    from_centre = limbus - np.asarray(truth["centre_mm"])
+    across = from_centre - (from_centre @ gaze) * gaze
+    assert np.linalg.norm(across) == pytest.approx(math.hypot(*offset), abs=1e-9)
+    e1 = np.cross(gaze, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(gaze, e1)
+    half = eye.limbus_diameter_mm / 2
+    for radius, clear in ((half - 0.2, True), (half + 0.2, False)):
+        for angle in np.linspace(0.0, 2 * math.pi, 12, endpoint=False):
+            at = limbus + radius * (math.cos(angle) * e1 + math.sin(angle) * e2)
+            hits = built.scene.cast(at + 50.0 * gaze, -gaze[None, :])
+            assert (built.scene.labels[hits.label[0]] == "iris") == clear, (radius, angle)
+
+
 def test_motion_state_depends_on_time_only() -> None:
     spec = MotionSpec(seed=11, saccade_rate_hz=2.0, blink_rate_hz=0.3, script=[
         ScriptEvent(t_s=3.0, kind="saccade", gaze_deg=(2.0, -1.0)),

@@ -1,13 +1,14 @@
 """Simulated patient eyes drawn from documented population ranges.
 
-A patient's eye is not the painted eye the simulator used to draw (:data:`SHARP`): its limbus is
-a band, not an edge, its contrast in near-infrared follows the iris's pigmentation, its globe is
-an ellipsoid, its cornea flattens towards the limbus, its lids cover part of the limbus and its
-tear film glints. :func:`draw_eye` draws each of these properties per eye, independently of the
-others and of what the pose fit assumes (cornea 7.8 mm, limbus 11.7 mm, lids a shell 1.2 mm
-outside the globe); :func:`describe` gives the descriptors a bench bins its figures by, and
-:func:`biometry` what a physicist would enter from the patient's MRI and biometry, each off by
-its typical measurement error. Ranges, distributions and their sources are in docs/eye-model.md.
+A patient's eye is not the painted eye the simulator used to draw (:data:`SHARP`): its limbus is a
+band, not an edge, its contrast in near-infrared follows the iris's pigmentation, its globe is an
+ellipsoid, its cornea flattens towards the limbus, its limbus sits off the globe's axis, its lids
+cover part of the limbus and its tear film glints. :func:`draw_eye` draws each of these properties
+per eye, independently of the others and of what the pose fit assumes (cornea 7.8 mm, limbus 11.7 mm
+on the globe's axis, lids a shell 1.2 mm outside the globe); :func:`describe` gives the descriptors
+a bench bins its figures by, and :func:`biometry` what a physicist would enter from the patient's
+MRI and biometry, each off by its typical measurement error. Ranges, distributions and their sources
+are in docs/eye-model.md.
 
 Only the eye's own properties are drawn: gaze and motion stay at rest ((0, 0) and None) for the
 caller to set, and the position of the eye is the scene's.
@@ -26,6 +27,8 @@ References
    Sci. 45(10):3380–3386, 2004.
 .. [5] S. Patel, L. Tutchenko, "The refractive index of the human cornea: a review", Cont. Lens
    Anterior Eye 42:575–580, 2019, doi:10.1016/j.clae.2019.04.018.
+.. [6] A. Abass et al., "Three-dimensional non-parametric method for limbus detection", PLoS
+   ONE 13(11):e0207710, 2018, doi:10.1371/journal.pone.0207710 (the limbus's tilt).
 """
 
 from __future__ import annotations
@@ -119,6 +122,12 @@ _APERTURE_OFFSET_X = (-1.0, 1.0)
 _APERTURE_OFFSET_Y = (-2.5, 0.5)  # negative: the upper lid low over the top of the limbus
 _LID_GAP = (0.3, 1.5)
 _LASHES = (0, 30)  # along the opening's upper margin (some droop across it)
+_LIMBUS_OFFSET_SD = 0.2  # each of x, y; assumed from the limbus's tilt (Abass 2018 [6])
+_LIMBUS_OFFSET_MAX = 0.6  # the offset's length, redrawn beyond
+_LIMBUS_OFFSET_STREAM = 1
+"""Mixed with ``features_seed`` to seed the limbus offset's own generator: drawn after every
+other property (and from its own stream) so that adding it left each seeded eye's other
+properties, and the eyes drawn after it, as they were."""
 
 _COVER_SAMPLES = 3600
 """Points along the limbus ellipse for :func:`lid_cover` (0.1° apart)."""
@@ -162,7 +171,8 @@ def draw_eye(rng: np.random.Generator) -> EyeSpec:
     -----
     Distributions and sources in docs/eye-model.md. The globe is an ellipsoid in 85 % of the
     eyes, its (horizontal, vertical, axial) semi-axes each within ±0.5 mm of a radius drawn
-    around 12 mm (so they differ by up to 1 mm); ``globe_radius_mm`` is then their mean.
+    around 12 mm (so they differ by up to 1 mm); ``globe_radius_mm`` is then their mean. The
+    limbus (with the cornea and the iris) sits ``limbus_offset_mm`` off the globe's axis.
     """
     radius = _truncated_normal(rng, _GLOBE_RADIUS)
     semi_axes: tuple[float, float, float] | None = None
@@ -171,7 +181,7 @@ def draw_eye(rng: np.random.Generator) -> EyeSpec:
         h, v, a = (float(radius + d) for d in deviation)
         semi_axes = (h, v, a)
         radius = (h + v + a) / 3
-    return EyeSpec(
+    eye = EyeSpec(
         globe_radius_mm=radius,
         globe_semi_axes_mm=semi_axes,
         cornea_radius_mm=_truncated_normal(rng, _CORNEA_RADIUS),
@@ -195,6 +205,17 @@ def draw_eye(rng: np.random.Generator) -> EyeSpec:
         features_seed=int(rng.integers(0, 2**31 - 1)),
         motion=None,
     )
+    offset = _limbus_offset(np.random.default_rng([eye.features_seed, _LIMBUS_OFFSET_STREAM]))
+    return EyeSpec.model_validate({**eye.model_dump(), "limbus_offset_mm": offset})
+
+
+def _limbus_offset(rng: np.random.Generator) -> tuple[float, float]:
+    """The limbus's centre across the globe's axis (mm): each component normal, sd
+    ``_LIMBUS_OFFSET_SD``, the offset's length redrawn beyond ``_LIMBUS_OFFSET_MAX``."""
+    while True:
+        x, y = (float(v) for v in rng.normal(0.0, _LIMBUS_OFFSET_SD, 2))
+        if math.hypot(x, y) <= _LIMBUS_OFFSET_MAX:
+            return x, y
 
 
 def draw_sharp(rng: np.random.Generator) -> EyeSpec:
@@ -253,12 +274,12 @@ def draw(rng: np.random.Generator, variant: str = "patient") -> EyeSpec:
 def lid_cover(eye: EyeSpec) -> float:
     """Share of the visible limbus's circumference that the lids hide, the eye at rest.
 
-    Seen along the eye's axis in its own frame, the limbus is an ellipse centred on the axis
-    (horizontal semi-axis ``limbus_diameter_mm / 2``, vertical ``limbus_vertical_ratio`` times
-    that) and the lid opening an ellipse of half-axes ``aperture_mm`` centred at
-    ``aperture_offset_mm``; the lid shell lies in front of the limbus everywhere outside the
-    opening (as the renderer's lids do: a point on the opening's edge is lid). Lashes are not
-    counted.
+    Seen along the eye's axis in its own frame, the limbus is an ellipse centred
+    ``limbus_offset_mm`` off the axis (horizontal semi-axis ``limbus_diameter_mm / 2``, vertical
+    ``limbus_vertical_ratio`` times that) and the lid opening an ellipse of half-axes
+    ``aperture_mm`` centred at ``aperture_offset_mm``; the lid shell lies in front of the limbus
+    everywhere outside the opening (as the renderer's lids do: a point on the opening's edge is
+    lid). Lashes are not counted.
 
     Parameters
     ----------
@@ -273,7 +294,8 @@ def lid_cover(eye: EyeSpec) -> float:
     t = np.linspace(0.0, 2.0 * math.pi, _COVER_SAMPLES, endpoint=False)
     a = eye.limbus_diameter_mm / 2
     b = eye.limbus_vertical_ratio * a
-    x, y = a * np.cos(t), b * np.sin(t)
+    centre_x, centre_y = eye.limbus_offset_mm
+    x, y = centre_x + a * np.cos(t), centre_y + b * np.sin(t)
     arc = np.hypot(a * np.sin(t), b * np.cos(t))  # |dP/dt|: equal steps in t are unequal arcs
     half_w, half_h = eye.aperture_mm
     off_x, off_y = eye.aperture_offset_mm
@@ -303,9 +325,9 @@ def describe(eye: EyeSpec) -> dict[str, float]:
         ``anatomy_mismatch_mm``
             How far the anatomy lies from what the fit assumes: the largest of
             |cornea radius − 7.8|, |limbus diameter − 11.7| / 2, the spread (max − min) of the
-            globe's semi-axes, |lid gap − 1.2| and the cornea's departure from a sphere at the
+            globe's semi-axes, |lid gap − 1.2|, the cornea's departure from a sphere at the
             limbus (the conic's sagitta less the sphere's of the same apical radius, at half
-            the limbus diameter).
+            the limbus diameter) and the limbus's offset from the globe's axis.
     """
     half_limbus = eye.limbus_diameter_mm / 2
     cornea = eye.cornea_radius_mm
@@ -317,7 +339,8 @@ def describe(eye: EyeSpec) -> dict[str, float]:
                    abs(eye.limbus_diameter_mm - FIT_LIMBUS_DIAMETER_MM) / 2,
                    spread,
                    abs(eye.lid_gap_mm - FIT_LID_GAP_MM),
-                   asphere)
+                   asphere,
+                   math.hypot(*eye.limbus_offset_mm))
     sclera, iris = eye.sclera_albedo, eye.iris_albedo
     return {
         "limbus_width_mm": eye.limbus_width_mm,

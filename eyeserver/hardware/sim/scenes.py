@@ -111,6 +111,11 @@ class EyeSpec(NumbersOnly):
     limbus_width_mm: Annotated[float, Field(ge=0, le=3)] = Field(
         0.0, description="10–90 % width of the visible limbus's transition from the iris's "
         "reflectance to the sclera's; 0 a sharp step")
+    limbus_offset_mm: tuple[Annotated[float, Field(ge=-1, le=1)],
+                            Annotated[float, Field(ge=-1, le=1)]] = Field(
+        (0.0, 0.0), description="the limbus's centre across the globe's axis (x, y in the eye's "
+        "frame): the cornea, the limbus and the iris decentred on the globe, their axis still "
+        "along the gaze; (0, 0) the limbus centred on the globe's axis")
     limbus_scatter: Annotated[float, Field(ge=0, le=1)] = Field(
         0.0, description="share of the fringe's modulation lost to light scattered within the "
         "translucent limbal band, at its middle")
@@ -152,7 +157,7 @@ class EyeSpec(NumbersOnly):
         smallest = (self.globe_radius_mm if self.globe_semi_axes_mm is None
                     else min(self.globe_semi_axes_mm[:2]))
         cornea_reach = self.cornea_radius_mm / math.sqrt(1.0 + self.cornea_asphericity)
-        if half >= min(smallest, cornea_reach):
+        if half + math.hypot(*self.limbus_offset_mm) >= min(smallest, cornea_reach):
             raise ValueError("the limbus must be narrower than both the globe and the cornea")
         return self
 
@@ -164,7 +169,8 @@ class EyeSpec(NumbersOnly):
                 and self.limbus_vertical_ratio == 1.0 and self.limbus_width_mm == 0.0
                 and self.limbus_scatter == 0.0 and self.tear_reflectance == 0.0
                 and self.tear_glints == 0 and self.lashes == 0
-                and self.aperture_offset_mm == (0.0, 0.0))
+                and self.aperture_offset_mm == (0.0, 0.0)
+                and self.limbus_offset_mm == (0.0, 0.0))
 
 
 class SceneSpec(NumbersOnly):
@@ -476,14 +482,17 @@ LASH_ALBEDO = 0.08
 
 def _limbus_distance(eye: EyeSpec) -> Callable[[F64], F64]:
     """Signed distance (mm, + outside) of eye-frame points from the visible limbus: an ellipse
-    about the gaze axis, the junction's horizontal radius across and the vertical ratio of it
-    up and down, measured radially in the plane normal to the gaze."""
+    about the limbus's axis (the gaze's direction, ``limbus_offset_mm`` across the globe's), the
+    junction's horizontal radius across and the vertical ratio of it up and down, measured
+    radially in the plane normal to the gaze."""
     across = eye.limbus_diameter_mm / 2
     up = across * eye.limbus_vertical_ratio
+    off_x, off_y = eye.limbus_offset_mm
 
     def distance(points: F64) -> F64:
-        rho = np.hypot(points[:, 0], points[:, 1])
-        e = np.hypot(points[:, 0] / across, points[:, 1] / up)
+        x, y = points[:, 0] - off_x, points[:, 1] - off_y
+        rho = np.hypot(x, y)
+        e = np.hypot(x / across, y / up)
         return np.asarray((e - 1.0) * rho / np.maximum(e, 1e-9))
     return distance
 
@@ -584,11 +593,17 @@ def _anatomy(eye: EyeSpec) -> _Anatomy:
     else:
         axes = eye.globe_semi_axes_mm
         globe = Ellipsoid(np.zeros(3), axes, albedo, "sclera")
-    junction = axes[2] * math.sqrt(1.0 - (half / axes[0]) ** 2)
+    off_x, off_y = eye.limbus_offset_mm
+    # The junction's depth: the globe's at the horizontal ends of the limbus (their mean where
+    # the limbus is decentred and the two differ; the cornea meets the globe a little before or
+    # behind the limbus's plane there).
+    junction = float(np.mean([axes[2] * math.sqrt(1.0 - ((off_x + side * half) / axes[0]) ** 2
+                                                  - (off_y / axes[1]) ** 2)
+                              for side in (-1.0, 1.0)]))
     r, q = eye.cornea_radius_mm, eye.cornea_asphericity
     apex = junction + conic_sagitta(r, q, half)
     along, across = r / (1.0 + q), r / math.sqrt(1.0 + q)
-    cornea = Ellipsoid(np.array([0.0, 0.0, apex - along]), (across, across, along), albedo,
+    cornea = Ellipsoid(np.array([off_x, off_y, apex - along]), (across, across, along), albedo,
                        "cornea")
     distance = _limbus_distance(eye)
     clear_from = -_ramp_width(eye) / 2
@@ -609,7 +624,8 @@ def _anatomy(eye: EyeSpec) -> _Anatomy:
     # cornea's edge land beyond the limbus's radius there).
     iris_depth = apex - eye.iris_depth_mm
     smallest = min(axes)
-    iris_radius = math.sqrt(max(smallest**2 - iris_depth**2, half**2)) - 0.05
+    decentred = math.hypot(off_x, off_y)
+    iris_radius = max(math.sqrt(max(smallest**2 - iris_depth**2, 0.0)) - decentred, half) - 0.05
     pupil = eye.pupil_diameter_mm / 2
 
     def iris_albedo(points: F64) -> F64:
@@ -617,7 +633,8 @@ def _anatomy(eye: EyeSpec) -> _Anatomy:
         return np.asarray(np.where(rho < pupil, PUPIL, eye.iris_albedo))
     iris = Plane(iris_albedo, "iris", radius=iris_radius)
     iris.reached_through_holes = True
-    return _Anatomy(globe, cornea, iris, iris_depth, junction, apex, max(max(axes), apex))
+    return _Anatomy(globe, cornea, iris, iris_depth, junction, apex,
+                    max(max(axes), math.hypot(apex, decentred)))
 
 
 PUPIL = 0.01
@@ -632,7 +649,9 @@ def _tear_bumps(eye: EyeSpec, anatomy: _Anatomy, rng: np.random.Generator) -> Bu
     half = eye.limbus_diameter_mm / 2
     rho = half * np.sqrt(rng.uniform(0.0, 1.3, n))
     azimuth = rng.uniform(0.0, 2 * math.pi, n)
-    directions = np.stack([rho * np.cos(azimuth), rho * np.sin(azimuth), np.zeros(n)], axis=1)
+    off_x, off_y = eye.limbus_offset_mm
+    directions = np.stack([off_x + rho * np.cos(azimuth), off_y + rho * np.sin(azimuth),
+                           np.zeros(n)], axis=1)
     centres = np.zeros((n, 3))
     # Each facet sits on the first surface a ray along −z meets from in front of the eye.
     front = np.array([0.0, 0.0, anatomy.reach + 5.0])
@@ -699,7 +718,9 @@ def _patient_eye(eye: EyeSpec, t_s: float) -> _Local:
     rotation = _eye_rotation(yaw, pitch)
     gaze = rotation[:, 2].copy()
     eyeball = Body([anatomy.globe, anatomy.cornea], R=rotation, t=head.copy())
-    iris = Body([anatomy.iris], R=rotation, t=head + anatomy.iris_depth * gaze)
+    # The limbus's centre in the head's frame: decentred across the globe's axis (the gaze).
+    across = rotation @ np.array([*eye.limbus_offset_mm, 0.0])
+    iris = Body([anatomy.iris], R=rotation, t=head + across + anatomy.iris_depth * gaze)
     axes = (eye.globe_semi_axes_mm if eye.globe_semi_axes_mm is not None
             else (eye.globe_radius_mm,) * 3)
     lid_radius = max(axes) + eye.lid_gap_mm
@@ -726,7 +747,7 @@ def _patient_eye(eye: EyeSpec, t_s: float) -> _Local:
     lid_body = Body(lid_surfaces)
     semi = None if eye.globe_semi_axes_mm is None else list(eye.globe_semi_axes_mm)
     eye_truth = {"centre_local": head.copy(), "gaze_local": gaze,
-                 "limbus_centre_local": head + anatomy.junction_depth * gaze,
+                 "limbus_centre_local": head + across + anatomy.junction_depth * gaze,
                  "globe_radius_mm": float(np.mean(axes)), "globe_semi_axes_mm": semi,
                  "cornea_radius_mm": eye.cornea_radius_mm, "openness": openness,
                  "gaze_deg_local": (yaw, pitch)}
