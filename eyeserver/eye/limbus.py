@@ -25,14 +25,16 @@ fringe period outside it, lopsided.
 4. **Circle.** Robust least squares (Cauchy loss: lid margins and shadow edges are outliers) of
    the edges' distances to the projected circle's tangents, the reach shrinking round by round
    (:data:`REACHES_PX`). Where both units' cloud gives the globe, the one-shot search holds the
-   circle near the globe's axis (the limbus is concentric with it; :data:`LIMBUS_AXIS_SD_MM`):
-   on a patient's eye, shadow and lid edges fit circles off it better than a faint limbus.
+   circle near the globe's axis (the limbus lies a few tenths of a millimetre off it at most;
+   :data:`LIMBUS_AXIS_SD_MM`): on a patient's eye, shadow and lid edges fit circles off it
+   better than a faint limbus.
    Uncertainties from the Jacobian and a robust residual scale, each camera's edges counted
    once per fringe period (errors within a period are shared).
-5. **Globe.** ``C = L − h·g``, ``R = √(h² + r²)``: one number ``h``, which the cloud's sclera
-   gives (:func:`globe_on_limbus`), clear of the lids and the limbus (the band blends surfaces
-   across depth steps). Its systematic error, amplified 3–8 times into ``h``, sets the depth's
-   stated uncertainty (:data:`CLOUD_SCLERA_BIAS_MM`).
+5. **Globe.** ``C = L − h·g``, ``R = √(h² + r²)`` (the limbus taken on the globe's axis, its
+   offset from it in the centre's stated uncertainty until step 6 fits it): one number ``h``,
+   which the cloud's sclera gives (:func:`globe_on_limbus`), clear of the lids and the limbus
+   (the band blends surfaces across depth steps). Its systematic error, amplified 3–8 times
+   into ``h``, sets the depth's stated uncertainty (:data:`CLOUD_SCLERA_BIAS_MM`).
 6. **Again.** A pose measurement measures the sclera again from its own fringes and finds the
    limbus again (:func:`refined`) with the sclera's illumination divided out
    (:mod:`eyeserver.eye.sclera`), leaving out the edges where the cornea keeps the

@@ -43,11 +43,19 @@ MIN_EDGE_DN_PER_PX = 2.0
 REACHES_PX = (20.0, 8.0, 4.0)
 """Half-widths of the edge search, round by round (image pixels). Chosen by hand."""
 
+LIMBUS_DECENTRATION_SD_MM = 0.2
+"""How far (sd, mm, each way across the gaze) the limbus's centre may lie off the axis through
+the globe's centre along the limbus's normal: the anatomy's spread, assumed (no direct
+measurement found; docs/eye-model.md). The globe's centre is fitted that far off the limbus's
+axis where the sclera says so, and the gaze stays the limbus's normal."""
+
 LIMBUS_AXIS_SD_MM = 0.1
 """How far (sd, mm) the one-shot search lets the limbus centre stray from the axis through the
-cloud's globe centre along its own normal, where both units see the eye: the limbus is
-concentric with the globe, whose axis both units' cloud places to a few tenths of a millimetre
-at worst; one unit's is not held (measured: docs/notes/patient-eye.md, twenty-third session)."""
+cloud's globe centre along its own normal, where both units see the eye: both units' cloud
+places that axis to a few tenths of a millimetre at worst; one unit's is not held. Held tighter
+than the limbus's offset from the globe's axis (:data:`LIMBUS_DECENTRATION_SD_MM`), which the
+globe's refit takes up: held at the two combined, √(0.1² + 0.2²), the search strayed onto more
+edges off the limbus (measured: docs/notes/patient-eye.md, twenty-fourth session)."""
 
 LIMBUS_AXIS_STRAY_SDS = 3.0
 """The held search's last round fits the edges alone, so a limbus they place well keeps its own
