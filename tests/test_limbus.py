@@ -147,7 +147,8 @@ better than the limbus does."""
 def test_a_faint_limbus_is_not_taken_from_edges_off_the_globes_axis(calibrated_rooms: Any,
                                                                     room: str,
                                                                     tmp_path: Path) -> None:
-    """The limbus is concentric with the globe. Searched for freely, this eye's limbus was a
+    """The limbus lies within a few tenths of a millimetre of the globe's axis (on it in this
+    eye, drawn before the population drew an offset). Searched for freely, this eye's limbus was a
     circle of other edges 2 mm and 16° off, and the globe placed on it 5.9 and 7.0 mm off (the
     default and wide rigs); held near the axis of both units' cloud globe
     (:data:`~eyeserver.eye.tunables.LIMBUS_AXIS_SD_MM`), the pose is the cloud's, 0.06 and

@@ -52,10 +52,18 @@ axis where the sclera says so, and the gaze stays the limbus's normal."""
 LIMBUS_AXIS_SD_MM = 0.1
 """How far (sd, mm) the one-shot search lets the limbus centre stray from the axis through the
 cloud's globe centre along its own normal, where both units see the eye: both units' cloud
-places that axis to a few tenths of a millimetre at worst; one unit's is not held. Held tighter
+places that axis to a few tenths of a millimetre at worst; one unit's only where its radius
+is an eye's (:data:`ONE_UNIT_AXIS_RADIUS_SHARE`). Held tighter
 than the limbus's offset from the globe's axis (:data:`LIMBUS_DECENTRATION_SD_MM`), which the
 globe's refit takes up: held at the two combined, √(0.1² + 0.2²), the search strayed onto more
 edges off the limbus (measured: docs/notes/patient-eye.md, twenty-fourth session)."""
+
+ONE_UNIT_AXIS_RADIUS_SHARE = 0.125
+"""One unit's cloud places the globe's axis well enough to hold the limbus search near it where
+its fitted radius lies within this share of the prior radius (10.5–13.5 mm about 12; the
+population's globes span 10.8–13.4 mm). Measured on one unit's clouds of 16 patient eyes: those
+whose axis strayed 0.55–8.8 mm came out 14.8–28.8 mm (docs/notes/patient-eye.md,
+twenty-third and twenty-fourth sessions)."""
 
 LIMBUS_AXIS_STRAY_SDS = 3.0
 """The held search's last round fits the edges alone, so a limbus they place well keeps its own

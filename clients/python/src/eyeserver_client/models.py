@@ -436,6 +436,10 @@ class EyeSpec(_Body):
     limbus_width_mm: float = 0.0
     """10–90 % width of the visible limbus's transition from the iris's reflectance to the sclera's;
     0 a sharp step"""
+    limbus_offset_mm: tuple[float, float] = (0.0, 0.0)
+    """the limbus's centre across the globe's axis (x, y in the eye's frame): the cornea, the limbus
+    and the iris decentred on the globe, their axis still along the gaze; (0, 0) the limbus
+    centred on the globe's axis"""
     limbus_scatter: float = 0.0
     """share of the fringe's modulation lost to light scattered within the translucent limbal band,
     at its middle"""
@@ -878,6 +882,7 @@ class SceneSpec(_Body):
             "limbus_diameter_mm": 11.7,
             "limbus_vertical_ratio": 1.0,
             "limbus_width_mm": 0.0,
+            "limbus_offset_mm": [0.0, 0.0],
             "limbus_scatter": 0.0,
             "sclera_albedo": 0.42,
             "iris_albedo": 0.06,
