@@ -66,7 +66,6 @@ from eyeserver.eye.tunables import (
     IMPLAUSIBLE_RADIUS,
     LID_REACH_MM,
     LIMBUS_AXIS_SD_MM,
-    LIMBUS_DECENTRATION_SD_MM,
     MEASURED_GLOBE_SD_MM,
     MIN_SCLERA_POINTS,
     MODEL_ERROR_BELOW_CONFIDENCE,
@@ -1003,11 +1002,11 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     else:
         g = limbus.normal
         depth = float((limbus.centre - globe.centre) @ g)
-        # Per axis: the limbus centre's spread, the depth's along the gaze, and across it the
-        # tilt's lever arm and the limbus's offset from the globe's axis (placed on the axis).
+        # Per axis: the limbus centre's spread, the depth's along the gaze, and the tilt's
+        # lever arm across it.
         lever = depth * math.radians(limbus.gaze_sd_deg)
         centre_sd = np.sqrt(limbus.centre_sd_mm**2 / 3.0 + (globe.depth_sd_mm * g) ** 2
-                            + (lever**2 + LIMBUS_DECENTRATION_SD_MM**2) * (1.0 - g**2))
+                            + lever**2 * (1.0 - g**2))
         gaze = Gaze(g, limbus.gaze_sd_deg, LIMBUS_FROM_IMAGES, limbus.centre,
                     limbus.centre_sd_mm, limbus.radius)
         centre_out, radius_out, surface_mad = globe.centre, globe.radius, globe.surface_mad_mm

@@ -31,15 +31,14 @@ is the albedo's step, whatever the fringe's phase at the edge; the limbus's last
 in that image. Dividing needs no position of the edge, where subtracting a fringe cut off at the
 edge would.
 
-:func:`globe_and_gaze` then fits the globe to the remeasured points together with the limbus: centre
-``L' − o − h·g'`` with ``g'`` the limbus normal tilted and ``L'`` its centre shifted, each held to
-the limbus's measurement within its uncertainty, and ``o`` the limbus's offset from the globe's
-axis, held within the anatomy's (:data:`LIMBUS_DECENTRATION_SD_MM`). The sclera counts as a whole,
-good to :data:`REMEASURED_SCLERA_BIAS_MM`, so it moves the gaze only where it says so more precisely
-than the limbus does. :func:`refit` runs :data:`PASSES` passes of the three, each about the last
-one's globe. It costs ≈ 0.3 s a fit; live tracking (radius held) leaves it out. What each step
-gained, how the windows and margins were chosen, and what is left: docs/notes/sclera.md. The
-constants: :mod:`eyeserver.eye.tunables`.
+:func:`globe_and_gaze` then fits the globe to the remeasured points together with the limbus:
+centre ``L' − h·g'`` with ``g'`` the limbus normal tilted and ``L'`` its centre shifted, each held
+to the limbus's measurement within its uncertainty. The sclera counts as a whole, good to
+:data:`REMEASURED_SCLERA_BIAS_MM`, so it moves the gaze only where it says so more precisely than
+the limbus does. :func:`refit` runs :data:`PASSES` passes of the three, each about the last one's
+globe. It costs ≈ 0.3 s a fit; live tracking (radius held) leaves it out. What each step gained,
+how the windows and margins were chosen, and what is left: docs/notes/sclera.md. The constants:
+:mod:`eyeserver.eye.tunables`.
 """
 
 from __future__ import annotations
@@ -63,11 +62,11 @@ from eyeserver.eye.limbus import (
     LimbusView,
     Shade,
     circle_points,
+    off_sphere_mm,
     refined,
 )
 from eyeserver.eye.tunables import (
     IN_FRONT_MM,
-    LIMBUS_DECENTRATION_SD_MM,
     LIMBUS_MARGIN_MM,
     MAX_OFFSET_RAD,
     MAX_PHASE_SD_RAD,
@@ -396,16 +395,11 @@ an ellipsoidal globe's (:mod:`~eyeserver.eye.fit`), where a sphere's would not f
 
 def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: float | None,
                    surface: Surface | None = None) -> GlobeFit:
-    """The sphere behind the limbus circle that fits ``points`` (remeasured sclera), the
-    circle's tilt and centre free within the limbus's uncertainty and its offset from the
-    globe's axis within the anatomy's.
+    """The sphere through the limbus circle that fits ``points`` (remeasured sclera), the
+    circle's tilt and centre free within the limbus's uncertainty.
 
     Parameters ``h`` (the depth, from ``depth``; held where ``fixed_radius`` is given), two
-    tilts of the gaze, three shifts of the limbus centre and two of the globe's centre across
-    the gaze (the limbus decentred on the globe, held to 0 by
-    :data:`~eyeserver.eye.tunables.LIMBUS_DECENTRATION_SD_MM`): the centre is
-    ``L' − o − h·g'``, the radius ``√(h² + r²)``, and the gaze stays the limbus's normal where
-    the sclera places the centre off its axis. The points' distances
+    tilts of the gaze and three shifts of the limbus centre. The points' distances
     to the sphere are soft-L1 robust at :data:`ROBUST_MM` (lids and speckle off the sphere
     count little) and weighed so that together they say what one measurement good to
     :data:`REMEASURED_SCLERA_BIAS_MM` says; the tilts and shifts are held to 0 by the limbus's
@@ -425,33 +419,29 @@ def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: floa
     if fixed_radius is not None:
         depth = math.sqrt(max(fixed_radius**2 - r**2, 1.0))
 
-    held = 7  # the tilts, the shifts and the offsets, each held to 0 by its prior
-    prior_sd = np.array([tilt_sd, tilt_sd, shift_sd, shift_sd, shift_sd,
-                         LIMBUS_DECENTRATION_SD_MM, LIMBUS_DECENTRATION_SD_MM])
-
-    def unpack(x: F64) -> tuple[F64, F64, float, F64]:
-        """The limbus centre, the gaze, the depth and the globe centre."""
+    def unpack(x: F64) -> tuple[F64, F64, float]:
         h = depth if fixed_radius is not None else float(x[0])
-        a1, a2, s1, s2, s3, o1, o2 = x[-held:]
+        a1, a2, s1, s2, s3 = x[-5:]
         gaze = g + a1 * e1 + a2 * e2
         gaze /= np.linalg.norm(gaze)
-        centre_l = L + s1 * e1 + s2 * e2 + s3 * g
-        return centre_l, gaze, h, centre_l - o1 * e1 - o2 * e2 - h * gaze
+        return L + s1 * e1 + s2 * e2 + s3 * g, gaze, h
 
     def residuals(x: F64) -> F64:
-        _, gaze, h, centre = unpack(x)
+        centre_l, gaze, h = unpack(x)
         if surface is not None and fixed_radius is not None:
-            distance = surface(pts, centre, gaze)
+            distance = surface(pts, centre_l - h * gaze, gaze)
         else:
-            distance = distances(pts, centre) - math.hypot(h, r)
+            distance = off_sphere_mm(pts, centre_l, gaze, r, h)
         # soft L1 as a residual (its square is the loss), so the priors stay quadratic.
         robust = np.sign(distance) * ROBUST_MM * np.sqrt(
             2.0 * (np.sqrt(1.0 + (distance / ROBUST_MM) ** 2) - 1.0))
-        return np.concatenate([weight * robust, x[-held:] / prior_sd])
+        prior = x[-5:] / np.array([tilt_sd, tilt_sd, shift_sd, shift_sd, shift_sd])
+        return np.concatenate([weight * robust, prior])
 
-    start = np.zeros(held) if fixed_radius is not None else np.r_[depth, np.zeros(held)]
+    start = np.zeros(5) if fixed_radius is not None else np.r_[depth, np.zeros(5)]
     fit = least_squares(residuals, start, x_scale="jac")
-    centre_l, gaze, h, centre = unpack(fit.x)
+    centre_l, gaze, h = unpack(fit.x)
+    centre = centre_l - h * gaze
     # Covariances from the Jacobian at the solution (the residuals are in units of their sd),
     # carried to the centre, the gaze and the limbus centre by central differences.
     cov = np.linalg.pinv(fit.jac.T @ fit.jac)
@@ -461,8 +451,12 @@ def globe_and_gaze(points: F64, limbus: Limbus, depth: float, fixed_radius: floa
         jac = np.stack([(f(fit.x + d) - f(fit.x - d)) / 2e-6 for d in steps], axis=1)
         return np.asarray(jac @ cov @ jac.T, dtype=np.float64)
 
+    def centre_of(x: F64) -> F64:
+        centre_l, gaze, h = unpack(x)
+        return centre_l - h * gaze
+
     return GlobeFit(centre=centre, radius=math.hypot(h, r), gaze=gaze, limbus_centre=centre_l,
-                    centre_cov=spread(lambda x: unpack(x)[3]),
+                    centre_cov=spread(centre_of),
                     gaze_sd_deg=math.degrees(math.sqrt(float(np.trace(
                         spread(lambda x: unpack(x)[1]))))),
                     limbus_sd_mm=math.sqrt(float(np.trace(spread(lambda x: unpack(x)[0])))),

@@ -43,20 +43,13 @@ MIN_EDGE_DN_PER_PX = 2.0
 REACHES_PX = (20.0, 8.0, 4.0)
 """Half-widths of the edge search, round by round (image pixels). Chosen by hand."""
 
-LIMBUS_DECENTRATION_SD_MM = 0.2
-"""How far (sd, mm, each way across the gaze) the limbus's centre may lie off the axis through
-the globe's centre along the limbus's normal: the anatomy's spread, assumed (no direct
-measurement found; docs/eye-model.md). The globe's centre is fitted that far off the limbus's
-axis where the sclera says so, and the gaze stays the limbus's normal."""
-
 LIMBUS_AXIS_SD_MM = 0.1
 """How far (sd, mm) the one-shot search lets the limbus centre stray from the axis through the
-cloud's globe centre along its own normal, where both units see the eye: both units' cloud
-places that axis to a few tenths of a millimetre at worst; one unit's only where its radius
-is an eye's (:data:`ONE_UNIT_AXIS_RADIUS_SHARE`). Held tighter
-than the limbus's offset from the globe's axis (:data:`LIMBUS_DECENTRATION_SD_MM`), which the
-globe's refit takes up: held at the two combined, √(0.1² + 0.2²), the search strayed onto more
-edges off the limbus (measured: docs/notes/patient-eye.md, twenty-fourth session)."""
+cloud's globe centre along its own normal, where both units see the eye (or one unit's of an
+eye's radius, :data:`ONE_UNIT_AXIS_RADIUS_SHARE`): the fit takes the limbus on the globe's
+axis, which both units' cloud places to a few tenths of a millimetre at worst (measured:
+docs/notes/patient-eye.md, twenty-third session). A real limbus may lie off it; the fit does not
+model that yet (the twenty-fourth session's notes)."""
 
 ONE_UNIT_AXIS_RADIUS_SHARE = 0.125
 """One unit's cloud places the globe's axis well enough to hold the limbus search near it where
