@@ -33,8 +33,9 @@ fringe period outside it, lopsided.
    once per fringe period (errors within a period are shared).
 5. **Globe.** ``C = L − h·g``, ``R = √(h² + r²)`` (the limbus taken on the globe's axis): one
    number ``h``, which the cloud's sclera gives (:func:`globe_on_limbus`), clear of the lids
-   and the limbus (the band blends surfaces across depth steps). Its systematic error, amplified 3–8 times
-   into ``h``, sets the depth's stated uncertainty (:data:`CLOUD_SCLERA_BIAS_MM`).
+   and the limbus (the band blends surfaces across depth steps). Its systematic error,
+   amplified 3–8 times into ``h``, sets the depth's stated uncertainty
+   (:data:`CLOUD_SCLERA_BIAS_MM`).
 6. **Again.** A pose measurement measures the sclera again from its own fringes and finds the
    limbus again (:func:`refined`) with the sclera's illumination divided out
    (:mod:`eyeserver.eye.sclera`), leaving out the edges where the cornea keeps the
