@@ -17,7 +17,6 @@ from eyeserver.eye import tunables
 from eyeserver.eye.fit import (
     EyeModel,
     PoseError,
-    _places_the_axis,
     _surface_distance,
     fit_eye,
     fit_sphere,
@@ -274,15 +273,3 @@ def test_a_blind_rig_poses_the_eye_with_both_units_and_refuses_one(
     with pytest.raises(ReconstructionError, match="unit left is blind to the fringe order"):
         reconstruct(alone)
 
-
-def test_one_units_cloud_holds_the_limbus_search_only_where_its_globe_is_an_eyes() -> None:
-    # Both units' cloud always places the axis; one unit's only where its fitted radius lies
-    # within ONE_UNIT_AXIS_RADIUS_SHARE of the prior (its axis strayed 0.55–8.8 mm where the
-    # radius came out 14.8–28.8 mm), never with the patient's radius held (nothing to judge by).
-    model = EyeModel.population()
-    share = tunables.ONE_UNIT_AXIS_RADIUS_SHARE * model.prior_radius_mm
-    assert _places_the_axis(4, 20.0, None, model)
-    assert _places_the_axis(2, model.prior_radius_mm + 0.9 * share, None, model)
-    assert not _places_the_axis(2, model.prior_radius_mm + 1.1 * share, None, model)
-    assert not _places_the_axis(2, model.prior_radius_mm - 1.1 * share, None, model)
-    assert not _places_the_axis(2, model.prior_radius_mm, 12.0, model)

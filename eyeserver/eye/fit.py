@@ -77,7 +77,6 @@ from eyeserver.eye.tunables import (
     MSAC_LOCAL_MM,
     NO_GLOBE_FACTOR,
     NORMAL_REACH_MM,
-    ONE_UNIT_AXIS_RADIUS_SHARE,
     OVAL_LIMBUS,
     SHAPE_SD_MM,
     SHELL_BAND_MM,
@@ -936,21 +935,6 @@ def cloud_gaze(points: F64, sclera: F64, centre: F64, radius: float, centre_sd: 
                 cornea_points)
 
 
-def _places_the_axis(cameras: int, radius: float, fixed_radius: float | None,
-                     model: EyeModel) -> bool:
-    """Whether the cloud's globe places its axis well enough to hold the limbus search near it.
-
-    Both units' cloud does (three cameras or more: a unit has two). One unit's strays up to
-    9 mm across the gaze, but where it did its fitted radius came out far from any eye's: held
-    where the radius was fitted within :data:`ONE_UNIT_AXIS_RADIUS_SHARE` of the prior's.
-    """
-    if cameras >= 3:
-        return True
-    return (fixed_radius is None
-            and abs(radius - model.prior_radius_mm)
-            <= ONE_UNIT_AXIS_RADIUS_SHARE * model.prior_radius_mm)
-
-
 def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, centre: F64,
                    rough_gaze: F64, radius: float, fixed_radius: float | None, started: float,
                    *, search: bool = True, remeasure: bool = True,
@@ -971,9 +955,9 @@ def pose_on_limbus(points: F64, views: Sequence[LimbusView], model: EyeModel, ce
     pixels, so that it does not depend on how densely the cloud was reconstructed.
     """
     try:
-        held = (LIMBUS_AXIS_SD_MM if search and _places_the_axis(len(views), radius,
-                                                                 fixed_radius, model)
-                else None)
+        # Both units' cloud places the globe's axis well enough to hold the search near it
+        # (three cameras or more: a unit has two).
+        held = LIMBUS_AXIS_SD_MM if search and len(views) >= 3 else None
         limbus = find_limbus(views, centre, rough_gaze, radius, model.limbus_diameter_mm / 2,
                              search=search, oval=search and OVAL_LIMBUS, axis_sd_mm=held)
         if fixed_radius is None:

@@ -24,8 +24,8 @@ fringe period outside it, lopsided.
    lids' margins), inside it only the cornea.
 4. **Circle.** Robust least squares (Cauchy loss: lid margins and shadow edges are outliers) of
    the edges' distances to the projected circle's tangents, the reach shrinking round by round
-   (:data:`REACHES_PX`). Where both units' cloud gives the globe (or one unit's of an eye's
-   radius), the one-shot search holds the
+   (:data:`REACHES_PX`). Where both units' cloud gives the globe, the one-shot search holds
+   the
    circle near the globe's axis (the limbus lies a few tenths of a millimetre off it at most;
    :data:`LIMBUS_AXIS_SD_MM`): on a patient's eye, shadow and lid edges fit circles off it
    better than a faint limbus.

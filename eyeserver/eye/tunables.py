@@ -45,18 +45,11 @@ REACHES_PX = (20.0, 8.0, 4.0)
 
 LIMBUS_AXIS_SD_MM = 0.1
 """How far (sd, mm) the one-shot search lets the limbus centre stray from the axis through the
-cloud's globe centre along its own normal, where both units see the eye (or one unit's of an
-eye's radius, :data:`ONE_UNIT_AXIS_RADIUS_SHARE`): the fit takes the limbus on the globe's
+cloud's globe centre along its own normal, where both units see the eye (one unit's is not held):
+the fit takes the limbus on the globe's
 axis, which both units' cloud places to a few tenths of a millimetre at worst (measured:
 docs/notes/patient-eye.md, twenty-third session). A real limbus may lie off it; the fit does not
 model that yet (the twenty-fourth session's notes)."""
-
-ONE_UNIT_AXIS_RADIUS_SHARE = 0.125
-"""One unit's cloud places the globe's axis well enough to hold the limbus search near it where
-its fitted radius lies within this share of the prior radius (10.5–13.5 mm about 12; the
-population's globes span 10.8–13.4 mm). Measured on one unit's clouds of 16 patient eyes: those
-whose axis strayed 0.55–8.8 mm came out 14.8–28.8 mm (docs/notes/patient-eye.md,
-twenty-third and twenty-fourth sessions)."""
 
 LIMBUS_AXIS_STRAY_SDS = 3.0
 """The held search's last round fits the edges alone, so a limbus they place well keeps its own
