@@ -272,4 +272,3 @@ def test_a_blind_rig_poses_the_eye_with_both_units_and_refuses_one(
     assert np.linalg.norm(np.subtract(pose.centre_mm, truth["centre_mm"])) < 0.2
     with pytest.raises(ReconstructionError, match="unit left is blind to the fringe order"):
         reconstruct(alone)
-

@@ -24,11 +24,9 @@ fringe period outside it, lopsided.
    lids' margins), inside it only the cornea.
 4. **Circle.** Robust least squares (Cauchy loss: lid margins and shadow edges are outliers) of
    the edges' distances to the projected circle's tangents, the reach shrinking round by round
-   (:data:`REACHES_PX`). Where both units' cloud gives the globe, the one-shot search holds
-   the
-   circle near the globe's axis (the limbus lies a few tenths of a millimetre off it at most;
-   :data:`LIMBUS_AXIS_SD_MM`): on a patient's eye, shadow and lid edges fit circles off it
-   better than a faint limbus.
+   (:data:`REACHES_PX`). Where both units' cloud gives the globe, the one-shot search holds the
+   circle near its axis (:data:`LIMBUS_AXIS_SD_MM`): on a patient's eye, shadow and lid edges
+   fit circles off it better than a faint limbus.
    Uncertainties from the Jacobian and a robust residual scale, each camera's edges counted
    once per fringe period (errors within a period are shared).
 5. **Globe.** ``C = L − h·g``, ``R = √(h² + r²)`` (the limbus taken on the globe's axis): one

@@ -45,9 +45,9 @@ REACHES_PX = (20.0, 8.0, 4.0)
 
 LIMBUS_AXIS_SD_MM = 0.1
 """How far (sd, mm) the one-shot search lets the limbus centre stray from the axis through the
-cloud's globe centre along its own normal, where both units see the eye (one unit's is not held):
-the fit takes the limbus on the globe's
-axis, which both units' cloud places to a few tenths of a millimetre at worst (measured:
+cloud's globe centre along its own normal, where both units see the eye (one unit's is not
+held): the fit takes the limbus on the globe's axis, which both units' cloud places to a few
+tenths of a millimetre at worst (measured:
 docs/notes/patient-eye.md, twenty-third session). A real limbus may lie off it; the fit does not
 model that yet (the twenty-fourth session's notes)."""
 
